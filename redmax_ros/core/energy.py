@@ -1,0 +1,26 @@
+"""Energy diagnostics [J]: kinetic (incl. armature), gravitational, spring (maximal + joint)."""
+from __future__ import annotations
+
+import numpy as np
+import pinocchio as pin
+
+from .forces import joint_displacement
+from .kinematics import site_positions
+
+
+def energies(mech, data, q, v_r):
+    """(E_kin, E_pot, E_spring) at (q, v_r). Leaves forward kinematics of q in data."""
+    ek = pin.computeKineticEnergy(mech.model, data, q, v_r)  # also runs forward kinematics
+    if mech.has_armature:
+        ek += 0.5 * float(mech.armature @ (v_r * v_r))
+    ep = pin.computePotentialEnergy(mech.model, data)
+    es = 0.0
+    if len(mech.spring_ab):
+        X = site_positions(mech, data, mech.jac_sites)
+        d = X[mech.spring_rows[:, 0]] - X[mech.spring_rows[:, 1]]
+        l = np.sqrt(np.einsum("pi,pi->p", d, d))
+        es += 0.5 * float(mech.spring_k @ (l - mech.spring_rest) ** 2)
+    if mech.has_stiffness:
+        dq = joint_displacement(mech, q)
+        es += 0.5 * float(mech.stiffness @ (dq * dq))
+    return float(ek), float(ep), es

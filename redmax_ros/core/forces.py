@@ -1,0 +1,96 @@
+"""Force stage: the LHS matrix and RHS vector of Eq. (2) in reduced coordinates.
+
+    (J^T (M_m + h D_m + h^2 K_m) J + h D_r + h^2 K_r) qdot^(k+1)
+        = J^T M_m J qdot^(k) + h (f_r + J^T (f_m - M_m Jdot qdot^(k)))          (Eq. 2)
+
+with stiffness written positive here (K = -df/dx). Terms and where they come from:
+  * J^T M_m J + armature: Pinocchio CRBA (kinematics.Kinematics.M).
+  * J^T (f_m^{coriolis, gravity} - M_m Jdot qdot): -nle (RNEA at zero acceleration).
+  * reduced implicit joint springs/dampers K_r, D_r (Sueda's notes §2.6, joint stiffness/damping).
+  * maximal implicit point-to-point springs/dampers between sites, projected through the point
+    Jacobians (Eq. S2.4), with the full 3x3 spring stiffness including the change of spring direction.
+  * body damping D_m = c diag(m I3, I_com) per body (maximal, implicit).
+  * explicit joint torques (reduced) and constant world wrenches (maximal).
+Hyper-reduced coordinates (Eq. 9-10) project the result with T = J_rR: T^T A T, T^T b.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import pinocchio as pin
+
+from .kinematics import Kinematics, frame_jacobian
+
+
+@dataclass
+class LinearSystem:
+    A: np.ndarray  # (n,n) LHS of Eq. (2), symmetric positive definite
+    b: np.ndarray  # (n,) RHS of Eq. (2)
+
+
+def spring_terms(mech, X: np.ndarray, J: np.ndarray):
+    """Per spring: force on end a (P,3), 3x3 stiffness K (P,3,3), 3x3 damping D (P,3,3), Jacobian of
+    the end difference (P,3,nv), lengths (P,). X, J: Kinematics.X/J (rows in mech.spring_rows).
+
+    f_a = -k (l - L0) u,  K = k [u u^T + max(0, 1 - L0/l) (I - u u^T)],  D = c u u^T.
+    The transverse (geometric) term is clamped at zero for compressed springs so that the LHS of
+    Eq. (2) stays positive definite (a compressed spring's negative transverse stiffness would
+    otherwise make the linear system indefinite).
+    """
+    a, b = mech.spring_rows[:, 0], mech.spring_rows[:, 1]
+    d = X[a] - X[b]
+    l = np.sqrt(np.einsum("pi,pi->p", d, d))
+    tiny = l <= 1e-12
+    safe = np.where(tiny, 1.0, l)
+    u = d / safe[:, None]
+    k, c, L0 = mech.spring_k, mech.spring_d, mech.spring_rest
+    f = -(k * (l - L0))[:, None] * u
+    uu = u[:, :, None] * u[:, None, :]
+    trans = np.where(tiny, 1.0, np.maximum(1.0 - L0 / safe, 0.0))
+    K = k[:, None, None] * (uu + trans[:, None, None] * (_I3 - uu))
+    D = c[:, None, None] * uu
+    return f, K, D, J[a] - J[b], l
+
+
+_I3 = np.eye(3)[None]
+
+
+def joint_displacement(mech, q: np.ndarray) -> np.ndarray:
+    """q - q_rest on the configuration manifold (pin.difference), per velocity DOF."""
+    return pin.difference(mech.model, mech.q_rest, q)
+
+
+def assemble(mech, data, kin: Kinematics, q, v_r, tau, h, site_forces=None) -> LinearSystem:
+    """Eq. (2): returns (A, b) in hyper-reduced coordinates.
+
+    ``tau`` (nv,) explicit joint torques [N m]; ``site_forces`` {site index: (3,) world force [N]}
+    explicit maximal point forces (J_site^T f). Needs data from kinematics.compute.
+    """
+    M = kin.M
+    A = M + mech.reduced_diag(h)  # J^T M_m J + armature + h D_r + h^2 K_r
+    f = tau - kin.nle  # f_r + J^T (f_m - M_m Jdot qdot)
+    if mech.has_stiffness:
+        f -= mech.stiffness * joint_displacement(mech, q)
+    if len(mech.spring_ab):  # maximal implicit springs: J^T (h D_m + h^2 K_m) J, J^T f_m
+        fs, K, D, Jd, _ = spring_terms(mech, kin.X, kin.J)
+        P, nv = Jd.shape[0], Jd.shape[2]
+        W = np.matmul(h * D + (h * h) * K, Jd)
+        Jf = Jd.reshape(3 * P, nv)
+        A += Jf.T @ W.reshape(3 * P, nv)
+        f += Jf.T @ fs.reshape(3 * P)
+    for bi in mech.damped_bodies:  # body damping D_m = c diag(m I3, I_com), implicit
+        _, Jc, Jw, R = frame_jacobian(mech, data, mech.body_com_fid[bi])
+        Iw = R @ mech.body_inertia[bi] @ R.T
+        A += (h * mech.body_damping[bi]) * (mech.body_mass[bi] * Jc.T @ Jc + Jw.T @ Iw @ Jw)
+    for bi, fw in zip(mech.wrench_body, mech.wrench_fw):  # constant world wrenches at the COM
+        _, Jc, Jw, _ = frame_jacobian(mech, data, mech.body_com_fid[bi])
+        f += Jc.T @ fw[:3] + Jw.T @ fw[3:]
+    if site_forces:
+        for s, fv in site_forces.items():
+            f += kin.J[kin.row[s]].T @ fv
+    b = M @ v_r + h * f
+    T = mech.T
+    if T is not None:
+        return LinearSystem(T.T @ A @ T, T.T @ b)
+    return LinearSystem(A, b)

@@ -1,0 +1,71 @@
+"""Kinematics stage of a step: Pinocchio terms and site (point) positions and Jacobians.
+
+J_mr is never formed: J_mr^T M_m J_mr is Pinocchio's CRBA (with armature) and
+J_mr^T (f_m - M_m Jdot_mr qdot) (Coriolis, centrifugal and gravity forces with the quadratic
+velocity vector of Eq. 1-2) is -nle (RNEA at zero acceleration). Sites are Pinocchio frames;
+their point Jacobians (Eq. S2.4, Sueda's notes §2.4) are the linear rows of Pinocchio's
+LOCAL_WORLD_ALIGNED frame Jacobian.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import pinocchio as pin
+
+LWA = pin.ReferenceFrame.LOCAL_WORLD_ALIGNED
+
+
+@dataclass
+class Kinematics:
+    M: np.ndarray  # (nv,nv) reduced mass matrix J^T M_m J + armature [kg m^2]
+    nle: np.ndarray  # (nv,) Coriolis + centrifugal + gravity generalized force [N m]
+    sites: list  # site indices whose rows are in X, J (static ones first, see Mechanism.jac_sites)
+    row: dict  # site index -> row in X, J
+    X: np.ndarray  # (K,3) site positions, world frame [m]
+    J: np.ndarray  # (K,3,nv) site point Jacobians, world frame
+
+
+def site_positions(mech, data, idx=None) -> np.ndarray:
+    """World positions (K,3) of the sites in ``idx`` (default all). Needs forward kinematics in data."""
+    idx = range(len(mech.site_names)) if idx is None else idx
+    out = np.empty((len(idx), 3))
+    fids, model = mech.site_fid, mech.model
+    for k, i in enumerate(idx):
+        fid = fids[i]
+        out[k] = mech.site_local[i] if fid < 0 else pin.updateFramePlacement(model, data, fid).translation
+    return out
+
+
+def site_jacobians(mech, data, sites):
+    """(X (K,3), J (K,3,nv)) for the listed sites. Needs joint Jacobians in data (computeJointJacobians)."""
+    model, nv = mech.model, mech.nv
+    X = np.empty((len(sites), 3))
+    J = np.zeros((len(sites), 3, nv))
+    for k, s in enumerate(sites):
+        fid = mech.site_fid[s]
+        if fid < 0:
+            X[k] = mech.site_local[s]
+        else:
+            J[k] = pin.getFrameJacobian(model, data, fid, LWA).reshape(6, nv)[:3]
+            X[k] = data.oMf[fid].translation
+    return X, J
+
+
+def compute(mech, data, q, v, extra_sites=()) -> Kinematics:
+    """All quantities of the current configuration the step needs (one Pinocchio pass + frames)."""
+    nv = mech.nv
+    pin.computeAllTerms(mech.model, data, q, v)
+    sites = mech.jac_sites
+    if extra_sites:
+        sites = sites + [s for s in extra_sites if s not in mech.jac_row]
+    X, J = site_jacobians(mech, data, sites)
+    row = mech.jac_row if len(sites) == len(mech.jac_sites) else {s: k for k, s in enumerate(sites)}
+    return Kinematics(M=data.M.reshape(nv, nv), nle=data.nle.reshape(nv), sites=sites, row=row, X=X, J=J)
+
+
+def frame_jacobian(mech, data, fid):
+    """(position (3,), linear Jacobian (3,nv), angular Jacobian (3,nv), rotation (3,3)) of a frame."""
+    Jf = pin.getFrameJacobian(mech.model, data, fid, LWA).reshape(6, mech.nv)
+    M = data.oMf[fid]
+    return M.translation, Jf[:3], Jf[3:], M.rotation

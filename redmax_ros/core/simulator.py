@@ -1,0 +1,217 @@
+"""Simulator: the stateful facade used by the runner, the node and the benchmarks.
+
+It owns a Mechanism (constant), a pin.Data workspace, the current State and the current Commands,
+and validates every command before changing anything (CommandError). Stepping goes through the
+pure function stepper.step; the state is replaced only when a step succeeds.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .errors import CommandError, StepError
+from .mechanism import Mechanism, compile_scene
+from .scene import SceneSpec, load_scene
+from .stepper import Commands, State, StepResult, step
+
+
+@dataclass
+class Coupling:
+    name: str
+    joints: list
+    ratios: list
+
+
+@dataclass
+class SceneDescription:
+    name: str
+    nq: int
+    nv: int
+    ndof: int
+    bodies: list
+    joint_names: list
+    joint_types: list
+    joint_nq: list
+    joint_nv: list
+    position_names: list
+    velocity_names: list
+    sites: list
+    site_bodies: list
+    prescribable_joints: list
+    prescribable_sites: list
+    couplings: list
+    loops: list
+    springs: list
+    dt: float
+
+
+class Simulator:
+    def __init__(self, spec: SceneSpec):
+        self.spec = spec
+        self.mech: Mechanism = compile_scene(spec)
+        self.data = self.mech.model.createData()
+        self.dt = float(spec.dt)
+        self.reset()
+
+    @classmethod
+    def load(cls, name_or_path: str, overrides=()) -> "Simulator":
+        """Load a scene by name (scenes/) or path; ``overrides``: ["key=value", ...]. Raises SceneError."""
+        return cls(load_scene(name_or_path, overrides))
+
+    # -- state
+    @property
+    def scene_name(self) -> str:
+        return self.spec.name
+
+    @property
+    def time(self) -> float:
+        return self.state.t
+
+    def reset(self) -> None:
+        """Initial state, t = 0, the scene's default prescriptions, no applied torques or forces."""
+        m = self.mech
+        self.state = State(0.0, m.q0.copy(), m.v0.copy())
+        self.commands = Commands(
+            joint_velocities={k: np.array(v, float) for k, v in self.spec.prescribed_joints.items()},
+            site_velocities={k: np.array(v, float) for k, v in self.spec.prescribed_sites.items()},
+            joint_torques=np.zeros(m.nv),
+        )
+        self.last: StepResult | None = None
+
+    def set_state(self, state: State) -> None:
+        self.state = state
+
+    def joint_positions(self) -> np.ndarray:
+        return self.state.q.copy()
+
+    def joint_velocities(self) -> np.ndarray:
+        return self.mech.to_reduced(self.state.v).copy()
+
+    # -- commands
+    def _joint_vector(self, name, value, allowed=None, what="joint"):
+        m = self.mech
+        if name not in m.joint_index:
+            raise CommandError(f"unknown joint '{name}' (known: {', '.join(m.joint_index)})")
+        if allowed is not None and name not in allowed:
+            raise CommandError(f"joint '{name}' is not prescribable in scene '{self.scene_name}' "
+                               f"(prescribable: {', '.join(allowed)})")
+        nv = m.joint_index[name].nv
+        arr = np.atleast_1d(np.asarray(value, dtype=float))
+        if arr.shape != (nv,):
+            raise CommandError(f"{what} '{name}' needs {nv} value(s), got {arr.size}")
+        if not np.all(np.isfinite(arr)):
+            raise CommandError(f"{what} '{name}': non-finite value {arr.tolist()}")
+        return arr
+
+    def _site_vector(self, name, value, allowed=None, what="site"):
+        m = self.mech
+        if name not in m.site_index:
+            raise CommandError(f"unknown site '{name}' (known: {', '.join(m.site_names)})")
+        if allowed is not None and name not in allowed:
+            raise CommandError(f"site '{name}' is not prescribable in scene '{self.scene_name}' "
+                               f"(prescribable: {', '.join(allowed)})")
+        arr = np.asarray(value, dtype=float).reshape(-1)
+        if arr.shape != (3,):
+            raise CommandError(f"{what} '{name}' needs 3 values, got {arr.size}")
+        if not np.all(np.isfinite(arr)):
+            raise CommandError(f"{what} '{name}': non-finite value {arr.tolist()}")
+        return arr
+
+    def prescribe_joints(self, velocities: dict) -> None:
+        """Prescribe joint velocities [rad/s or m/s] (Eq. 7, *G_r). All-or-nothing."""
+        new = {n: self._joint_vector(n, v, self.mech.prescribable_joints, "prescribed velocity of joint")
+               for n, v in velocities.items()}
+        self.commands.joint_velocities.update(new)
+
+    def release_joints(self, names) -> None:
+        for n in names:
+            if n not in self.mech.joint_index:
+                raise CommandError(f"unknown joint '{n}'")
+        for n in names:
+            self.commands.joint_velocities.pop(n, None)
+
+    def prescribe_sites(self, velocities: dict) -> None:
+        """Prescribe site (point) velocities, world frame [m/s] (Eq. 7, *G_m = point Jacobian)."""
+        new = {n: self._site_vector(n, v, self.mech.prescribable_sites, "prescribed velocity of site")
+               for n, v in velocities.items()}
+        self.commands.site_velocities.update(new)
+
+    def release_sites(self, names) -> None:
+        for n in names:
+            if n not in self.mech.site_index:
+                raise CommandError(f"unknown site '{n}'")
+        for n in names:
+            self.commands.site_velocities.pop(n, None)
+
+    def set_joint_torques(self, torques: dict) -> None:
+        """Explicit applied joint torques [N m or N], held until changed."""
+        new = {n: self._joint_vector(n, v, None, "torque of joint") for n, v in torques.items()}
+        tau = self.commands.joint_torques.copy()
+        for n, v in new.items():
+            j = self.mech.joint_index[n]
+            tau[j.idx_v:j.idx_v + j.nv] = v
+        self.commands.joint_torques = tau
+
+    def set_site_forces(self, forces: dict) -> None:
+        """Explicit world-frame forces [N] at sites, held until changed (empty dict clears)."""
+        new = {n: self._site_vector(n, f, None, "force on site") for n, f in forces.items()}
+        self.commands.site_forces = new
+
+    def prescribed_joints(self) -> dict:
+        return {k: v.copy() for k, v in self.commands.joint_velocities.items()}
+
+    def prescribed_sites(self) -> dict:
+        return {k: v.copy() for k, v in self.commands.site_velocities.items()}
+
+    # -- stepping
+    def step(self, n: int = 1) -> StepResult:
+        """Advance n steps; returns the last StepResult. On StepError the state is that after the last
+        successful step (``err.steps_done`` of them); the failing step changed nothing."""
+        if int(n) != n or n < 1:
+            raise CommandError(f"step count must be a positive integer, got {n}")
+        res = None
+        for i in range(int(n)):
+            try:
+                self.state, res = step(self.mech, self.data, self.state, self.commands, self.dt)
+            except StepError as e:
+                raise StepError(f"step at t = {self.state.t:.6g} s failed: {e.reason}", steps_done=i) from None
+            self.last = res
+        return res
+
+    # -- description and geometry for markers
+    def describe(self) -> SceneDescription:
+        m = self.mech
+        site_bodies = [s.body for s in self.spec.sites]
+        return SceneDescription(
+            name=self.scene_name, nq=m.nq, nv=m.nv, ndof=m.ndof, bodies=list(m.bodies),
+            joint_names=[j.name for j in m.joints], joint_types=[j.type for j in m.joints],
+            joint_nq=[j.nq for j in m.joints], joint_nv=[j.nv for j in m.joints],
+            position_names=m.position_names(), velocity_names=m.velocity_names(),
+            sites=list(m.site_names), site_bodies=site_bodies,
+            prescribable_joints=list(m.prescribable_joints), prescribable_sites=list(m.prescribable_sites),
+            couplings=[Coupling(c.name, list(c.joints), c.ratios.tolist()) for c in self.spec.couplings],
+            loops=list(m.loop_names), springs=list(m.spring_names), dt=self.dt,
+        )
+
+    def body_poses(self) -> dict:
+        """Body frames in the world: name -> (position (3,) [m], quaternion xyzw (4,))."""
+        import pinocchio as pin
+        m = self.mech
+        data = m.model.createData()
+        pin.forwardKinematics(m.model, data, self.state.q)
+        out = {}
+        for name, jid, M in zip(m.bodies, m.body_jid, m.body_placement):
+            W = data.oMi[int(jid)] * M
+            out[name] = (W.translation.copy(), pin.Quaternion(W.rotation).coeffs().copy())
+        return out
+
+    def spring_segments(self) -> list:
+        """(spring name, end a (3,), end b (3,)) world frame [m]."""
+        import pinocchio as pin
+        from .kinematics import site_positions
+        m = self.mech
+        data = m.model.createData()
+        pin.forwardKinematics(m.model, data, self.state.q)
+        x = site_positions(m, data)
+        return [(n, x[a].copy(), x[b].copy()) for n, (a, b) in zip(m.spring_names, m.spring_ab)]

@@ -1,0 +1,98 @@
+"""Direct solver for one step: dense Cholesky of the LHS of Eq. (2), bilateral constraints by the
+Schur complement of the KKT system (Eq. 6/7), unilateral joint limits by the QP of Eq. (5)
+(ProxSuite). Sign convention: A qdot = b - G^T lam - C^T mu, so -G^T lam is the constraint impulse.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import math
+
+import eigenpy
+import numpy as np
+import proxsuite
+
+from .constraints import Constraints
+from .errors import StepError
+from .forces import LinearSystem
+
+_SUCCESS = eigenpy.ComputationInfo.Success
+
+
+@dataclass
+class Solution:
+    v: np.ndarray  # new (hyper-reduced) velocity
+    lam: np.ndarray  # multipliers of the bilateral rows
+    mu: np.ndarray  # multipliers of the unilateral rows (zero when inactive)
+    residual: float  # relative residual of the KKT stationarity equation
+    iterations: int  # 1 for a direct solve, QP iterations otherwise
+    solver: str
+
+
+def _cholesky(A, what):
+    llt = eigenpy.LLT(A)
+    if llt.info() != _SUCCESS:
+        raise StepError(f"{what} is not positive definite (Cholesky failed)")
+    return llt
+
+
+def solve_direct(sys: LinearSystem, cons: Constraints, qp_eps: float = 1e-10) -> Solution:
+    A, b = sys.A, sys.b
+    llt = _cholesky(A, "the LHS matrix of Eq. (2)")
+    n = len(b)
+    v = np.asarray(llt.solve(b)).reshape(n)  # eigenpy may return (1,1) / 1-D shapes for n == 1
+    lam = np.zeros(cons.m)
+    if cons.m:
+        Y = np.asarray(llt.solve(np.ascontiguousarray(cons.G.T))).reshape(n, cons.m)
+        S = cons.G @ Y
+        lls = eigenpy.LLT(S)
+        Ld = np.abs(np.diag(lls.matrixL())) if lls.info() == _SUCCESS else np.zeros(1)
+        if Ld.min() <= 1e-6 * Ld.max():  # singular or nearly so: name the rows
+            _check_rank(S, cons.labels)
+        lam = np.asarray(lls.solve(cons.G @ v - cons.g)).reshape(cons.m)
+        v = v - Y @ lam
+    mu = np.zeros(0 if cons.C is None else len(cons.lo))
+    solver, iters = "direct", 1
+    if cons.C is not None:
+        Cv = cons.C @ v
+        if (Cv < cons.lo - 1e-12).any() or (Cv > cons.hi + 1e-12).any():
+            v, lam, mu, iters = _solve_qp(A, b, cons, qp_eps)
+            solver = "qp"
+    r = A @ v - b
+    if cons.m:
+        r += cons.G.T @ lam
+    if len(mu):
+        r += cons.C.T @ mu
+    residual = math.sqrt(float(r @ r) / max(float(b @ b), 1e-300))
+    return Solution(v, lam, mu, residual, iters, solver)
+
+
+def _check_rank(S, labels):
+    """Redundant or conflicting bilateral rows make the Schur complement singular: name them."""
+    d = np.sqrt(np.abs(np.diag(S)))
+    if np.any(d == 0):
+        i = int(np.argmin(d))
+        raise StepError(f"constraint row of {labels[i]} does not act on any DOF (impossible constraint)")
+    Sn = S / d[:, None] / d[None, :]
+    w, V = np.linalg.eigh(Sn)
+    if w[0] < 1e-12:
+        involved = sorted({labels[i] for i in np.flatnonzero(np.abs(V[:, 0]) > 1e-3)})
+        raise StepError("constraints are redundant or conflicting (over-constrained mechanism): "
+                        + ", ".join(involved))
+
+
+def _solve_qp(A, b, cons, eps):
+    n, m, p = A.shape[0], cons.m, len(cons.lo)
+    qp = proxsuite.proxqp.dense.QP(n, m, p)
+    qp.settings.eps_abs = eps
+    qp.settings.eps_rel = 0.0
+    qp.settings.verbose = False
+    qp.init(A, -b, cons.G if m else None, cons.g if m else None, cons.C, cons.lo, cons.hi)
+    qp.solve()
+    status = qp.results.info.status
+    if status != proxsuite.proxqp.QPSolverOutput.PROXQP_SOLVED:
+        raise StepError(f"joint-limit QP (Eq. 5) failed: {status.name} (limits conflict with prescriptions?)")
+    x = np.array(qp.results.x)
+    if not np.all(np.isfinite(x)):
+        raise StepError("joint-limit QP (Eq. 5) returned non-finite velocities")
+    return x, np.array(qp.results.y), np.array(qp.results.z), int(qp.results.info.iter)

@@ -1,0 +1,145 @@
+"""One RedMax step as a pure function of (mechanism, state, commands, h) -> (new state, result).
+
+Stages (each a small module, in the spirit of Brax/MJX pipelines):
+  1. kinematics.compute   Pinocchio CRBA/RNEA/Jacobians, site positions and point Jacobians
+  2. forces.assemble      LHS/RHS of Eq. (2) (implicit/explicit, reduced/maximal), T-projected (Eq. 9-10)
+  3. constraints.build    bilateral rows (loops, Eq. 7 prescriptions) and joint limits (Eq. 5)
+  4. solve.solve_direct   Cholesky / KKT Schur complement / ProxSuite QP
+  5. configuration update on the manifold, q+ = integrate(q, h qdot+), loop post-stabilization
+  6. outputs              required torques *f_r = *G_r^T lam / h and point forces (Eq. 7), energies
+
+The pin.Data passed in is a workspace only; the returned State is new, the input is never modified,
+so a StepError leaves the caller's state exactly as it was.
+"""
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+import pinocchio as pin
+
+from . import constraints, forces, kinematics, stabilization
+from .energy import energies
+from .errors import StepError
+from .solve import solve_direct
+
+MAX_SPEED = 1e6  # |qdot| above this (rad/s or m/s) is reported as divergence
+
+
+@dataclass(frozen=True)
+class State:
+    t: float  # s
+    q: np.ndarray  # (nq,) Pinocchio configuration
+    v: np.ndarray  # (ndof,) hyper-reduced velocity qdot_R (= qdot_r without couplings)
+
+
+@dataclass
+class Commands:
+    joint_velocities: dict = field(default_factory=dict)  # prescribed joint -> (nv_j,) [rad/s, m/s]
+    site_velocities: dict = field(default_factory=dict)  # prescribed site -> (3,) world [m/s]
+    joint_torques: np.ndarray | None = None  # (nv,) explicit applied joint torques [N m, N]
+    site_forces: dict = field(default_factory=dict)  # site -> (3,) explicit world force [N]
+
+
+@dataclass
+class Diagnostics:
+    E_kin: float  # J
+    E_pot: float  # J (gravity)
+    E_spring: float  # J (maximal springs + joint springs)
+    E_total: float
+    violation_pos: float  # max loop-closure residual after the step [m]
+    violation_vel: float  # max |G qdot - g| of the bilateral rows
+    residual: float  # relative KKT residual of the solve
+    iterations: int
+    solver: str
+    wall_time: float  # s
+
+
+@dataclass
+class StepResult:
+    t: float
+    q: np.ndarray  # (nq,)
+    v: np.ndarray  # (nv,) reduced velocities
+    effort: np.ndarray  # (nv,) applied torque + required torque of prescribed DOFs [N m, N]
+    site_forces: dict  # prescribed site -> required force (3,) world frame [N]
+    diagnostics: Diagnostics
+
+
+def _finite(name, x):
+    if not np.all(np.isfinite(x)):
+        raise StepError(f"non-finite {name}")
+
+
+def _check_inputs(state, tau, cmd):
+    """Name the first non-finite input (slow path, only after the cheap check failed)."""
+    _finite("configuration q", state.q)
+    _finite("velocity", state.v)
+    _finite("joint torques", tau)
+    for name, v in cmd.joint_velocities.items():
+        _finite(f"prescribed velocity of joint '{name}'", v)
+    for name, v in cmd.site_velocities.items():
+        _finite(f"prescribed velocity of site '{name}'", v)
+    for n, f in cmd.site_forces.items():
+        _finite(f"force on site '{n}'", f)
+
+
+def step(mech, data, state: State, cmd: Commands, h: float) -> tuple:
+    """Advance one step of Eq. (2). Returns (State, StepResult); raises StepError on failure."""
+    t0 = time.perf_counter()
+    if not (h > 0 and math.isfinite(h)):
+        raise StepError(f"time step must be positive and finite, got {h}")
+    tau = mech.torque0 if cmd.joint_torques is None else mech.torque0 + cmd.joint_torques
+    if not math.isfinite(state.q.sum() + state.v.sum() + tau.sum()):
+        _check_inputs(state, tau, cmd)
+    psites = cmd.site_velocities
+    sf = {mech.site_index[n]: f for n, f in cmd.site_forces.items()} if cmd.site_forces else None
+    extra = [mech.site_index[n] for n in psites] + (list(sf) if sf else [])
+
+    v_r = mech.to_reduced(state.v)
+    kin = kinematics.compute(mech, data, state.q, v_r, extra)  # 1
+    system = forces.assemble(mech, data, kin, state.q, v_r, tau, h, sf)  # 2
+    cons = constraints.build(mech, kin, state.q, cmd.joint_velocities, psites, h)  # 3
+    if cons.m and not math.isfinite(cons.g.sum()):
+        _check_inputs(state, tau, cmd)
+    sol = solve_direct(system, cons)  # 4
+    vmax = float(np.abs(sol.v).max()) if len(sol.v) else 0.0
+    if not vmax <= MAX_SPEED:  # also catches NaN
+        raise StepError(f"step diverged: max |qdot| = {vmax:.3g} (limit {MAX_SPEED:g})")
+
+    v_new = mech.to_reduced(sol.v)  # 5
+    q_new = pin.integrate(mech.model, state.q, h * v_new)
+    if len(mech.loop_ab):
+        q_new, _ = stabilization.project(mech, data, q_new, _held_dofs(mech, cmd.joint_velocities))
+        if not math.isfinite(q_new.sum()):
+            raise StepError("non-finite configuration after loop stabilization")
+
+    effort = tau.copy()  # 6: *f_r = *G_r^T lam / h (Eq. 7), sign: A qdot = b - G^T lam
+    for name, sl in cons.joint_rows.items():
+        j = mech.joint_index[name]
+        effort[j.idx_v:j.idx_v + j.nv] -= sol.lam[sl] / h
+    site_forces = {name: -sol.lam[sl] / h for name, sl in cons.site_rows.items()}
+    ek, ep, es = energies(mech, data, q_new, v_new)
+    viol_pos = stabilization.loop_violation(mech, data)
+    viol_vel = float(np.abs(cons.G @ sol.v - cons.g).max()) if cons.m else 0.0
+    if not math.isfinite(ek + ep + es):
+        raise StepError("non-finite energy after the step")
+    diag = Diagnostics(ek, ep, es, ek + ep + es, viol_pos, viol_vel, sol.residual, sol.iterations, sol.solver,
+                       time.perf_counter() - t0)
+    new = State(state.t + h, q_new, sol.v)
+    return new, StepResult(new.t, q_new, v_new, effort, site_forces, diag)
+
+
+def _held_dofs(mech, prescribed_joints):
+    if not prescribed_joints:
+        return ()
+    held = set()
+    for name in prescribed_joints:
+        j = mech.joint_index[name]
+        for d in range(j.idx_v, j.idx_v + j.nv):
+            if mech.T is None:
+                held.add(d)
+            else:
+                held.update(np.flatnonzero(mech.T[d]).tolist())
+    return sorted(held)
