@@ -1,0 +1,1 @@
+"""The ROS 2 node (rclpy): main.py (node), engine.py (simulation thread), convert.py, pacing.py."""

@@ -1,0 +1,447 @@
+"""The simulation thread: owns the core Simulator, orders commands and requests, paces free-run.
+
+No ROS here. Everything that touches the Simulator runs on one thread, in the order requests
+were handed in (a FIFO job queue), so
+
+* a command received before a step request is applied in that step;
+* the state handed to the sink after step k is exactly the core's StepResult of step k;
+* in lockstep the same sequence of commands and step requests gives bitwise-identical states.
+
+Jobs that arrive while a multi-step request runs wait until it finishes (they are applied at a
+deterministic step). The node (``main.py``) translates ROS messages into calls on this class and
+implements the ``sink`` that publishes and logs what the engine produces.
+
+Simulation states follow ROS 2 ``simulation_interfaces``: STOPPED (paused and reset), PLAYING
+(free-run paced at ``real_time_factor``, 0 = as fast as possible), PAUSED (steps only on request).
+"""
+from __future__ import annotations
+
+import collections
+import threading
+import time
+from concurrent.futures import Future
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from redmax_ros.core import CommandError, SceneError, Simulator, StepError
+from redmax_ros.core.stepper import State
+
+from .convert import CommandRejected, SceneInfo, joint_command, point_command
+from .pacing import Pacer, RateMeter, decimation
+
+# simulation_interfaces/msg/Result codes
+FEATURE_UNSUPPORTED, OK, NOT_FOUND, INCORRECT_STATE, OPERATION_FAILED = 0, 1, 2, 3, 4
+# SetSimulationState extended codes
+ALREADY_IN_TARGET_STATE, STATE_TRANSITION_ERROR, INCORRECT_TRANSITION = 101, 102, 103
+# LoadScene extended code
+INVALID_SCENE = 101
+# simulation_interfaces/msg/SimulationState
+STOPPED, PLAYING, PAUSED, QUITTING = 0, 1, 2, 3
+STATE_NAMES = {STOPPED: "stopped", PLAYING: "playing", PAUSED: "paused", QUITTING: "quitting"}
+# ResetSimulation scopes
+SCOPE_DEFAULT, SCOPE_TIME, SCOPE_STATE, SCOPE_SPAWNED, SCOPE_ALL = 0, 1, 2, 4, 255
+
+
+@dataclass
+class Outcome:
+    code: int = OK
+    message: str = ""
+    steps: int = 0
+    t: float = 0.0
+    extra: dict = field(default_factory=dict)
+
+    @property
+    def ok(self):
+        return self.code == OK
+
+
+class NullSink:
+    """What the engine reports to; the node overrides every method."""
+
+    def scene_loaded(self, info: SceneInfo): ...
+    def state(self, t, q, v, effort, site_forces, diag, step_index): ...
+    def markers(self, t, poses, springs): ...
+    def diagnostics(self, values: dict, ok: bool, message: str): ...
+    def sim_state(self, state: int): ...
+    def prescriptions(self, t, joints: dict, sites: dict): ...
+    def command_error(self, text: str): ...
+    def warn(self, text: str): ...
+    def quit(self): ...
+
+
+class Engine:
+    def __init__(self, sink, scene="hand", overrides=(), *, initial_state=PLAYING, real_time_factor=1.0,
+                 publish_rate=0.0, marker_rate=0.0, command_timeout=0.0, diagnostics_period=1.0,
+                 max_steps_per_request=1_000_000, publish_solver_stats=True):
+        self.sink = sink
+        self.base_overrides = list(overrides)
+        self.rtf = float(real_time_factor)
+        self.publish_rate = float(publish_rate)
+        self.marker_rate = float(marker_rate)
+        self.command_timeout = float(command_timeout)
+        self.diagnostics_period = float(diagnostics_period)
+        self.max_steps_per_request = int(max_steps_per_request)
+        self.state = initial_state
+        self.sim = self._load(scene, [])  # raises SceneError: the node refuses to start
+        self._jobs = collections.deque()
+        self._cv = threading.Condition()
+        self._running = False
+        self._thread = None
+        self.pacer = Pacer(self.rtf)
+        self.meter = RateMeter()
+        self.last_diag = None
+        self.failures = 0
+        self.command_errors = 0
+        self._adopt(self.sim)
+
+    # ------------------------------------------------------------------ thread and job queue
+    def start(self):
+        self._running = True
+        self.pacer.anchor(self.sim.time)
+        self.meter.reset(self.sim.time)
+        self._thread = threading.Thread(target=self._loop, name="redmax-sim", daemon=True)
+        self._thread.start()
+
+    def stop(self, timeout=10.0):
+        with self._cv:
+            self._running = False
+            self._cv.notify_all()
+        if self._thread is not None:
+            self._thread.join(timeout)
+
+    def submit(self, fn, *args) -> Future:
+        """Run ``fn(*args)`` on the simulation thread after everything submitted before it."""
+        fut = Future()
+        with self._cv:
+            if not self._running:
+                fut.set_exception(RuntimeError("the simulation thread is not running"))
+                return fut
+            self._jobs.append((fut, fn, args))
+            self._cv.notify()
+        return fut
+
+    def call(self, fn, *args, timeout=None):
+        return self.submit(fn, *args).result(timeout)
+
+    def _loop(self):
+        next_diag = time.monotonic() + self.diagnostics_period
+        while True:
+            job, step_due = None, False
+            with self._cv:
+                while self._running and not self._jobs:
+                    if self.state == PLAYING:
+                        wait = self.pacer.wait_time(self.sim.time + self.sim.dt)
+                        if wait <= 0:
+                            step_due = True
+                            break
+                    else:
+                        wait = next_diag - time.monotonic()
+                        if wait <= 0:
+                            break
+                    self._cv.wait(min(wait, max(0.0, next_diag - time.monotonic()) + 1e-4))
+                    if time.monotonic() >= next_diag:
+                        break
+                if not self._running:
+                    break
+                if self._jobs:
+                    job = self._jobs.popleft()
+            if job is not None:
+                fut, fn, args = job
+                if fut.set_running_or_notify_cancel():
+                    try:
+                        fut.set_result(fn(*args))
+                    except BaseException as e:  # reported to the caller; the thread lives on
+                        fut.set_exception(e)
+            elif step_due and self.state == PLAYING:
+                try:
+                    out = self._advance(1, lockstep=False)
+                except Exception as e:  # a sink failure must not kill the simulation thread
+                    out = Outcome(OPERATION_FAILED, f"{type(e).__name__}: {e}")
+                if not out.ok:
+                    self.state = PAUSED
+                    self.sink.sim_state(self.state)
+                    self.sink.warn(f"free-run stopped, simulation paused: {out.message}")
+            now = time.monotonic()
+            if now >= next_diag:
+                next_diag = now + self.diagnostics_period
+                try:
+                    self._report()
+                except Exception as e:  # diagnostics must never stop the simulation
+                    self.sink.warn(f"diagnostics failed: {type(e).__name__}: {e}")
+        # drain: fail whatever is still queued so no caller waits forever
+        with self._cv:
+            jobs, self._jobs = list(self._jobs), collections.deque()
+        for fut, _, _ in jobs:
+            if fut.set_running_or_notify_cancel():
+                fut.set_exception(RuntimeError("the simulation thread stopped"))
+
+    # ------------------------------------------------------------------ scene
+    def _load(self, scene, overrides):
+        return Simulator.load(scene, overrides=self.base_overrides + list(overrides))
+
+    def _adopt(self, sim):
+        self.sim = sim
+        self.info = SceneInfo(sim.describe(), getattr(getattr(sim, "spec", None), "solver", ""))
+        self.step_index = 0
+        self.cmd_times = {}  # ("joint"|"torque"|"site", name) -> sim time of the command
+        self.publish_every = decimation(self.publish_rate, sim.dt)
+        self.marker_every = decimation(self.marker_rate, sim.dt) if self.marker_rate > 0 else 0
+        if hasattr(self, "pacer"):
+            self.pacer.anchor(sim.time)
+        self.sink.scene_loaded(self.info)
+
+    def publish_current(self):
+        """Hand the current (not stepped) state to the sink: after start, reset and load."""
+        s = self.sim
+        tau = getattr(getattr(s, "commands", None), "joint_torques", None)
+        effort = np.zeros(self.info.d.nv) if tau is None else np.asarray(tau, float)
+        self.sink.state(s.time, s.joint_positions(), s.joint_velocities(), effort, {}, None, self.step_index)
+        self._publish_prescriptions()
+        if self.marker_every:
+            self.sink.markers(s.time, s.body_poses(), s.spring_segments())
+
+    def _publish_prescriptions(self):
+        self.sink.prescriptions(self.sim.time, self.sim.prescribed_joints(), self.sim.prescribed_sites())
+
+    # ------------------------------------------------------------------ stepping
+    def _expire_commands(self):
+        if self.command_timeout <= 0 or not self.cmd_times:
+            return
+        t = self.sim.time
+        expired = [k for k, t0 in self.cmd_times.items() if t - t0 >= self.command_timeout - 1e-12]
+        if not expired:
+            return
+        for kind, name in expired:
+            del self.cmd_times[(kind, name)]
+            if kind == "joint":
+                self.sim.release_joints([name])
+            elif kind == "site":
+                self.sim.release_sites([name])
+            else:
+                self.sim.set_joint_torques({name: np.zeros(self.info.joint_nv[name])})
+        what = ", ".join(f"{k} '{n}'" for k, n in expired)
+        self.sink.warn(f"command timeout ({self.command_timeout:g} s sim time) at t = {t:.6g} s: "
+                       f"released {what} to passive dynamics")
+        self._publish_prescriptions()
+
+    def _advance(self, n, lockstep, feedback=None, cancelled=None) -> Outcome:
+        sim, sink = self.sim, self.sink
+        for i in range(n):
+            if cancelled is not None and cancelled():
+                return Outcome(OK, "canceled", steps=i, t=sim.time, extra={"canceled": True})
+            self._expire_commands()
+            try:
+                res = sim.step(1)
+            except StepError as e:
+                self.failures += 1
+                return Outcome(OPERATION_FAILED, f"step {i + 1} of {n} failed, state kept at t = {sim.time:.6g} s: "
+                               f"{e.reason if hasattr(e, 'reason') else e}", steps=i, t=sim.time)
+            self.step_index += 1
+            k = self.step_index
+            d = res.diagnostics
+            self.meter.add(d.iterations, d.wall_time)
+            self.last_diag = d
+            if k % self.publish_every == 0 or (lockstep and i == n - 1):
+                sink.state(res.t, res.q, res.v, res.effort, res.site_forces, d, k)
+            if self.marker_every and k % self.marker_every == 0:
+                sink.markers(res.t, sim.body_poses(), sim.spring_segments())
+            if feedback is not None:
+                feedback(i + 1, n, res.t)
+        return Outcome(OK, "", steps=n, t=sim.time)
+
+    def _report(self):
+        vals = self.meter.report(self.sim.time)
+        d = self.last_diag
+        vals.update({
+            "state": STATE_NAMES.get(self.state, "?"), "scene": self.info.name, "sim_time": self.sim.time,
+            "steps": self.step_index, "dt": self.sim.dt, "step_failures": self.failures,
+            "command_errors": self.command_errors,
+        })
+        if d is not None:
+            vals.update({"solver": d.solver, "solver_iterations": d.iterations, "residual": d.residual,
+                         "violation_pos": d.violation_pos, "violation_vel": d.violation_vel,
+                         "energy_total": d.E_total, "energy_kinetic": d.E_kin,
+                         "energy_potential": d.E_pot, "energy_spring": d.E_spring})
+        self.sink.diagnostics(vals, self.failures == 0, STATE_NAMES.get(self.state, "?"))
+
+    # ------------------------------------------------------------------ requests (any thread)
+    def joint_command(self, msg):
+        """sensor_msgs/JointState command; errors go to sink.command_error (nothing changes)."""
+        self.submit(self._joint_command, msg)
+
+    def point_command(self, msg):
+        self.submit(self._point_command, msg)
+
+    def step(self, n, feedback=None, cancelled=None, timeout=None) -> Outcome:
+        """Blocking: n steps while PAUSED, stays PAUSED."""
+        return self.call(self._step, int(n), feedback, cancelled, timeout=timeout)
+
+    def reset(self, scope=SCOPE_DEFAULT) -> Outcome:
+        return self.call(self._reset, int(scope))
+
+    def set_state(self, target) -> Outcome:
+        return self.call(self._set_state, int(target))
+
+    def load(self, scene, overrides=()) -> Outcome:
+        return self.call(self._load_scene, str(scene), list(overrides))
+
+    def release(self, joints=(), sites=()) -> Outcome:
+        return self.call(self._release, list(joints), list(sites))
+
+    def configure(self, **kw) -> Outcome:
+        return self.call(self._configure, kw)
+
+    # ------------------------------------------------------------------ job bodies (sim thread)
+    def _reject(self, text):
+        self.command_errors += 1
+        self.sink.command_error(text)
+
+    def _joint_command(self, msg):
+        try:
+            velocities, torques = joint_command(msg, self.info)
+            if velocities:
+                self.sim.prescribe_joints(velocities)
+            if torques:
+                self.sim.set_joint_torques(torques)
+        except (CommandRejected, CommandError) as e:
+            self._reject(str(e))
+            return False
+        t = self.sim.time
+        for j in velocities:
+            self.cmd_times[("joint", j)] = t
+        for j in torques:
+            self.cmd_times[("torque", j)] = t
+        self._publish_prescriptions()
+        return True
+
+    def _point_command(self, msg):
+        try:
+            sites = point_command(msg, self.info)
+            self.sim.prescribe_sites(sites)
+        except (CommandRejected, CommandError) as e:
+            self._reject(str(e))
+            return False
+        t = self.sim.time
+        for s in sites:
+            self.cmd_times[("site", s)] = t
+        self._publish_prescriptions()
+        return True
+
+    def _step(self, n, feedback, cancelled):
+        if self.state != PAUSED:
+            return Outcome(INCORRECT_STATE, f"stepping needs the simulation paused; it is "
+                           f"{STATE_NAMES.get(self.state)} (call set_simulation_state with PAUSED first)",
+                           t=self.sim.time)
+        if n < 1 or n > self.max_steps_per_request:
+            return Outcome(OPERATION_FAILED, f"steps must be in [1, {self.max_steps_per_request}] "
+                           f"(parameter max_steps_per_request), got {n}", t=self.sim.time)
+        return self._advance(n, lockstep=True, feedback=feedback, cancelled=cancelled)
+
+    def _reset(self, scope):
+        sim = self.sim
+        if scope in (SCOPE_DEFAULT, SCOPE_ALL):
+            sim.reset()
+            self.step_index = 0
+            self.cmd_times.clear()
+        elif scope & ~(SCOPE_TIME | SCOPE_STATE | SCOPE_SPAWNED):
+            return Outcome(FEATURE_UNSUPPORTED, f"unknown reset scope {scope} (use 0, 1, 2, 4 or 255)",
+                           t=sim.time)
+        else:
+            if scope & SCOPE_STATE:
+                t = sim.time
+                sim.reset()  # initial q, v, prescriptions and torques
+                sim.set_state(State(t, sim.state.q, sim.state.v))
+                self.cmd_times.clear()
+            if scope & SCOPE_TIME:
+                sim.set_state(State(0.0, sim.state.q, sim.state.v))
+                self.step_index = 0
+                self.cmd_times = {k: 0.0 for k in self.cmd_times}
+        self.pacer.anchor(sim.time)
+        self.meter.reset(sim.time)
+        self.publish_current()
+        return Outcome(OK, "", t=sim.time)
+
+    def _set_state(self, target):
+        cur = self.state
+        if target not in STATE_NAMES:
+            return Outcome(OPERATION_FAILED, f"unknown simulation state {target} (0 stopped, 1 playing, "
+                           "2 paused, 3 quitting)")
+        if cur == QUITTING:
+            return Outcome(INCORRECT_TRANSITION, "the node is quitting")
+        if target == cur:
+            return Outcome(ALREADY_IN_TARGET_STATE, f"already {STATE_NAMES[cur]}")
+        if target == STOPPED:
+            self._reset(SCOPE_ALL)
+        elif target == PLAYING:
+            self.pacer.anchor(self.sim.time)
+            self.meter.reset(self.sim.time)
+        self.state = target
+        self.sink.sim_state(target)
+        if target == QUITTING:
+            self.sink.quit()
+        return Outcome(OK, f"{STATE_NAMES[cur]} -> {STATE_NAMES[target]}")
+
+    def _load_scene(self, scene, overrides):
+        if not scene:
+            return Outcome(NOT_FOUND, "no scene given")
+        try:
+            sim = self._load(scene, overrides)
+        except SceneError as e:
+            code = NOT_FOUND if "no such scene" in str(e) else INVALID_SCENE
+            return Outcome(code, f"scene not loaded, '{self.info.name}' kept: {e}")
+        except Exception as e:  # anything else the core raises while building: keep the old scene
+            return Outcome(INVALID_SCENE, f"scene not loaded, '{self.info.name}' kept: "
+                           f"{type(e).__name__}: {e}")
+        self._adopt(sim)
+        self.meter.reset(sim.time)
+        self.last_diag = None
+        self.publish_current()
+        return Outcome(OK, f"loaded '{self.info.name}'")
+
+    def _release(self, joints, sites):
+        sim = self.sim
+        if not joints and not sites:
+            joints = list(sim.prescribed_joints()) + [n for k, n in self.cmd_times if k == "torque"]
+            sites = list(sim.prescribed_sites())
+        names = []
+        for j in joints:
+            if j in self.info.joint_nv:
+                names.append(j)
+            elif j in self.info.dof_index:
+                names.append(self.info.dof_index[j][0])
+            else:
+                return Outcome(NOT_FOUND, f"unknown joint '{j}' (known: {', '.join(self.info.joint_names)})")
+        for s in sites:
+            if s not in self.info.sites:
+                return Outcome(NOT_FOUND, f"unknown site '{s}' (known: {', '.join(self.info.sites)})")
+        names = list(dict.fromkeys(names))
+        sim.release_joints(names)
+        if names:
+            sim.set_joint_torques({j: np.zeros(self.info.joint_nv[j]) for j in names})
+        sim.release_sites(sites)
+        for j in names:
+            self.cmd_times.pop(("joint", j), None)
+            self.cmd_times.pop(("torque", j), None)
+        for s in sites:
+            self.cmd_times.pop(("site", s), None)
+        self._publish_prescriptions()
+        return Outcome(OK, "")
+
+    def _configure(self, kw):
+        if "real_time_factor" in kw:
+            self.rtf = float(kw["real_time_factor"])
+            self.pacer.set_rtf(self.rtf, self.sim.time)
+        if "publish_rate" in kw:
+            self.publish_rate = float(kw["publish_rate"])
+            self.publish_every = decimation(self.publish_rate, self.sim.dt)
+        if "marker_rate" in kw:
+            self.marker_rate = float(kw["marker_rate"])
+            self.marker_every = decimation(self.marker_rate, self.sim.dt) if self.marker_rate > 0 else 0
+        if "command_timeout" in kw:
+            self.command_timeout = float(kw["command_timeout"])
+        if "max_steps_per_request" in kw:
+            self.max_steps_per_request = int(kw["max_steps_per_request"])
+        if "diagnostics_period" in kw:
+            self.diagnostics_period = float(kw["diagnostics_period"])
+        return Outcome(OK, "")

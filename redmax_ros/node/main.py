@@ -1,0 +1,466 @@
+"""redmax_node: the RedMax simulator as a ROS 2 node (thin rclpy layer over node.engine.Engine).
+
+Run: ``redmax_node --ros-args --params-file config/hand.yaml`` (venv console script) or
+``ros2 run redmax_ros redmax_node --ros-args --params-file config/hand.yaml`` (apt ROS install).
+Topics, services, the action, parameters and QoS are documented in docs/node.md.
+
+Threads: an rclpy MultiThreadedExecutor runs subscriptions, services and the action; they hand
+work to the simulation thread (engine.py) in arrival order. The simulation thread publishes: each
+outgoing message is serialized once, published as bytes and the same bytes go to the MCAP logger
+(redmax_ros/logging/mcap_log.py), whose own thread writes the file.
+"""
+from __future__ import annotations
+
+import os
+import sys
+import threading
+import time
+
+import rclpy
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+from rcl_interfaces.msg import (FloatingPointRange, IntegerRange, ParameterDescriptor, ParameterType,
+                                SetParametersResult)
+from rclpy.action import ActionServer, CancelResponse, GoalResponse
+from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallbackGroup
+from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.serialization import deserialize_message, serialize_message
+from rosgraph_msgs.msg import Clock
+from sensor_msgs.msg import JointState
+from visualization_msgs.msg import MarkerArray
+
+from redmax_msgs.action import SimulateSteps
+from redmax_msgs.msg import PointForces, PointVelocityCommand, Result, SimulationState, SolverStats
+from redmax_msgs.srv import (DescribeScene, GetSimulationState, LoadScene, ReleaseCommands, ResetSimulation,
+                             SetSimulationState, StepSimulation)
+
+from redmax_ros.core import SceneError
+
+from . import engine as eng
+from .convert import StateMessages, description_msg, diagnostics_msg, markers_msg, point_prescriptions_msg
+from .convert import prescriptions_msg, time_msg
+
+# ------------------------------------------------------------------------------------------------
+# QoS per topic (documented in docs/node.md)
+
+QOS_STATE = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100, reliability=ReliabilityPolicy.RELIABLE,
+                       durability=DurabilityPolicy.VOLATILE)
+QOS_COMMAND = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10, reliability=ReliabilityPolicy.RELIABLE,
+                         durability=DurabilityPolicy.VOLATILE)
+QOS_CLOCK = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                       durability=DurabilityPolicy.VOLATILE)
+QOS_MARKERS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                         durability=DurabilityPolicy.VOLATILE)
+QOS_DIAGNOSTICS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10, reliability=ReliabilityPolicy.RELIABLE,
+                             durability=DurabilityPolicy.VOLATILE)
+QOS_LATCHED = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                         durability=DurabilityPolicy.TRANSIENT_LOCAL)
+
+MODES = ("free_run", "lockstep")
+SOLVERS = ("", "direct", "pcg", "auto")
+
+
+def _qos_dict(q: QoSProfile) -> dict:
+    return {
+        "history": "keep_last" if q.history == HistoryPolicy.KEEP_LAST else "keep_all",
+        "depth": q.depth,
+        "reliability": "reliable" if q.reliability == ReliabilityPolicy.RELIABLE else "best_effort",
+        "durability": "transient_local" if q.durability == DurabilityPolicy.TRANSIENT_LOCAL else "volatile",
+    }
+
+
+def _type_name(cls) -> str:
+    return f"{cls.__module__.split('.')[0]}/msg/{cls.__name__}"
+
+
+def _d(desc, lo=None, hi=None, read_only=False, integer=False, type_=None, constraints=""):
+    p = ParameterDescriptor(description=desc, read_only=read_only, additional_constraints=constraints)
+    if type_ is not None:
+        p.type = type_
+    if lo is not None:
+        if integer:
+            p.integer_range = [IntegerRange(from_value=int(lo), to_value=int(hi), step=0)]
+        else:
+            p.floating_point_range = [FloatingPointRange(from_value=float(lo), to_value=float(hi), step=0.0)]
+    return p
+
+
+# name: (default, descriptor). Defaults double as the documentation in docs/node.md.
+PARAMETERS = {
+    "scene": ("hand", _d("Scene to load at start: a name in scenes/ or a path to a .yaml file. "
+                         "Change at runtime with the load_scene service.", read_only=True)),
+    "scene_overrides": (Parameter.Type.STRING_ARRAY,
+                        _d("Core overrides applied to every scene load, e.g. ['params.n=20'].", read_only=True)),
+    "dt": (0.0, _d("Time step h [s]; 0 = the scene's own.", 0.0, 0.1, read_only=True)),
+    "solver": ("", _d("Solver: '' (scene default), direct, pcg or auto.", read_only=True,
+                      constraints="one of '', direct, pcg, auto")),
+    "mode": ("free_run", _d("Start state: free_run (PLAYING, paced by real_time_factor) or lockstep "
+                            "(PAUSED, steps only on step_simulation / simulate_steps). At runtime use "
+                            "set_simulation_state.", read_only=True, constraints="free_run or lockstep")),
+    "real_time_factor": (1.0, _d("Free-run pacing: simulated seconds per wall second; 0 = as fast as possible.",
+                                 0.0, 1000.0)),
+    "publish_rate": (0.0, _d("joint_states / clock / point_forces / solver_stats rate in Hz of simulated time; "
+                             "0 = every step. The last step of a step request is always published.",
+                             0.0, 1.0e6)),
+    "marker_rate": (30.0, _d("markers rate in Hz of simulated time; 0 = off.", 0.0, 1000.0)),
+    "command_timeout": (0.5, _d("A commanded joint/site prescription or joint torque is released to passive "
+                                "dynamics when no newer command arrives within this many seconds of simulated "
+                                "time (one warning per release); 0 = hold forever.", 0.0, 3600.0)),
+    "diagnostics_period": (1.0, _d("Wall seconds between /diagnostics messages.", 0.05, 60.0)),
+    "max_steps_per_request": (1_000_000, _d("Largest step count accepted by step_simulation / simulate_steps.",
+                                            1, 1_000_000_000, integer=True)),
+    "frame_id": ("world", _d("Frame of joint-state-independent outputs (point forces, markers).", read_only=True)),
+    "log_path": ("", _d("Directory for MCAP logs ('' = no logging). Each run writes "
+                        "<log_path>/<scene>_<date>_<time>/<scene>_<i>.mcap.", read_only=True)),
+    "log_topics": (Parameter.Type.STRING_ARRAY,
+                   _d("Fully qualified topics to record; empty = every topic the node publishes or "
+                      "subscribes.", read_only=True)),
+    "log_max_bytes": (0, _d("Roll over to a new MCAP file at this size [bytes]; 0 = never.", 0, 2**62,
+                            read_only=True, integer=True)),
+    "log_max_duration": (0.0, _d("Roll over to a new MCAP file after this many wall seconds; 0 = never.",
+                                 0.0, 1.0e7, read_only=True)),
+}
+RUNTIME = ("real_time_factor", "publish_rate", "marker_rate", "command_timeout", "diagnostics_period",
+           "max_steps_per_request")
+
+
+def _check_value(name, v):
+    """Checks beyond the descriptors' types and ranges; returns a reason or None."""
+    if name == "mode" and v not in MODES:
+        return f"must be one of {', '.join(MODES)}, got {v!r}"
+    if name == "solver" and v not in SOLVERS:
+        return f"must be one of {', '.join(SOLVERS[1:])} or '' (scene default), got {v!r}"
+    if name == "scene" and not v:
+        return "must not be empty"
+    if isinstance(v, float) and v != v:
+        return "must not be NaN"
+    return None
+
+
+class RedmaxNode(Node):
+    def __init__(self, node_name="redmax", **kw):
+        super().__init__(node_name, **kw)
+        for name, (default, desc) in PARAMETERS.items():
+            self.declare_parameter(name, default, desc)
+        self.add_on_set_parameters_callback(self._validate_parameters)
+        p = {name: self._param(name) for name in PARAMETERS}
+        for name, value in p.items():
+            reason = _check_value(name, value)
+            if reason:
+                raise ValueError(f"parameter {name}: {reason}")
+        self.frame_id = p["frame_id"]
+        self._logged_errors = set()
+        self.quit_event = threading.Event()
+        self.logger_mcap = None
+        self._desc_cache = (None, None)
+
+        # --- outputs
+        self._pubs = {}
+        self.pub_js = self._pub(JointState, "joint_states", QOS_STATE)
+        self.pub_pf = self._pub(PointForces, "point_forces", QOS_STATE)
+        self.pub_stats = self._pub(SolverStats, "solver_stats", QOS_STATE)
+        self.pub_clock = self._pub(Clock, "/clock", QOS_CLOCK)
+        self.pub_markers = self._pub(MarkerArray, "markers", QOS_MARKERS)
+        self.pub_diag = self._pub(DiagnosticArray, "/diagnostics", QOS_DIAGNOSTICS)
+        self.pub_state = self._pub(SimulationState, "simulation_state", QOS_LATCHED)
+        self.pub_pj = self._pub(JointState, "prescribed_joints", QOS_LATCHED)
+        self.pub_pp = self._pub(PointVelocityCommand, "prescribed_points", QOS_LATCHED)
+
+        # --- inputs (raw: the same bytes are logged and decoded once)
+        cmd_group = MutuallyExclusiveCallbackGroup()
+        self._subs = {}
+        self._sub(JointState, "joint_commands", self._on_joint_command, cmd_group)
+        self._sub(PointVelocityCommand, "point_commands", self._on_point_command, cmd_group)
+
+        # --- the simulation (loads the scene; SceneError propagates: the node does not start)
+        overrides = list(p["scene_overrides"] or [])
+        if p["dt"] > 0:
+            overrides.append(f"dt={p['dt']!r}")
+        if p["solver"]:
+            overrides.append(f"solver={p['solver']}")
+        self._last_pf_nonempty = False
+        self.msgs = None
+        self.engine = eng.Engine(
+            self, p["scene"], overrides,
+            initial_state=eng.PLAYING if p["mode"] == "free_run" else eng.PAUSED,
+            real_time_factor=p["real_time_factor"], publish_rate=p["publish_rate"],
+            marker_rate=p["marker_rate"], command_timeout=p["command_timeout"],
+            diagnostics_period=p["diagnostics_period"], max_steps_per_request=p["max_steps_per_request"])
+
+        # --- logging
+        if p["log_path"]:
+            self._start_logging(p)
+
+        # --- services and action (reentrant: a long step request does not block the others)
+        g = ReentrantCallbackGroup()
+        self.create_service(StepSimulation, "step_simulation", self._srv_step, callback_group=g)
+        self.create_service(ResetSimulation, "reset_simulation", self._srv_reset, callback_group=g)
+        self.create_service(GetSimulationState, "get_simulation_state", self._srv_get_state, callback_group=g)
+        self.create_service(SetSimulationState, "set_simulation_state", self._srv_set_state, callback_group=g)
+        self.create_service(LoadScene, "load_scene", self._srv_load, callback_group=g)
+        self.create_service(DescribeScene, "describe_scene", self._srv_describe, callback_group=g)
+        self.create_service(ReleaseCommands, "release_commands", self._srv_release, callback_group=g)
+        self._action = ActionServer(self, SimulateSteps, "simulate_steps", execute_callback=self._act_execute,
+                                    goal_callback=lambda goal: GoalResponse.ACCEPT,
+                                    cancel_callback=lambda gh: CancelResponse.ACCEPT, callback_group=g)
+        self.add_post_set_parameters_callback(self._apply_parameters)
+
+        self.engine.start()
+        self.engine.call(self._initial_publish)
+        self.get_logger().info(
+            f"scene '{self.engine.info.name}' (dt = {self.engine.sim.dt:g} s, {len(self.engine.info.velocity_names)} "
+            f"DOFs) {eng.STATE_NAMES[self.engine.state]}; "
+            + (f"logging to {self.logger_mcap.directory}" if self.logger_mcap else "not logging"))
+
+    # ------------------------------------------------------------------ helpers
+    def _param(self, name):
+        try:
+            return self.get_parameter(name).value
+        except rclpy.exceptions.ParameterUninitializedException:
+            return []
+
+    def _pub(self, cls, topic, qos):
+        pub = self.create_publisher(cls, topic, qos)
+        self._pubs[pub.topic_name] = (cls, qos)
+        return pub
+
+    def _sub(self, cls, topic, cb, group):
+        sub = self.create_subscription(cls, topic, lambda data, _cb=cb: _cb(data), QOS_COMMAND, raw=True,
+                                       callback_group=group)
+        self._subs[sub.topic_name] = (cls, QOS_COMMAND, sub)
+        return sub
+
+    def _start_logging(self, p):
+        from redmax_ros.logging.mcap_log import McapLogger
+
+        name = "".join(c if c.isalnum() or c in "-_" else "_" for c in self.engine.info.name)
+        stamp = time.strftime("%Y%m%d_%H%M%S")
+        directory = os.path.join(p["log_path"], f"{name}_{stamp}")
+        n = 1
+        while os.path.exists(directory):
+            n += 1
+            directory = os.path.join(p["log_path"], f"{name}_{stamp}_{n}")
+        self.logger_mcap = McapLogger(directory, name, max_bytes=p["log_max_bytes"],
+                                      max_duration=p["log_max_duration"], topics=list(p["log_topics"] or []))
+        for topic, (cls, qos, *_) in list(self._pubs.items()) + list(self._subs.items()):
+            self.logger_mcap.add_topic(topic, _type_name(cls), [_qos_dict(qos)])
+
+    def _send(self, pub, msg):
+        data = serialize_message(msg)
+        pub.publish(data)
+        lg = self.logger_mcap
+        if lg is not None:
+            lg.write(pub.topic_name, data)
+
+    def _initial_publish(self):
+        self.sim_state(self.engine.state)
+        self.engine.publish_current()
+
+    # ------------------------------------------------------------------ parameters
+    def _validate_parameters(self, params) -> SetParametersResult:
+        for prm in params:
+            reason = _check_value(prm.name, prm.value)
+            if reason:
+                return SetParametersResult(successful=False, reason=f"{prm.name}: {reason}")
+        return SetParametersResult(successful=True)
+
+    def _apply_parameters(self, params):
+        kw = {prm.name: prm.value for prm in params if prm.name in RUNTIME}
+        if kw and hasattr(self, "engine"):
+            self.engine.submit(self.engine._configure, kw)
+
+    # ------------------------------------------------------------------ engine sink (simulation thread)
+    def scene_loaded(self, info):
+        self.msgs = StateMessages(info, self.frame_id)
+        self._desc_cache = (None, None)
+
+    def state(self, t, q, v, effort, site_forces, diag, step_index):
+        m = self.msgs
+        self._send(self.pub_js, m.joint_state(t, q, v, effort))
+        self._send(self.pub_clock, m.clock_msg(t))
+        if site_forces or self._last_pf_nonempty:
+            self._send(self.pub_pf, m.point_forces(t, site_forces))
+            self._last_pf_nonempty = bool(site_forces)
+        if diag is not None:
+            self._send(self.pub_stats, m.solver_stats(t, step_index, diag))
+
+    def markers(self, t, poses, springs):
+        self._send(self.pub_markers, markers_msg(t, poses, springs, self.frame_id))
+
+    def diagnostics(self, values, ok, message):
+        level = DiagnosticStatus.OK if ok else DiagnosticStatus.WARN
+        if self.logger_mcap is not None:
+            values["log_backlog"] = self.logger_mcap.backlog
+            values["log_messages_written"] = self.logger_mcap.written
+            if self.logger_mcap.error is not None:
+                level, message = DiagnosticStatus.ERROR, f"MCAP logging failed: {self.logger_mcap.error}"
+        stamp = self.get_clock().now().to_msg()
+        self._send(self.pub_diag, diagnostics_msg(stamp, self.get_name(), self.engine.info.name, values, level,
+                                                  message))
+
+    def sim_state(self, state):
+        self._send(self.pub_state, SimulationState(state=state))
+
+    def prescriptions(self, t, joints, sites):
+        self._send(self.pub_pj, prescriptions_msg(t, joints, self.frame_id))
+        self._send(self.pub_pp, point_prescriptions_msg(t, sites, self.frame_id))
+
+    def command_error(self, text):
+        if text not in self._logged_errors:  # each distinct error once
+            if len(self._logged_errors) < 10000:
+                self._logged_errors.add(text)
+            self.get_logger().error(f"command rejected: {text}")
+
+    def warn(self, text):
+        self.get_logger().warning(text)
+
+    def quit(self):
+        self.quit_event.set()
+
+    # ------------------------------------------------------------------ subscriptions (executor)
+    def _log_in(self, sub_topic, data):
+        lg = self.logger_mcap
+        if lg is not None:
+            lg.write(sub_topic, data)
+
+    def _on_joint_command(self, data):
+        self._log_in(self._topic_of("joint_commands"), data)
+        self.engine.joint_command(deserialize_message(data, JointState))
+
+    def _on_point_command(self, data):
+        self._log_in(self._topic_of("point_commands"), data)
+        self.engine.point_command(deserialize_message(data, PointVelocityCommand))
+
+    def _topic_of(self, short):
+        for topic in self._subs:
+            if topic.endswith("/" + short):
+                return topic
+        return short
+
+    # ------------------------------------------------------------------ services (executor)
+    @staticmethod
+    def _result(out) -> Result:
+        return Result(result=int(out.code), error_message=out.message if out.code != eng.OK else "")
+
+    def _srv_step(self, req, resp):
+        out = self._guard(lambda: self.engine.step(req.steps))
+        resp.result = self._result(out)
+        resp.completed_steps = int(out.steps)
+        resp.sim_time = time_msg(out.t if out.t else self.engine.sim.time)
+        return resp
+
+    def _srv_reset(self, req, resp):
+        resp.result = self._result(self._guard(lambda: self.engine.reset(req.scope)))
+        return resp
+
+    def _srv_get_state(self, req, resp):
+        resp.state = SimulationState(state=self.engine.state)
+        resp.result = Result(result=eng.OK)
+        return resp
+
+    def _srv_set_state(self, req, resp):
+        resp.result = self._result(self._guard(lambda: self.engine.set_state(req.state.state)))
+        return resp
+
+    def _srv_load(self, req, resp):
+        out = self._guard(lambda: self.engine.load(req.scene, list(req.overrides)))
+        resp.result = self._result(out)
+        if out.ok:
+            self.get_logger().info(f"loaded scene '{self.engine.info.name}'")
+        else:
+            self.get_logger().error(f"load_scene '{req.scene}': {out.message}")
+        resp.description = self._description()
+        return resp
+
+    def _srv_describe(self, req, resp):
+        resp.result = Result(result=eng.OK)
+        resp.description = self._description()
+        return resp
+
+    def _srv_release(self, req, resp):
+        resp.result = self._result(self._guard(lambda: self.engine.release(list(req.joints), list(req.sites))))
+        return resp
+
+    def _description(self):
+        info = self.engine.info
+        if self._desc_cache[0] is not info:
+            self._desc_cache = (info, description_msg(info))
+        return self._desc_cache[1]
+
+    def _guard(self, fn):
+        """Run a request; any unexpected exception becomes OPERATION_FAILED, the node keeps serving."""
+        try:
+            return fn()
+        except Exception as e:
+            self.get_logger().error(f"request failed: {type(e).__name__}: {e}")
+            return eng.Outcome(eng.OPERATION_FAILED, f"{type(e).__name__}: {e}", t=self.engine.sim.time)
+
+    def _act_execute(self, goal_handle):
+        n = int(goal_handle.request.steps)
+        fb = SimulateSteps.Feedback()
+
+        def feedback(done, total, t):
+            fb.completed_steps, fb.remaining_steps, fb.sim_time = done, total - done, time_msg(t)
+            goal_handle.publish_feedback(fb)
+
+        out = self._guard(lambda: self.engine.step(n, feedback, lambda: goal_handle.is_cancel_requested))
+        res = SimulateSteps.Result()
+        res.result = self._result(out)
+        res.completed_steps = int(out.steps)
+        res.sim_time = time_msg(out.t)
+        if out.extra.get("canceled"):
+            goal_handle.canceled()
+        elif out.ok:
+            goal_handle.succeed()
+        else:
+            goal_handle.abort()
+        return res
+
+    # ------------------------------------------------------------------ shutdown
+    def close(self):
+        """Stop the simulation thread, then finish the MCAP file (everything handed over is written)."""
+        if getattr(self, "engine", None) is not None:
+            self.engine.stop()
+        if self.logger_mcap is not None:
+            self.logger_mcap.close()
+            if self.logger_mcap.error is not None:
+                self.get_logger().error(f"MCAP logging failed: {self.logger_mcap.error}")
+
+
+def main(argv=None):
+    args = sys.argv if argv is None else argv
+    rclpy.init(args=args)
+    node = None
+    try:
+        try:
+            node = RedmaxNode()
+        except (SceneError, ValueError, rclpy.exceptions.InvalidParameterValueException) as e:
+            print(f"redmax_node: cannot start: {e}", file=sys.stderr)
+            return 2
+        executor = MultiThreadedExecutor(num_threads=4)
+        executor.add_node(node)
+        try:
+            while rclpy.ok() and not node.quit_event.is_set():
+                executor.spin_once(timeout_sec=0.2)
+            if node.quit_event.is_set():  # let the set_simulation_state(QUITTING) response go out
+                end = time.monotonic() + 0.5
+                while rclpy.ok() and time.monotonic() < end:
+                    executor.spin_once(timeout_sec=0.05)
+        except (KeyboardInterrupt, ExternalShutdownException):
+            pass
+        return 0
+    finally:
+        if node is not None:
+            node.close()
+            try:
+                node.destroy_node()
+            except Exception:
+                pass
+        if rclpy.ok():
+            rclpy.shutdown()
+
+
+if __name__ == "__main__":
+    sys.exit(main())
