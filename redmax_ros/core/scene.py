@@ -285,6 +285,16 @@ def _expand_builder(raw, source):
 # validation
 
 
+def _numeric(x):
+    """YAML 1.1 reads '1e6' (no dot) as a string: accept numeric strings as numbers."""
+    if isinstance(x, str):
+        try:
+            return float(x)
+        except ValueError:
+            return x
+    return x
+
+
 class _Validator:
     """Turns the raw dict into a SceneSpec, naming the entry of every problem."""
 
@@ -297,6 +307,7 @@ class _Validator:
 
     # -- scalars and vectors
     def number(self, entry, key, value, *, positive=False, nonneg=False):
+        value = _numeric(value)
         if isinstance(value, bool) or not isinstance(value, (int, float)):
             self.err(entry, f"'{key}' must be a number, got {value!r}")
         v = float(value)
@@ -319,6 +330,7 @@ class _Validator:
             self.err(entry, f"'{key}' must have {n} values, got {len(value)}")
         out = []
         for x in value:
+            x = _numeric(x)
             if isinstance(x, bool) or not isinstance(x, (int, float)):
                 self.err(entry, f"'{key}' must contain numbers, got {x!r}")
             if not allow_inf and not math.isfinite(float(x)):
@@ -555,17 +567,17 @@ class _Validator:
                     self.err(f"joints '{parent_of[cur].name}'", f"the joints form a cycle ({cyc}); use a loop constraint")
                 seen.append(cur)
                 cur = parent_of[cur].parent
-        # order joints parent-first (Pinocchio adds joints after their parents)
-        depth = {}
-
-        def d_of(name):
-            if name == WORLD:
-                return 0
-            if name not in depth:
-                depth[name] = d_of(parent_of[name].parent) + 1
-            return depth[name]
-
-        spec.joints.sort(key=lambda j: d_of(j.child))
+        # Depth-first order, children in file order: Pinocchio needs each joint after its parent AND
+        # every subtree's DOFs contiguous (CRBA's sparsity pattern relies on it).
+        children = {}
+        for j in spec.joints:
+            children.setdefault(j.parent, []).append(j)
+        ordered, stack = [], list(reversed(children.get(WORLD, [])))
+        while stack:
+            j = stack.pop()
+            ordered.append(j)
+            stack.extend(reversed(children.get(j.child, [])))
+        spec.joints[:] = ordered
 
     def body_names(self, spec):
         if spec.urdf:
