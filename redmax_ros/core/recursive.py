@@ -202,7 +202,8 @@ class Workspace:
     """Per-configuration arrays (world frame), filled by :func:`update_kinematics`.
 
     ``R[j], p[j]`` is ``data.oMi[j]``; ``S`` is ``data.J`` (the joints' motion subspaces in the world
-    frame, 6 x nv); ``I`` the body spatial inertias at the world origin (``oMi.act(inertia)``);
+    frame, 6 x nv; stored transposed as ``St`` (nv x 6) so that each column is contiguous for the
+    kernels); ``I`` the body spatial inertias at the world origin (``oMi.act(inertia)``);
     ``ov`` the body twists J qdot and ``c_local`` the joint bias ``jdata.c`` (only FALLBACK joints
     with a configuration-dependent S have a nonzero bias).
     """
@@ -211,15 +212,20 @@ class Workspace:
     v: np.ndarray | None
     R: np.ndarray  # (njoints, 3, 3)
     p: np.ndarray  # (njoints, 3) [m]
-    S: np.ndarray  # (6, nv)
+    St: np.ndarray  # (nv, 6) world motion subspaces, row c = column c of data.J
     I: np.ndarray  # (njoints, 6, 6)
     ov: np.ndarray  # (njoints, 6) body twists J v (zeros until a velocity is given)
     c_local: np.ndarray  # (njoints, 6) joint bias in the joint frame
     has_bias: bool
-    S_local: np.ndarray  # (6, nv) joint-frame motion subspace (constant part + FALLBACK joints)
+    Sl: np.ndarray  # (nv, 6) joint-frame motion subspaces (constant kinds + FALLBACK joints)
     jR: np.ndarray  # (njoints, 3, 3) joint transforms of FALLBACK joints (scratch)
     jp: np.ndarray  # (njoints, 3)
     tmp6: np.ndarray  # (njoints, 6) scratch for backward passes
+
+    @property
+    def S(self) -> np.ndarray:
+        """(6, nv) view: world motion subspaces, = Pinocchio's data.J."""
+        return self.St.T
 
 
 def make_workspace(topo: Topology) -> Workspace:
@@ -227,9 +233,9 @@ def make_workspace(topo: Topology) -> Workspace:
     R = np.zeros((nj, 3, 3))
     R[:] = np.eye(3)
     return Workspace(
-        q=np.zeros(topo.nq), v=None, R=R, p=np.zeros((nj, 3)), S=np.zeros((6, nv)),
+        q=np.zeros(topo.nq), v=None, R=R, p=np.zeros((nj, 3)), St=np.zeros((nv, 6)),
         I=np.zeros((nj, 6, 6)), ov=np.zeros((nj, 6)), c_local=np.zeros((nj, 6)), has_bias=False,
-        S_local=topo.S_const.copy(), jR=R.copy(), jp=np.zeros((nj, 3)), tmp6=np.zeros((nj, 6)))
+        Sl=np.ascontiguousarray(topo.S_const.T), jR=R.copy(), jp=np.zeros((nj, 3)), tmp6=np.zeros((nj, 6)))
 
 
 @njit
@@ -268,7 +274,7 @@ def _quat_rotation(x, y, z, w, out):
 
 @njit
 def _fk_kernel(parents, kind, idx_q, idx_v, nv_j, axis, pitch, place_R, place_p, q,
-               jR, jp, S_local, R, p, S):
+               jR, jp, Sl, R, p, St):
     """Forward kinematics (Sueda's notes §2.1) and world motion subspaces S = oX_j S_local."""
     nj = parents.shape[0]
     Rj = np.empty((3, 3))
@@ -319,18 +325,18 @@ def _fk_kernel(parents, kind, idx_q, idx_v, nv_j, axis, pitch, place_R, place_p,
             p[j, a] = p[par, a] + R[par, a, 0] * pl[0] + R[par, a, 1] * pl[1] + R[par, a, 2] * pl[2]
         # world motion subspace columns: S = oX_j S_local (lin' = R lin + p x R ang, ang' = R ang)
         for c in range(idx_v[j], idx_v[j] + nv_j[j]):
-            w0 = R[j, 0, 0] * S_local[3, c] + R[j, 0, 1] * S_local[4, c] + R[j, 0, 2] * S_local[5, c]
-            w1 = R[j, 1, 0] * S_local[3, c] + R[j, 1, 1] * S_local[4, c] + R[j, 1, 2] * S_local[5, c]
-            w2 = R[j, 2, 0] * S_local[3, c] + R[j, 2, 1] * S_local[4, c] + R[j, 2, 2] * S_local[5, c]
-            v0 = R[j, 0, 0] * S_local[0, c] + R[j, 0, 1] * S_local[1, c] + R[j, 0, 2] * S_local[2, c]
-            v1 = R[j, 1, 0] * S_local[0, c] + R[j, 1, 1] * S_local[1, c] + R[j, 1, 2] * S_local[2, c]
-            v2 = R[j, 2, 0] * S_local[0, c] + R[j, 2, 1] * S_local[1, c] + R[j, 2, 2] * S_local[2, c]
-            S[0, c] = v0 + p[j, 1] * w2 - p[j, 2] * w1
-            S[1, c] = v1 + p[j, 2] * w0 - p[j, 0] * w2
-            S[2, c] = v2 + p[j, 0] * w1 - p[j, 1] * w0
-            S[3, c] = w0
-            S[4, c] = w1
-            S[5, c] = w2
+            w0 = R[j, 0, 0] * Sl[c, 3] + R[j, 0, 1] * Sl[c, 4] + R[j, 0, 2] * Sl[c, 5]
+            w1 = R[j, 1, 0] * Sl[c, 3] + R[j, 1, 1] * Sl[c, 4] + R[j, 1, 2] * Sl[c, 5]
+            w2 = R[j, 2, 0] * Sl[c, 3] + R[j, 2, 1] * Sl[c, 4] + R[j, 2, 2] * Sl[c, 5]
+            v0 = R[j, 0, 0] * Sl[c, 0] + R[j, 0, 1] * Sl[c, 1] + R[j, 0, 2] * Sl[c, 2]
+            v1 = R[j, 1, 0] * Sl[c, 0] + R[j, 1, 1] * Sl[c, 1] + R[j, 1, 2] * Sl[c, 2]
+            v2 = R[j, 2, 0] * Sl[c, 0] + R[j, 2, 1] * Sl[c, 1] + R[j, 2, 2] * Sl[c, 2]
+            St[c, 0] = v0 + p[j, 1] * w2 - p[j, 2] * w1
+            St[c, 1] = v1 + p[j, 2] * w0 - p[j, 0] * w2
+            St[c, 2] = v2 + p[j, 0] * w1 - p[j, 1] * w0
+            St[c, 3] = w0
+            St[c, 4] = w1
+            St[c, 5] = w2
 
 
 @njit
@@ -373,7 +379,7 @@ def _world_inertia_kernel(mass, com, inertia_com, R, p, I):
 
 
 @njit
-def _jv_kernel(parents, idx_v, nv_j, S, x, Y):
+def _jv_kernel(parents, idx_v, nv_j, St, x, Y):
     """Alg. 5 line 2 & 5 in the world frame: Y_j = Y_parent + S_j x_j (body twists J x)."""
     nj = parents.shape[0]
     Y[0, :] = 0.0
@@ -384,11 +390,11 @@ def _jv_kernel(parents, idx_v, nv_j, S, x, Y):
         for c in range(idx_v[j], idx_v[j] + nv_j[j]):
             xc = x[c]
             for a in range(6):
-                Y[j, a] += S[a, c] * xc
+                Y[j, a] += St[c, a] * xc
 
 
 @njit
-def _jtw_kernel(parents, idx_v, nv_j, S, W, F, x):
+def _jtw_kernel(parents, idx_v, nv_j, St, W, F, x):
     """Alg. 6 in the world frame: F_j = W_j + sum_children F_c, x_j = S_j^T F_j. F is scratch."""
     nj = parents.shape[0]
     for j in range(nj):
@@ -398,7 +404,7 @@ def _jtw_kernel(parents, idx_v, nv_j, S, W, F, x):
         for c in range(idx_v[j], idx_v[j] + nv_j[j]):
             s = 0.0
             for a in range(6):
-                s += S[a, c] * F[j, a]
+                s += St[c, a] * F[j, a]
             x[c] = s
         par = parents[j]
         for a in range(6):
@@ -418,7 +424,7 @@ def _motion_cross(m, u, out):
 
 
 @njit
-def _jdot_kernel(parents, idx_v, nv_j, S, ov, x, Z):
+def _jdot_kernel(parents, idx_v, nv_j, St, ov, x, Z):
     """Alg. 5 lines 3 & 6 in the world frame. The world-frame derivative of the column block
     S_j = oX_j S_local is ov_j x S_j (+ oX_j dS_local/dt, see :func:`bias_acceleration`), so
     Z_j = Z_parent + ov_j x (S_j x_j)."""
@@ -432,14 +438,14 @@ def _jdot_kernel(parents, idx_v, nv_j, S, ov, x, Z):
             u[a] = 0.0
         for c in range(idx_v[j], idx_v[j] + nv_j[j]):
             for a in range(6):
-                u[a] += S[a, c] * x[c]
+                u[a] += St[c, a] * x[c]
         _motion_cross(ov[j], u, cr)
         for a in range(6):
             Z[j, a] = Z[par, a] + cr[a]
 
 
 @njit
-def _bias_kernel(parents, idx_v, nv_j, S, ov, v, R, p, c_local, Z):
+def _bias_kernel(parents, idx_v, nv_j, St, ov, v, R, p, c_local, Z):
     """Z_j = Z_parent + ov_j x (S_j v_j) + oX_j c_j (forward traversal)."""
     nj = parents.shape[0]
     u = np.empty(6)
@@ -452,7 +458,7 @@ def _bias_kernel(parents, idx_v, nv_j, S, ov, v, R, p, c_local, Z):
             u[a] = 0.0
         for c in range(idx_v[j], idx_v[j] + nv_j[j]):
             for a in range(6):
-                u[a] += S[a, c] * v[c]
+                u[a] += St[c, a] * v[c]
         _motion_cross(ov[j], u, cr)
         c = c_local[j]
         cw[3] = R[j, 0, 0] * c[3] + R[j, 0, 1] * c[4] + R[j, 0, 2] * c[5]
@@ -488,16 +494,16 @@ def update_kinematics(topo: Topology, ws: Workspace, q: np.ndarray, v: np.ndarra
             ws.has_bias = ws.has_bias or bool(np.any(c != 0.0))
         ws.jR[j], ws.jp[j] = jd.M.rotation, jd.M.translation
         i0, n = topo.idx_v[j], topo.nv_j[j]
-        ws.S_local[:, i0:i0 + n] = np.asarray(jd.S).reshape(6, n)
+        ws.Sl[i0:i0 + n, :] = np.asarray(jd.S).reshape(6, n).T
     _fk_kernel(topo.parents, topo.kind, topo.idx_q, topo.idx_v, topo.nv_j, topo.axis, topo.pitch,
-               topo.place_R, topo.place_p, q, ws.jR, ws.jp, ws.S_local, ws.R, ws.p, ws.S)
+               topo.place_R, topo.place_p, q, ws.jR, ws.jp, ws.Sl, ws.R, ws.p, ws.St)
     _world_inertia_kernel(topo.mass, topo.com, topo.inertia_com, ws.R, ws.p, ws.I)
     if v is None:
         ws.v = None
         ws.ov[:] = 0.0
     else:
         ws.v = v.copy()
-        _jv_kernel(topo.parents, topo.idx_v, topo.nv_j, ws.S, v, ws.ov)
+        _jv_kernel(topo.parents, topo.idx_v, topo.nv_j, ws.St, v, ws.ov)
     return ws
 
 
@@ -512,7 +518,7 @@ def jv(topo: Topology, ws: Workspace, x: np.ndarray, out: np.ndarray | None = No
     """Body twists y = J_mr x, world frame: (njoints, 6), row j = Pinocchio's
     ``getJointJacobian(model, data, j, pin.WORLD) @ x``. Sueda's notes Alg. 5 (forward traversal)."""
     out = np.empty((topo.njoints, 6)) if out is None else out
-    _jv_kernel(topo.parents, topo.idx_v, topo.nv_j, ws.S, _vec(x, topo.nv), out)
+    _jv_kernel(topo.parents, topo.idx_v, topo.nv_j, ws.St, _vec(x, topo.nv), out)
     return out
 
 
@@ -521,7 +527,7 @@ def jtw(topo: Topology, ws: Workspace, W: np.ndarray, out: np.ndarray | None = N
     row 0 (universe) is ignored. Sueda's notes Alg. 6 (backward traversal)."""
     W = np.ascontiguousarray(W, dtype=float).reshape(topo.njoints, 6)
     out = np.empty(topo.nv) if out is None else out
-    _jtw_kernel(topo.parents, topo.idx_v, topo.nv_j, ws.S, W, ws.tmp6, out)
+    _jtw_kernel(topo.parents, topo.idx_v, topo.nv_j, ws.St, W, ws.tmp6, out)
     return out
 
 
@@ -536,7 +542,7 @@ def jdot_v(topo: Topology, ws: Workspace, x: np.ndarray, out: np.ndarray | None 
     if ws.v is None:
         raise ValueError("jdot_v needs a velocity: call update_kinematics(topo, ws, q, v)")
     out = np.empty((topo.njoints, 6)) if out is None else out
-    _jdot_kernel(topo.parents, topo.idx_v, topo.nv_j, ws.S, ws.ov, _vec(x, topo.nv), out)
+    _jdot_kernel(topo.parents, topo.idx_v, topo.nv_j, ws.St, ws.ov, _vec(x, topo.nv), out)
     return out
 
 
@@ -548,7 +554,7 @@ def bias_acceleration(topo: Topology, ws: Workspace, out: np.ndarray | None = No
     if ws.v is None:
         raise ValueError("bias_acceleration needs a velocity: call update_kinematics(topo, ws, q, v)")
     out = np.empty((topo.njoints, 6)) if out is None else out
-    _bias_kernel(topo.parents, topo.idx_v, topo.nv_j, ws.S, ws.ov, ws.v, ws.R, ws.p,
+    _bias_kernel(topo.parents, topo.idx_v, topo.nv_j, ws.St, ws.ov, ws.v, ws.R, ws.p,
                       ws.c_local, out)
     return out
 
