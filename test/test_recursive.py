@@ -199,3 +199,22 @@ def test_mimic_joint_rejected():
     m.addJoint(j1, pin.JointModelMimic(m.joints[j1], 2.0, 0.0), pin.SE3.Identity(), "b")
     with pytest.raises(NotImplementedError):
         rc.build_topology(m)
+
+
+@pytest.mark.parametrize("name", ["fallback_joints", "floating_spherical"])
+def test_workspace_reuse_matches_fresh_workspace(name):
+    model = MODELS[name]()
+    topo = rc.build_topology(model)
+    rng = np.random.default_rng(9)
+    q1, v1 = random_state(model, rng)
+    q2, v2 = random_state(model, rng)
+    reused = rc.update_kinematics(topo, rc.make_workspace(topo), q1, v1)
+    rc.update_kinematics(topo, reused, q2, v2)
+    fresh = rc.update_kinematics(topo, rc.make_workspace(topo), q2, v2)
+    for a in ("R", "p", "St", "I", "ov", "c_local"):
+        assert np.array_equal(getattr(reused, a), getattr(fresh, a)), a
+    rc.update_kinematics(topo, reused, q2)  # no velocity: velocity-dependent products refuse
+    with pytest.raises(ValueError):
+        rc.jdot_v(topo, reused, v2)
+    with pytest.raises(ValueError):
+        rc.bias_acceleration(topo, reused)

@@ -220,7 +220,8 @@ class Workspace:
     Sl: np.ndarray  # (nv, 6) joint-frame motion subspaces (constant kinds + FALLBACK joints)
     jR: np.ndarray  # (njoints, 3, 3) joint transforms of FALLBACK joints (scratch)
     jp: np.ndarray  # (njoints, 3)
-    tmp6: np.ndarray  # (njoints, 6) scratch for backward passes
+    tmp6: np.ndarray  # (njoints, 6) scratch for backward passes (a Workspace is not thread-safe)
+    jdata: tuple = ()  # pin.JointData of the FALLBACK joints
 
     @property
     def S(self) -> np.ndarray:
@@ -235,7 +236,8 @@ def make_workspace(topo: Topology) -> Workspace:
     return Workspace(
         q=np.zeros(topo.nq), v=None, R=R, p=np.zeros((nj, 3)), St=np.zeros((nv, 6)),
         I=np.zeros((nj, 6, 6)), ov=np.zeros((nj, 6)), c_local=np.zeros((nj, 6)), has_bias=False,
-        Sl=np.ascontiguousarray(topo.S_const.T), jR=R.copy(), jp=np.zeros((nj, 3)), tmp6=np.zeros((nj, 6)))
+        Sl=np.ascontiguousarray(topo.S_const.T), jR=R.copy(), jp=np.zeros((nj, 3)), tmp6=np.zeros((nj, 6)),
+        jdata=tuple(jm.createData() for jm in topo.fallback_models))
 
 
 @njit
@@ -483,10 +485,10 @@ def update_kinematics(topo: Topology, ws: Workspace, q: np.ndarray, v: np.ndarra
     if v is not None:
         v = np.ascontiguousarray(v, dtype=float).reshape(topo.nv)
     ws.has_bias = False
-    for j, jm in zip(topo.fallback, topo.fallback_models):
-        jd = jm.createData()
+    for j, jm, jd in zip(topo.fallback, topo.fallback_models, ws.jdata):
         if v is None:
             jm.calc(jd, q)
+            ws.c_local[j] = 0.0
         else:
             jm.calc(jd, q, v)
             c = jd.c.vector
