@@ -1,0 +1,102 @@
+"""A failed step raises StepError saying why and leaves the state exactly as it was; bad commands
+raise CommandError and change nothing."""
+import numpy as np
+import pytest
+
+from redmax_ros.core import CommandError, Simulator, StepError
+from redmax_ros.core.stepper import State
+
+
+def snapshot(sim):
+    return sim.state.t, sim.state.q.copy(), sim.state.v.copy(), {k: v.copy() for k, v in sim.prescribed_joints().items()}
+
+
+def same(a, b):
+    return (a[0] == b[0] and np.array_equal(a[1], b[1], equal_nan=True) and np.array_equal(a[2], b[2], equal_nan=True)
+            and a[3].keys() == b[3].keys())
+
+
+def test_non_finite_state_raises_and_keeps_state():
+    sim = Simulator.load("chain")
+    sim.step(10)
+    bad = State(sim.state.t, sim.state.q.copy(), sim.state.v.copy())
+    bad.v[2] = np.nan
+    sim.set_state(bad)
+    before = snapshot(sim)
+    with pytest.raises(StepError, match="non-finite velocity"):
+        sim.step()
+    assert same(before, snapshot(sim))
+
+
+def test_non_finite_torque_bypassing_validation_raises_and_keeps_state():
+    sim = Simulator.load("hand")
+    sim.step(5)
+    before = snapshot(sim)
+    sim.commands.joint_torques[3] = np.inf  # bypasses the command API on purpose
+    with pytest.raises(StepError, match="non-finite joint torques"):
+        sim.step()
+    assert same(before, snapshot(sim))
+
+
+def test_diverging_step_raises_and_keeps_state():
+    sim = Simulator.load("pendulum")
+    sim.set_joint_torques({"hinge": 1e12})
+    before = snapshot(sim)
+    with pytest.raises(StepError, match="diverged"):
+        sim.step()
+    assert same(before, snapshot(sim))
+
+
+def test_over_constraining_prescriptions_name_the_constraints():
+    """The four-bar has 1 DOF: prescribing both crank and rocker is redundant/conflicting; the step
+    names the constraints involved and changes nothing."""
+    sim = Simulator.load("fourbar")
+    sim.prescribe_joints({"crank_joint": 1.0, "rocker_joint": 0.5})
+    before = snapshot(sim)
+    with pytest.raises(StepError, match="redundant or conflicting") as ei:
+        sim.step()
+    for name in ("crank_joint", "rocker_joint"):
+        assert name in str(ei.value)
+    assert same(before, snapshot(sim))
+
+
+def test_impossible_point_prescription_names_the_site():
+    """A hinge about y cannot move its tip along y: the row of that site acts on no DOF."""
+    sim = Simulator.load("pendulum")
+    sim.prescribe_sites({"tip": [0.0, 0.1, 0.0]})
+    before = snapshot(sim)
+    with pytest.raises(StepError, match="prescribed site 'tip' does not act on any DOF"):
+        sim.step()
+    assert same(before, snapshot(sim))
+
+
+def test_multi_step_failure_reports_steps_done():
+    sim = Simulator.load("pendulum")
+    sim.step(3)
+    sim.commands.joint_torques[0] = np.nan
+    with pytest.raises(StepError) as ei:
+        sim.step(5)
+    assert ei.value.steps_done == 0 and sim.state.t == pytest.approx(3 * sim.dt)
+
+
+@pytest.mark.parametrize("call, text", [
+    (lambda s: s.prescribe_joints({"knee": 1.0}), "unknown joint 'knee'"),
+    (lambda s: s.prescribe_joints({"wrist": 1.0}), "needs 2 value"),
+    (lambda s: s.prescribe_joints({"elbow": float("nan")}), "non-finite"),
+    (lambda s: s.prescribe_joints({"index_pip": 1.0}), "not prescribable"),
+    (lambda s: s.prescribe_sites({"nose": [0, 0, 0]}), "unknown site 'nose'"),
+    (lambda s: s.prescribe_sites({"index_tip": [0, 0]}), "needs 3 values"),
+    (lambda s: s.prescribe_sites({"index_tip": [0, np.inf, 0]}), "non-finite"),
+    (lambda s: s.set_joint_torques({"elbow": [1, 2]}), "needs 1 value"),
+    (lambda s: s.step(0), "positive integer"),
+])
+def test_bad_commands_raise_and_change_nothing(call, text):
+    sim = Simulator.load("hand")
+    sim.prescribe_joints({"elbow": 0.2})
+    before = snapshot(sim)
+    tau = sim.commands.joint_torques.copy()
+    with pytest.raises(CommandError, match=text):
+        call(sim)
+    assert same(before, snapshot(sim))
+    assert np.array_equal(tau, sim.commands.joint_torques)
+    assert sim.prescribed_joints()["elbow"][0] == 0.2
