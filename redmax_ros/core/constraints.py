@@ -20,7 +20,7 @@ import numpy as np
 class Constraints:
     G: np.ndarray  # (m,n) bilateral rows
     g: np.ndarray  # (m,)
-    labels: list  # one label per bilateral row, for error messages
+    label_spans: list  # (label, number of rows) in row order; labels are built only for error messages
     joint_rows: dict = field(default_factory=dict)  # prescribed joint -> slice of rows
     site_rows: dict = field(default_factory=dict)  # prescribed site -> slice of rows
     loop_rows: slice = field(default_factory=lambda: slice(0, 0))
@@ -32,6 +32,11 @@ class Constraints:
     @property
     def m(self) -> int:
         return len(self.g)
+
+    @property
+    def labels(self) -> list:
+        """One label per bilateral row (for error messages)."""
+        return [lab for lab, n in self.label_spans for _ in range(n)]
 
 
 def loop_rows(mech, X, J):
@@ -49,35 +54,33 @@ def loop_rows(mech, X, J):
 def build(mech, kin, q, prescribed_joints: dict, prescribed_sites: dict, h: float) -> Constraints:
     """All constraint rows of this step, in hyper-reduced coordinates."""
     T = mech.T
-    rows, rhs, labels = [], [], []
+    rows, rhs, spans = [], [], []
     r = 0
-    out = Constraints(G=None, g=None, labels=labels)
+    out = Constraints(G=None, g=None, label_spans=spans)
     if len(mech.loop_ab):
         G_loop, _ = loop_rows(mech, kin.X, kin.J)
-        for name, ax in zip(mech.loop_names, mech.loop_axes):
-            labels += [f"loop '{name}'"] * len(ax)
-        rows.append(G_loop)
+        spans += [(f"loop '{name}'", len(ax)) for name, ax in zip(mech.loop_names, mech.loop_axes)]
+        rows.append(G_loop if T is None else G_loop @ T)
         rhs.append(np.zeros(len(G_loop)))
         r = len(G_loop)
         out.loop_rows = slice(0, r)
     for name, vel in prescribed_joints.items():
-        j = mech.joint_index[name]
-        Gj = np.zeros((j.nv, mech.nv))
-        Gj[:, j.idx_v:j.idx_v + j.nv] = np.eye(j.nv)
+        Gj = mech.joint_rows(name)  # constant rows of J_rR (already projected)
         rows.append(Gj)
         rhs.append(vel)
-        labels += [f"prescribed joint '{name}'"] * j.nv
-        out.joint_rows[name] = slice(r, r + j.nv)
-        r += j.nv
-    for name, vel in prescribed_sites.items():
-        rows.append(kin.J[kin.row[mech.site_index[name]]])
-        rhs.append(vel)
-        labels += [f"prescribed site '{name}'"] * 3
-        out.site_rows[name] = slice(r, r + 3)
-        r += 3
+        spans.append((f"prescribed joint '{name}'", len(Gj)))
+        out.joint_rows[name] = slice(r, r + len(Gj))
+        r += len(Gj)
+    if prescribed_sites:
+        Js = kin.J[[kin.row[mech.site_index[n]] for n in prescribed_sites]].reshape(-1, mech.nv)
+        rows.append(Js if T is None else Js @ T)
+        for name, vel in prescribed_sites.items():
+            rhs.append(vel)
+            spans.append((f"prescribed site '{name}'", 3))
+            out.site_rows[name] = slice(r, r + 3)
+            r += 3
     if r:
-        G = np.vstack(rows) if len(rows) > 1 else rows[0]
-        out.G = G if T is None else G @ T
+        out.G = np.vstack(rows) if len(rows) > 1 else rows[0]
         out.g = np.concatenate(rhs) if len(rhs) > 1 else np.asarray(rhs[0], float)
     else:
         out.G, out.g = mech.no_rows, _EMPTY

@@ -81,11 +81,23 @@ class Mechanism:
     loop_rows_ab: np.ndarray | None = None  # (L,2) rows of loop sites in Kinematics.X/J
     diag_cache: dict = field(default_factory=dict)  # h -> diag(h D_r + h^2 K_r)
     has_stiffness: bool = False
+    row_cache: dict = field(default_factory=dict)  # prescribed joint -> constant constraint rows
+    loop_select: np.ndarray | None = None  # (rows, 3L) block-diagonal loop axes: phi = S (x_a - x_b)
     has_armature: bool = False
     no_rows: np.ndarray | None = None  # (0, ndof): G when there are no bilateral rows
     armature: np.ndarray | None = None  # (nv,)
     limit_rows: np.ndarray | None = None  # (p,ndof) rows of J_rR for the limited DOFs
     limit_labels: list = field(default_factory=list)
+
+    def joint_rows(self, name: str) -> np.ndarray:
+        """Rows *G_r of a prescribed joint (identity on its DOFs, Eq. 7), projected by J_rR (cached)."""
+        G = self.row_cache.get(name)
+        if G is None:
+            j = self.joint_index[name]
+            G = np.zeros((j.nv, self.nv))
+            G[:, j.idx_v:j.idx_v + j.nv] = np.eye(j.nv)
+            G = self.row_cache[name] = G if self.T is None else G @ self.T
+        return G
 
     def reduced_diag(self, h: float) -> np.ndarray:
         """h D_r + h^2 K_r as a dense diagonal matrix (cached per h)."""
@@ -318,6 +330,12 @@ def compile_scene(spec: SceneSpec) -> Mechanism:
         jac_sites=jac_sites, jac_row=jac_row, has_stiffness=bool(stiffness.any()),
     )
     mech.no_rows = np.zeros((0, mech.ndof))
+    nrows = sum(len(P) for P in mech.loop_axes)
+    mech.loop_select = np.zeros((nrows, 3 * len(mech.loop_axes)))
+    r = 0
+    for i, P in enumerate(mech.loop_axes):
+        mech.loop_select[r:r + len(P), 3 * i:3 * i + 3] = P
+        r += len(P)
     mech.armature = np.array(model.armature, dtype=float).reshape(nv)
     mech.has_armature = bool(mech.armature.any())
     if len(limited):

@@ -24,9 +24,22 @@ class Solution:
     v: np.ndarray  # new (hyper-reduced) velocity
     lam: np.ndarray  # multipliers of the bilateral rows
     mu: np.ndarray  # multipliers of the unilateral rows (zero when inactive)
-    residual: float  # relative residual of the KKT stationarity equation
     iterations: int  # 1 for a direct solve, QP iterations otherwise
     solver: str
+    system: LinearSystem | None = None
+    cons: Constraints | None = None
+
+    @property
+    def residual(self) -> float:
+        """Relative residual |A v - b + G^T lam + C^T mu| / |b| of the KKT stationarity equation
+        (computed on demand: the direct solve makes it round-off by construction)."""
+        A, b, c = self.system.A, self.system.b, self.cons
+        r = A @ self.v - b
+        if c.m:
+            r += c.G.T @ self.lam
+        if len(self.mu):
+            r += c.C.T @ self.mu
+        return math.sqrt(float(r @ r) / max(float(b @ b), 1e-300))
 
 
 def _cholesky(A, what):
@@ -46,7 +59,7 @@ def solve_direct(sys: LinearSystem, cons: Constraints, qp_eps: float = 1e-10) ->
         Y = np.asarray(llt.solve(np.ascontiguousarray(cons.G.T))).reshape(n, cons.m)
         S = cons.G @ Y
         lls = eigenpy.LLT(S)
-        Ld = np.abs(np.diag(lls.matrixL())) if lls.info() == _SUCCESS else np.zeros(1)
+        Ld = lls.matrixL().diagonal() if lls.info() == _SUCCESS else np.zeros(1)
         if Ld.min() <= 1e-6 * Ld.max():  # singular or nearly so: name the rows
             _check_rank(S, cons.labels)
         lam = np.asarray(lls.solve(cons.G @ v - cons.g)).reshape(cons.m)
@@ -58,13 +71,7 @@ def solve_direct(sys: LinearSystem, cons: Constraints, qp_eps: float = 1e-10) ->
         if (Cv < cons.lo - 1e-12).any() or (Cv > cons.hi + 1e-12).any():
             v, lam, mu, iters = _solve_qp(A, b, cons, qp_eps)
             solver = "qp"
-    r = A @ v - b
-    if cons.m:
-        r += cons.G.T @ lam
-    if len(mu):
-        r += cons.C.T @ mu
-    residual = math.sqrt(float(r @ r) / max(float(b @ b), 1e-300))
-    return Solution(v, lam, mu, residual, iters, solver)
+    return Solution(v, lam, mu, iters, solver, sys, cons)
 
 
 def _check_rank(S, labels):

@@ -10,6 +10,7 @@ drift to solver precision; see docs/architecture.md.
 """
 from __future__ import annotations
 
+import eigenpy
 import numpy as np
 import pinocchio as pin
 
@@ -32,8 +33,7 @@ def loop_violation(mech, data) -> float:
     """max |phi| [m] at the configuration of data (forward kinematics done)."""
     if not len(mech.loop_ab):
         return 0.0
-    X = site_positions(mech, data, mech.jac_sites)
-    return max(float(np.abs(P @ (X[a] - X[b])).max()) for (a, b), P in zip(mech.loop_rows_ab, mech.loop_axes))
+    return float(np.abs(loop_phi(mech, data)).max())
 
 
 def project(mech, data, q, hold_dofs=(), tol=TOL, max_iter=5):
@@ -53,6 +53,37 @@ def project(mech, data, q, hold_dofs=(), tol=TOL, max_iter=5):
         q = pin.integrate(mech.model, q, mech.to_reduced(dq))
         phi, G = loop_residual(mech, data, q)
     return q, float(np.abs(phi).max())
+
+
+def project_chord(mech, data, q, G, hold_dofs=(), tol=TOL, max_iter=8):
+    """Chord-Newton projection onto phi(q) = 0 reusing the step's loop rows G (hyper-reduced, at q_k):
+    each iteration costs forward kinematics and the loop sites only. The chord converges at a rate
+    O(h |qdot|) (the change of G over one step); if it has not converged in ``max_iter`` iterations the
+    full Newton projection takes over. Returns (q, max|phi|)."""
+    hold = np.zeros((len(hold_dofs), mech.ndof))
+    hold[np.arange(len(hold_dofs)), list(hold_dofs)] = 1.0
+    K = np.vstack([G, hold]) if len(hold) else G
+    llt = eigenpy.LLT(K @ K.T)
+    if llt.info() != eigenpy.ComputationInfo.Success:
+        return project(mech, data, q, hold_dofs, tol)
+    pad = np.zeros(len(hold))
+    model = mech.model
+    for _ in range(max_iter):
+        pin.forwardKinematics(model, data, q)
+        phi = loop_phi(mech, data)
+        err = float(np.abs(phi).max())
+        if err < tol:
+            return q, err
+        y = np.asarray(llt.solve(np.concatenate([phi, pad]) if len(hold) else phi)).reshape(-1)
+        q = pin.integrate(model, q, mech.to_reduced(K.T @ (-y)))
+    return project(mech, data, q, hold_dofs, tol)
+
+
+def loop_phi(mech, data) -> np.ndarray:
+    """Loop-closure residuals phi (rows,) [m] at the forward kinematics in data."""
+    X = site_positions(mech, data, mech.jac_sites)
+    A, B = mech.loop_rows_ab[:, 0], mech.loop_rows_ab[:, 1]
+    return mech.loop_select @ (X[A] - X[B]).reshape(-1)
 
 
 def assemble_loops(mech, q):

@@ -51,10 +51,15 @@ class Diagnostics:
     E_total: float
     violation_pos: float  # max loop-closure residual after the step [m]
     violation_vel: float  # max |G qdot - g| of the bilateral rows
-    residual: float  # relative KKT residual of the solve
     iterations: int
     solver: str
     wall_time: float  # s
+    solution: object = field(default=None, repr=False)
+
+    @property
+    def residual(self) -> float:
+        """Relative KKT residual of the solve (computed on first access)."""
+        return 0.0 if self.solution is None else self.solution.residual
 
 
 @dataclass
@@ -111,7 +116,8 @@ def step(mech, data, state: State, cmd: Commands, h: float) -> tuple:
     v_new = mech.to_reduced(sol.v)  # 5
     q_new = pin.integrate(mech.model, state.q, h * v_new)
     if len(mech.loop_ab):
-        q_new, _ = stabilization.project(mech, data, q_new, _held_dofs(mech, cmd.joint_velocities))
+        q_new, _ = stabilization.project_chord(mech, data, q_new, cons.G[cons.loop_rows],
+                                               _held_dofs(mech, cmd.joint_velocities))
         if not math.isfinite(q_new.sum()):
             raise StepError("non-finite configuration after loop stabilization")
 
@@ -119,14 +125,17 @@ def step(mech, data, state: State, cmd: Commands, h: float) -> tuple:
     for name, sl in cons.joint_rows.items():
         j = mech.joint_index[name]
         effort[j.idx_v:j.idx_v + j.nv] -= sol.lam[sl] / h
-    site_forces = {name: -sol.lam[sl] / h for name, sl in cons.site_rows.items()}
+    site_forces = {}
+    if cons.site_rows:
+        f_all = sol.lam * (-1.0 / h)
+        site_forces = {name: f_all[sl] for name, sl in cons.site_rows.items()}
     ek, ep, es = energies(mech, data, q_new, v_new)
     viol_pos = stabilization.loop_violation(mech, data)
     viol_vel = float(np.abs(cons.G @ sol.v - cons.g).max()) if cons.m else 0.0
     if not math.isfinite(ek + ep + es):
         raise StepError("non-finite energy after the step")
-    diag = Diagnostics(ek, ep, es, ek + ep + es, viol_pos, viol_vel, sol.residual, sol.iterations, sol.solver,
-                       time.perf_counter() - t0)
+    diag = Diagnostics(ek, ep, es, ek + ep + es, viol_pos, viol_vel, sol.iterations, sol.solver,
+                       time.perf_counter() - t0, sol)
     new = State(state.t + h, q_new, sol.v)
     return new, StepResult(new.t, q_new, v_new, effort, site_forces, diag)
 

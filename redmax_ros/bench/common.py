@@ -1,0 +1,33 @@
+"""Shared helpers for the benchmarks: results directory, JSON writing, timing."""
+from __future__ import annotations
+
+import json
+import platform
+import time
+from pathlib import Path
+
+RESULTS = Path(__file__).resolve().parents[2] / "bench" / "results"
+
+
+def results_dir() -> Path:
+    RESULTS.mkdir(parents=True, exist_ok=True)
+    return RESULTS
+
+
+def write_json(name: str, payload: dict) -> Path:
+    payload = {"machine": {"python": platform.python_version(), "processor": platform.processor(),
+                           "node": platform.node()}, "date": time.strftime("%Y-%m-%d %H:%M:%S"), **payload}
+    p = results_dir() / f"{name}.json"
+    p.write_text(json.dumps(payload, indent=2))
+    return p
+
+
+def best_rate(fn, n: int, repeats: int = 3) -> float:
+    """Best-of-``repeats`` calls per second of ``fn`` called ``n`` times (fn(n) does n calls)."""
+    best = 0.0
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        fn(n)
+        dt = time.perf_counter() - t0
+        best = max(best, n / dt)
+    return best
