@@ -230,7 +230,7 @@ def compile_scene(spec: SceneSpec) -> Mechanism:
     joints = []
     for jid in range(1, model.njoints):
         jm = model.joints[jid]
-        jtype = jspecs[jid - 1].type if jspecs else jm.shortname()
+        jtype = jspecs[jid - 1].type if jspecs else _urdf_joint_type(jm.shortname())
         joints.append(JointInfo(model.names[jid], jtype, jid, jm.idx_q, jm.nq, jm.idx_v, jm.nv))
     joint_index = {j.name: j for j in joints}
 
@@ -260,9 +260,9 @@ def compile_scene(spec: SceneSpec) -> Mechanism:
     body_jid = np.array([frame_of[n][0] for n in body_names], dtype=int)
     body_pl = [frame_of[n][1] for n in body_names]
     if spec.urdf:  # inertias are already lumped per joint in the URDF model
-        masses = [model.inertias[j].mass for j in body_jid]
-        coms = [model.inertias[j].lever for j in body_jid]
-        Is = [model.inertias[j].inertia for j in body_jid]
+        masses = [model.inertias[int(j)].mass for j in body_jid]
+        coms = [model.inertias[int(j)].lever.copy() for j in body_jid]
+        Is = [model.inertias[int(j)].inertia.copy() for j in body_jid]
     else:
         masses = [inertia_of[n].mass for n in body_names]
         coms = [M.act(np.asarray(inertia_of[n].com)) for n, M in zip(body_names, body_pl)]
@@ -361,6 +361,17 @@ def compile_scene(spec: SceneSpec) -> Mechanism:
     for i, s in enumerate(spec.springs):
         mech.spring_rest[i] = rest[i] if s.rest_length is None else s.rest_length
     return mech
+
+
+def _urdf_joint_type(short: str) -> str:
+    """Scene vocabulary for a Pinocchio joint model name (URDF scenes)."""
+    s = short.replace("JointModel", "")
+    if s.startswith(("RU", "R")) and not s.startswith("Rev") or s.startswith("Revolute"):
+        return "revolute"
+    if s.startswith("P") and not s.startswith("Planar"):
+        return "prismatic"
+    return {"FreeFlyer": "free", "Spherical": "spherical", "SphericalZYX": "spherical", "Planar": "planar",
+            "Universal": "universal", "Translation": "translational"}.get(s, s.lower())
 
 
 def _q_index(joints, dof):
