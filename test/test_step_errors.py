@@ -88,6 +88,9 @@ def test_multi_step_failure_reports_steps_done():
     (lambda s: s.prescribe_sites({"index_tip": [0, 0]}), "needs 3 values"),
     (lambda s: s.prescribe_sites({"index_tip": [0, np.inf, 0]}), "non-finite"),
     (lambda s: s.set_joint_torques({"elbow": [1, 2]}), "needs 1 value"),
+    (lambda s: s.prescribe_sites({"index_tip": [0, 0, 0]}, axes={"index_tip": ["w"]}), "axes of site 'index_tip'"),
+    (lambda s: s.prescribe_sites({"index_tip": [0, 0, 0]}, axes={"index_tip": ["x", "x"]}), "linearly independent"),
+    (lambda s: s.prescribe_sites({}, axes={"index_tip": ["x"]}), "without a velocity"),
     (lambda s: s.step(0), "positive integer"),
 ])
 def test_bad_commands_raise_and_change_nothing(call, text):

@@ -51,8 +51,9 @@ def loop_rows(mech, X, J):
     return np.vstack(Gs), np.concatenate(phis)
 
 
-def build(mech, kin, q, prescribed_joints: dict, prescribed_sites: dict, h: float) -> Constraints:
-    """All constraint rows of this step, in hyper-reduced coordinates."""
+def build(mech, kin, q, prescribed_joints: dict, prescribed_sites: dict, h: float, site_axes=None) -> Constraints:
+    """All constraint rows of this step, in hyper-reduced coordinates. ``site_axes``: {site: (k,3)}
+    world directions along which a prescribed site's velocity is imposed (default all three)."""
     T = mech.T
     rows, rhs, spans = [], [], []
     r = 0
@@ -71,7 +72,7 @@ def build(mech, kin, q, prescribed_joints: dict, prescribed_sites: dict, h: floa
         spans.append((f"prescribed joint '{name}'", len(Gj)))
         out.joint_rows[name] = slice(r, r + len(Gj))
         r += len(Gj)
-    if prescribed_sites:
+    if prescribed_sites and not site_axes:
         Js = kin.J[[kin.row[mech.site_index[n]] for n in prescribed_sites]].reshape(-1, mech.nv)
         rows.append(Js if T is None else Js @ T)
         for name, vel in prescribed_sites.items():
@@ -79,6 +80,17 @@ def build(mech, kin, q, prescribed_joints: dict, prescribed_sites: dict, h: floa
             spans.append((f"prescribed site '{name}'", 3))
             out.site_rows[name] = slice(r, r + 3)
             r += 3
+    elif prescribed_sites:
+        for name, vel in prescribed_sites.items():
+            Js = kin.J[kin.row[mech.site_index[name]]]
+            P = site_axes.get(name)
+            if P is not None:
+                Js, vel = P @ Js, P @ vel
+            rows.append(Js if T is None else Js @ T)
+            rhs.append(vel)
+            spans.append((f"prescribed site '{name}'", len(Js)))
+            out.site_rows[name] = slice(r, r + len(Js))
+            r += len(Js)
     if r:
         out.G = np.vstack(rows) if len(rows) > 1 else rows[0]
         out.g = np.concatenate(rhs) if len(rhs) > 1 else np.asarray(rhs[0], float)

@@ -126,6 +126,7 @@ class SceneSpec:
     prescribable_sites: list | None = None  # None = every site
     prescribed_joints: dict = field(default_factory=dict)  # name -> velocity (nv,)
     prescribed_sites: dict = field(default_factory=dict)  # name -> velocity (3,) world frame
+    prescribed_site_axes: dict = field(default_factory=dict)  # name -> (k,3) directions, when not x, y, z
     urdf: str | None = None  # path of a URDF giving the tree (bodies/joints then come from it)
     urdf_fixed_base: bool = True
     solver: str = "direct"
@@ -669,6 +670,18 @@ class _Validator:
             n = nv_of.get(name, 1)
             spec.prescribed_joints[name] = self.vector(f"prescribed.joints.{name}", "velocity", val, n, allow_scalar=n == 1)
         for name, val in (pr.get("sites") or {}).items():
+            entry = f"prescribed.sites.{name}"
             if name not in sites:
                 self.err("prescribed.sites", f"unknown site '{name}'")
-            spec.prescribed_sites[name] = self.vector(f"prescribed.sites.{name}", "velocity", val, 3)
+            if isinstance(val, dict):  # {velocity: [vx, vy, vz], axes: [x, z]}
+                self.keys(entry, val, {"velocity", "axes"}, required=("velocity",))
+                if "axes" in val:
+                    ax = val["axes"]
+                    if not isinstance(ax, list) or not 1 <= len(ax) <= 3:
+                        self.err(entry, "'axes' must list 1-3 world directions")
+                    P = np.array([self.axis(entry, "axes", a) for a in ax])
+                    if np.linalg.matrix_rank(P) < len(P):
+                        self.err(entry, "'axes' must be linearly independent")
+                    spec.prescribed_site_axes[name] = P
+                val = val["velocity"]
+            spec.prescribed_sites[name] = self.vector(entry, "velocity", val, 3)

@@ -16,6 +16,24 @@ from .scene import SceneSpec, load_scene
 from .stepper import Commands, State, StepResult, step
 
 
+_AXES = {"x": (1.0, 0.0, 0.0), "y": (0.0, 1.0, 0.0), "z": (0.0, 0.0, 1.0)}
+
+
+def _axes_matrix(site, axes) -> np.ndarray:
+    """(k,3) unit world directions from ['x', 'z'] or vectors; CommandError if malformed or dependent."""
+    try:
+        P = np.array([_AXES[a] if isinstance(a, str) else a for a in axes], dtype=float).reshape(-1, 3)
+    except (KeyError, ValueError, TypeError):
+        raise CommandError(f"axes of site '{site}' must be 'x', 'y', 'z' or 3-vectors, got {axes!r}") from None
+    n = np.linalg.norm(P, axis=1) if len(P) else np.zeros(0)
+    if not 1 <= len(P) <= 3 or not np.all(np.isfinite(P)) or np.any(n < 1e-12):
+        raise CommandError(f"axes of site '{site}' must be 1-3 non-zero directions, got {axes!r}")
+    P = P / n[:, None]
+    if np.linalg.matrix_rank(P) < len(P):
+        raise CommandError(f"axes of site '{site}' must be linearly independent, got {axes!r}")
+    return P
+
+
 @dataclass
 class Coupling:
     name: str
@@ -75,6 +93,7 @@ class Simulator:
         self.commands = Commands(
             joint_velocities={k: np.array(v, float) for k, v in self.spec.prescribed_joints.items()},
             site_velocities={k: np.array(v, float) for k, v in self.spec.prescribed_sites.items()},
+            site_axes={k: np.array(P, float) for k, P in self.spec.prescribed_site_axes.items()},
             joint_torques=np.zeros(m.nv),
         )
         self.last: StepResult | None = None
@@ -131,11 +150,23 @@ class Simulator:
         for n in names:
             self.commands.joint_velocities.pop(n, None)
 
-    def prescribe_sites(self, velocities: dict) -> None:
-        """Prescribe site (point) velocities, world frame [m/s] (Eq. 7, *G_m = point Jacobian)."""
+    def prescribe_sites(self, velocities: dict, axes: dict | None = None) -> None:
+        """Prescribe site (point) velocities, world frame [m/s] (Eq. 7, *G_m = point Jacobian).
+
+        ``axes`` {site: directions} imposes the velocity only along those world directions ('x', 'y',
+        'z' or unit vectors), e.g. ['x', 'z'] for a planar mechanism moving in the xz plane; sites
+        without an entry are prescribed along all three."""
         new = {n: self._site_vector(n, v, self.mech.prescribable_sites, "prescribed velocity of site")
                for n, v in velocities.items()}
+        new_axes = {}
+        for n, ax in (axes or {}).items():
+            if n not in new:
+                raise CommandError(f"axes given for site '{n}' without a velocity")
+            new_axes[n] = _axes_matrix(n, ax)
+        for n in new:
+            self.commands.site_axes.pop(n, None)
         self.commands.site_velocities.update(new)
+        self.commands.site_axes.update(new_axes)
 
     def release_sites(self, names) -> None:
         for n in names:
@@ -143,6 +174,7 @@ class Simulator:
                 raise CommandError(f"unknown site '{n}'")
         for n in names:
             self.commands.site_velocities.pop(n, None)
+            self.commands.site_axes.pop(n, None)
 
     def set_joint_torques(self, torques: dict) -> None:
         """Explicit applied joint torques [N m or N], held until changed."""

@@ -39,6 +39,7 @@ class State:
 class Commands:
     joint_velocities: dict = field(default_factory=dict)  # prescribed joint -> (nv_j,) [rad/s, m/s]
     site_velocities: dict = field(default_factory=dict)  # prescribed site -> (3,) world [m/s]
+    site_axes: dict = field(default_factory=dict)  # prescribed site -> (k,3) world directions (default: x, y, z)
     joint_torques: np.ndarray | None = None  # (nv,) explicit applied joint torques [N m, N]
     site_forces: dict = field(default_factory=dict)  # site -> (3,) explicit world force [N]
 
@@ -105,7 +106,7 @@ def step(mech, data, state: State, cmd: Commands, h: float) -> tuple:
     v_r = mech.to_reduced(state.v)
     kin = kinematics.compute(mech, data, state.q, v_r, extra)  # 1
     system = forces.assemble(mech, data, kin, state.q, v_r, tau, h, sf)  # 2
-    cons = constraints.build(mech, kin, state.q, cmd.joint_velocities, psites, h)  # 3
+    cons = constraints.build(mech, kin, state.q, cmd.joint_velocities, psites, h, cmd.site_axes)  # 3
     if cons.m and not math.isfinite(cons.g.sum()):
         _check_inputs(state, tau, cmd)
     sol = solve_direct(system, cons)  # 4
@@ -129,6 +130,9 @@ def step(mech, data, state: State, cmd: Commands, h: float) -> tuple:
     if cons.site_rows:
         f_all = sol.lam * (-1.0 / h)
         site_forces = {name: f_all[sl] for name, sl in cons.site_rows.items()}
+        for name, P in cmd.site_axes.items():
+            if name in site_forces:
+                site_forces[name] = P.T @ site_forces[name]  # world-frame force of the prescribed rows
     ek, ep, es = energies(mech, data, q_new, v_new)
     viol_pos = stabilization.loop_violation(mech, data)
     viol_vel = float(np.abs(cons.G @ sol.v - cons.g).max()) if cons.m else 0.0
