@@ -1,0 +1,218 @@
+"""Shared helpers for the node tests (test_node_*.py, test_mcap_*.py): real rclpy over Fast DDS.
+
+Importing this module isolates the run before rclpy starts: a private ROS_DOMAIN_ID (derived
+from the process id unless already set) and ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST.
+"""
+from __future__ import annotations
+
+import os
+import threading
+import time
+
+os.environ.setdefault("ROS_DOMAIN_ID", str(20 + os.getpid() % 80))
+os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+os.environ.setdefault("RMW_IMPLEMENTATION", "rmw_fastrtps_cpp")
+
+import pytest  # noqa: E402
+
+rclpy = pytest.importorskip("rclpy")
+pytest.importorskip("redmax_msgs.msg", reason="redmax_msgs not built (scripts/setup.sh builds msg_defs/)")
+
+from rclpy.action import ActionClient  # noqa: E402
+from rclpy.executors import SingleThreadedExecutor  # noqa: E402
+from rclpy.node import Node  # noqa: E402
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy  # noqa: E402
+from rcl_interfaces.msg import Log  # noqa: E402
+from sensor_msgs.msg import JointState  # noqa: E402
+
+from redmax_msgs.action import SimulateSteps  # noqa: E402
+from redmax_msgs.msg import PointForces, PointVelocityCommand, SimulationState  # noqa: E402
+from redmax_msgs.srv import (DescribeScene, GetSimulationState, LoadScene, ReleaseCommands,  # noqa: E402
+                             ResetSimulation, SetSimulationState, StepSimulation)
+
+TIMEOUT = 20.0
+QOS_STATE = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
+QOS_LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                         durability=DurabilityPolicy.TRANSIENT_LOCAL)
+
+
+class Client:
+    """A test client node spun in its own thread; collects what the simulation node publishes."""
+
+    def __init__(self, name="redmax_test_client", ns=""):
+        self.node = Node(name)
+        n = self.node
+        p = (ns.rstrip("/") + "/") if ns else ""
+        self.lock = threading.RLock()
+        self.joint_states: list = []
+        self.point_forces: list = []
+        self.prescribed: list = []
+        self.states: list = []
+        self.rosout: list = []
+        n.create_subscription(JointState, p + "joint_states", self._store(self.joint_states), QOS_STATE)
+        n.create_subscription(PointForces, p + "point_forces", self._store(self.point_forces), QOS_STATE)
+        n.create_subscription(JointState, p + "prescribed_joints", self._store(self.prescribed), QOS_LATCHED)
+        n.create_subscription(SimulationState, p + "simulation_state", self._store(self.states), QOS_LATCHED)
+        n.create_subscription(Log, "/rosout", self._store(self.rosout),
+                              QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE,
+                                         durability=DurabilityPolicy.TRANSIENT_LOCAL))
+        self.pub_joint = n.create_publisher(JointState, p + "joint_commands", 10)
+        self.pub_point = n.create_publisher(PointVelocityCommand, p + "point_commands", 10)
+        self.cli = {
+            "step": n.create_client(StepSimulation, p + "step_simulation"),
+            "reset": n.create_client(ResetSimulation, p + "reset_simulation"),
+            "get_state": n.create_client(GetSimulationState, p + "get_simulation_state"),
+            "set_state": n.create_client(SetSimulationState, p + "set_simulation_state"),
+            "load": n.create_client(LoadScene, p + "load_scene"),
+            "describe": n.create_client(DescribeScene, p + "describe_scene"),
+            "release": n.create_client(ReleaseCommands, p + "release_commands"),
+        }
+        self.action = ActionClient(n, SimulateSteps, p + "simulate_steps")
+        self.executor = SingleThreadedExecutor()
+        self.executor.add_node(n)
+        self._stop = False
+        self._thread = threading.Thread(target=self._spin, daemon=True)
+        self._thread.start()
+
+    def _store(self, lst):
+        def cb(msg):
+            with self.lock:
+                lst.append(msg)
+        return cb
+
+    def _spin(self):
+        while not self._stop and rclpy.ok():
+            try:
+                self.executor.spin_once(timeout_sec=0.05)
+            except Exception:
+                if self._stop or not rclpy.ok():
+                    break
+                raise
+
+    def close(self):
+        self._stop = True
+        self._thread.join(5)
+        self.action.destroy()
+        self.node.destroy_node()
+
+    # -- waiting
+    def wait_for(self, pred, timeout=TIMEOUT, what="condition"):
+        end = time.monotonic() + timeout
+        while time.monotonic() < end:
+            with self.lock:
+                if pred():
+                    return
+            time.sleep(0.005)
+        raise AssertionError(f"timed out waiting for {what}")
+
+    def wait_ready(self, timeout=TIMEOUT):
+        for name, c in self.cli.items():
+            assert c.wait_for_service(timeout_sec=timeout), f"service {name} not available"
+        end = time.monotonic() + timeout
+        while self.pub_joint.get_subscription_count() == 0 or self.pub_point.get_subscription_count() == 0:
+            assert time.monotonic() < end, "node's command subscriptions not matched"
+            time.sleep(0.01)
+
+    # -- calls
+    def call(self, name, req=None, timeout=TIMEOUT):
+        c = self.cli[name]
+        if req is None:
+            req = c.srv_type.Request()
+        fut = c.call_async(req)
+        end = time.monotonic() + timeout
+        while not fut.done():
+            assert time.monotonic() < end, f"service {name} did not answer"
+            time.sleep(0.001)
+        return fut.result()
+
+    def step(self, n):
+        return self.call("step", StepSimulation.Request(steps=n))
+
+    def set_state(self, state):
+        req = SetSimulationState.Request()
+        req.state.state = state
+        return self.call("set_state", req)
+
+    def reset(self, scope=0):
+        return self.call("reset", ResetSimulation.Request(scope=scope))
+
+    def load(self, scene, overrides=()):
+        return self.call("load", LoadScene.Request(scene=scene, overrides=list(overrides)))
+
+    def describe(self):
+        return self.call("describe").description
+
+    def last_state(self):
+        with self.lock:
+            return self.joint_states[-1] if self.joint_states else None
+
+    def clear(self):
+        with self.lock:
+            self.joint_states.clear()
+            self.point_forces.clear()
+
+    def command_joints(self, names, velocities=(), efforts=(), wait_ack=True):
+        """Publish a joint command; with wait_ack, wait until prescribed_joints reflects it (the
+        node's acknowledgement), so a following step request is ordered after it."""
+        m = JointState(name=list(names), velocity=[float(v) for v in velocities],
+                       effort=[float(e) for e in efforts])
+        with self.lock:
+            n0 = len(self.prescribed)
+        self.pub_joint.publish(m)
+        if wait_ack:
+            self.wait_for(lambda: len(self.prescribed) > n0, what="prescribed_joints acknowledgement")
+
+    def command_points(self, sites, velocities, frame="world", wait_ack=True):
+        from geometry_msgs.msg import Vector3
+        m = PointVelocityCommand(sites=list(sites), velocities=[Vector3(x=float(v[0]), y=float(v[1]),
+                                                                         z=float(v[2])) for v in velocities])
+        m.header.frame_id = frame
+        with self.lock:
+            n0 = len(self.prescribed)
+        self.pub_point.publish(m)
+        if wait_ack:
+            self.wait_for(lambda: len(self.prescribed) > n0, what="prescription acknowledgement")
+
+    def errors(self):
+        with self.lock:
+            return [r.msg for r in self.rosout if r.level >= Log.WARN]
+
+
+def run_node_in_thread(params: dict, name="redmax"):
+    """Start RedmaxNode in this process with the given parameters; returns (node, stop)."""
+    from rclpy.executors import MultiThreadedExecutor
+    from rclpy.parameter import Parameter
+
+    from redmax_ros.node.main import RedmaxNode
+
+    overrides = [Parameter(k, value=v) for k, v in params.items()]
+    node = RedmaxNode(name, parameter_overrides=overrides)
+    ex = MultiThreadedExecutor(num_threads=4)
+    ex.add_node(node)
+    stop = threading.Event()
+
+    def spin():
+        while not stop.is_set() and rclpy.ok():
+            try:
+                ex.spin_once(timeout_sec=0.05)
+            except Exception:
+                if stop.is_set() or not rclpy.ok():
+                    break
+                raise
+
+    th = threading.Thread(target=spin, daemon=True)
+    th.start()
+
+    def shutdown():
+        stop.set()
+        th.join(5)
+        node.close()
+        ex.remove_node(node)
+        node.destroy_node()
+
+    return node, shutdown
+
+
+def arrays_equal(a, b):
+    import numpy as np
+    return np.array_equal(np.asarray(a), np.asarray(b))
