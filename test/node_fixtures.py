@@ -156,17 +156,29 @@ class Client:
         node's acknowledgement), so a following step request is ordered after it."""
         m = JointState(name=list(names), velocity=[float(v) for v in velocities],
                        effort=[float(e) for e in efforts])
+        if wait_ack:
+            self.wait_for(lambda: len(self.prescribed) > 0, what="latched prescribed_joints")
         with self.lock:
             n0 = len(self.prescribed)
         self.pub_joint.publish(m)
         if wait_ack:
-            self.wait_for(lambda: len(self.prescribed) > n0, what="prescribed_joints acknowledgement")
+            want = dict(zip(m.name, m.velocity))
+
+            def acked():
+                if len(self.prescribed) <= n0:
+                    return False
+                last = self.prescribed[-1]
+                got = dict(zip(last.name, last.velocity))
+                return all(got.get(k) == v for k, v in want.items())
+            self.wait_for(acked, what="prescribed_joints acknowledgement")
 
     def command_points(self, sites, velocities, frame="world", wait_ack=True):
         from geometry_msgs.msg import Vector3
         m = PointVelocityCommand(sites=list(sites), velocities=[Vector3(x=float(v[0]), y=float(v[1]),
                                                                          z=float(v[2])) for v in velocities])
         m.header.frame_id = frame
+        if wait_ack:
+            self.wait_for(lambda: len(self.prescribed) > 0, what="latched prescribed_joints")
         with self.lock:
             n0 = len(self.prescribed)
         self.pub_point.publish(m)

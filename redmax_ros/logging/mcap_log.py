@@ -147,6 +147,7 @@ def qos_profiles_yaml(profiles) -> str:
 
 _CLOSE = object()
 _FLUSH = object()
+_REGISTER = object()
 
 
 class _Topic:
@@ -207,6 +208,7 @@ class McapLogger:
                 return True
             t = _Topic(topic, type_name, definition, qos_profiles_yaml(qos_profiles or [{}]), len(self._topics))
             self._topics[topic] = t
+        self._q.put((_REGISTER, t))  # channels exist in the file even before their first message
         return True
 
     def write(self, topic: str, data: bytes, log_time_ns: int | None = None, publish_time_ns: int | None = None):
@@ -248,7 +250,12 @@ class McapLogger:
         w = Writer(f, chunk_size=self.chunk_size, compression=self.compression)
         w.start(profile="ros2", library=LIBRARY)
         self.files.append(path)
-        return f, w, {}, time.monotonic()
+        chans = {}
+        with self._lock:
+            known = list(self._topics.values())
+        for t in known:
+            self._channel(w, chans, t)
+        return f, w, chans, time.monotonic()
 
     def _channel(self, w, chans, t: _Topic):
         cid = chans.get(t.topic)
@@ -275,6 +282,9 @@ class McapLogger:
                 now = time.monotonic()
                 if item is not None and item[0] is _CLOSE:
                     break
+                if item is not None and item[0] is _REGISTER:
+                    self._channel(w, chans, item[1])
+                    continue
                 if item is not None and item[0] is _FLUSH:
                     w.flush()
                     last_flush = now
