@@ -176,3 +176,4 @@ def hand(params: dict) -> dict:
         "bodies": bodies, "joints": joints, "sites": sites, "couplings": couplings,
         "prescribable": {"joints": ["elbow", "wrist"], "sites": tips},
     }
+from . import builders_friction  # noqa: E402,F401  (incline, wheel, friction_chain: docs/friction.md)

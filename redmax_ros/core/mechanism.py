@@ -88,6 +88,7 @@ class Mechanism:
     armature: np.ndarray | None = None  # (nv,)
     limit_rows: np.ndarray | None = None  # (p,ndof) rows of J_rR for the limited DOFs
     limit_labels: list = field(default_factory=list)
+    friction: object = None  # contact.FrictionModel (ground contact, joint friction) or None
 
     def joint_rows(self, name: str) -> np.ndarray:
         """Rows *G_r of a prescribed joint (identity on its DOFs, Eq. 7), projected by J_rR (cached)."""
@@ -360,6 +361,9 @@ def compile_scene(spec: SceneSpec) -> Mechanism:
     rest = _spring_lengths(mech, mech.q0)
     for i, s in enumerate(spec.springs):
         mech.spring_rest[i] = rest[i] if s.rest_length is None else s.rest_length
+    if spec.friction is not None:
+        from .contact import compile_friction
+        mech.friction = compile_friction(mech, spec.friction)
     return mech
 
 

@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 import yaml
 
+from . import contact_schema
 from .errors import SceneError
 from .inertia import shape_inertia, shape_volume
 
@@ -132,6 +133,7 @@ class SceneSpec:
     solver: str = "direct"
     description: str = ""
     raw: dict = field(default_factory=dict, repr=False)
+    friction: object = None  # contact_schema.FrictionSpec: ground, contacts, joint/loop friction (or None)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -375,6 +377,7 @@ class _Validator:
     def scene(self, raw) -> SceneSpec:
         top = {"name", "description", "units", "gravity", "dt", "duration", "bodies", "joints", "sites", "springs",
                "wrenches", "loops", "couplings", "prescribable", "prescribed", "urdf", "params", "solver"}
+        top |= contact_schema.TOP_KEYS
         self.keys("scene", raw, top)
         if raw.get("units", "SI") != "SI":
             self.err("units", f"only SI units are supported, got {raw.get('units')!r}")
@@ -406,6 +409,7 @@ class _Validator:
         spec.loops = [self.loop(e, d, site_names) for e, d in self.entries(raw, "loops")]
         spec.couplings = [self.coupling(e, d, spec) for e, d in self.entries(raw, "couplings")]
         self.prescriptions(spec, raw, site_names)
+        spec.friction = contact_schema.parse(self, raw, spec, body_names)
         return spec
 
     def urdf(self, spec, d):
@@ -478,7 +482,7 @@ class _Validator:
 
     def joint(self, entry, d) -> JointSpec:
         allowed = {"name", "type", "parent", "child", "placement", "body_placement", "axis", "axes", "q0", "v0",
-                   "limits", "stiffness", "rest", "damping", "armature", "torque"}
+                   "limits", "stiffness", "rest", "damping", "armature", "torque", "friction"}
         self.keys(entry, d, allowed, required=("type", "parent", "child"))
         jt = d["type"]
         if jt not in JOINT_TYPES:
@@ -618,7 +622,7 @@ class _Validator:
                           self.vector(entry, "torque", d.get("torque", [0, 0, 0]), 3))
 
     def loop(self, entry, d, sites) -> LoopSpec:
-        self.keys(entry, d, {"name", "a", "b", "rows"})
+        self.keys(entry, d, {"name", "a", "b", "rows", "axis", "friction"})
         a, b = self.site_ref(entry, "a", d, sites), self.site_ref(entry, "b", d, sites)
         rows = d.get("rows", ["x", "y", "z"])
         if not isinstance(rows, list) or not rows or len(rows) > 3:

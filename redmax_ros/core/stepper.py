@@ -20,7 +20,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import pinocchio as pin
 
-from . import constraints, forces, kinematics, stabilization
+from . import constraints, forces, kinematics, stabilization, staggered
 from .energy import energies
 from .errors import StepError
 from .solve import solve_direct
@@ -33,6 +33,7 @@ class State:
     t: float  # s
     q: np.ndarray  # (nq,) Pinocchio configuration
     v: np.ndarray  # (ndof,) hyper-reduced velocity qdot_R (= qdot_r without couplings)
+    friction_cache: dict | None = None  # warm start of the friction impulses (staggered.py)
 
 
 @dataclass
@@ -56,6 +57,7 @@ class Diagnostics:
     solver: str
     wall_time: float  # s
     solution: object = field(default=None, repr=False)
+    friction: object = None  # staggered.FrictionReport when the scene has contact or joint friction
 
     @property
     def residual(self) -> float:
@@ -109,7 +111,12 @@ def step(mech, data, state: State, cmd: Commands, h: float) -> tuple:
     cons = constraints.build(mech, kin, state.q, cmd.joint_velocities, psites, h, cmd.site_axes)  # 3
     if cons.m and not math.isfinite(cons.g.sum()):
         _check_inputs(state, tau, cmd)
-    sol = solve_direct(system, cons)  # 4
+    fric = fcache = None
+    if mech.friction is None:
+        sol = solve_direct(system, cons)  # 4
+    else:  # 4': Staggered Projections / BISP (Alg. 2/3) for ground contact and joint friction
+        sol, fric, fcache = staggered.solve(mech, data, kin, system, cons, state.q, v_r, h,
+                                            state.friction_cache, sf)
     vmax = float(np.abs(sol.v).max()) if len(sol.v) else 0.0
     if not vmax <= MAX_SPEED:  # also catches NaN
         raise StepError(f"step diverged: max |qdot| = {vmax:.3g} (limit {MAX_SPEED:g})")
@@ -139,8 +146,8 @@ def step(mech, data, state: State, cmd: Commands, h: float) -> tuple:
     if not math.isfinite(ek + ep + es):
         raise StepError("non-finite energy after the step")
     diag = Diagnostics(ek, ep, es, ek + ep + es, viol_pos, viol_vel, sol.iterations, sol.solver,
-                       time.perf_counter() - t0, sol)
-    new = State(state.t + h, q_new, sol.v)
+                       time.perf_counter() - t0, sol, fric)
+    new = State(state.t + h, q_new, sol.v, fcache)
     return new, StepResult(new.t, q_new, v_new, effort, site_forces, diag)
 
 

@@ -1,0 +1,301 @@
+"""Contact and friction geometry: the constant part (compiled with the Mechanism) and the per-step rows.
+
+Ground contact (paper §5.1, Sueda's notes §1.11): contact primitives on bodies (points, spheres,
+capsules = two end spheres, boxes = eight corner points) against world planes n . x = offset.
+Every primitive is sampled as spheres (centre on a body, radius r >= 0); a sphere/plane pair whose
+gap d = n . c - offset - r is below ``margin`` is a contact with
+  * one normal row  N = n^T J_x (J_x the point Jacobian of the contact point x = c - r n, Eq. 1.90-1.91
+    written in reduced coordinates through J_mr, i.e. the unilateral rows C_m J_mr of Eq. 5), with the
+    velocity bound N qdot >= -d/h when d >= 0 (speculative contact: the body may close the gap this
+    step but not cross it; restitution zero) and N qdot >= -erp d / h when d < 0 (penetration is
+    removed at the rate erp per step: velocity-level stabilization, Sueda's notes §1.12);
+  * two tangent rows T = t_i^T J_x along t_1 (the world x axis, or y, projected onto the plane) and
+    t_2 = n x t_1: the four-sided friction pyramid |beta_i| <= mu alpha (Eq. 12, notes Eq. 1.100).
+
+Frictional joints (BISP, paper §5.2, notes §2.12): implicit contact points fixed in the child joint
+frame (the pin turns with the child body), on the joint geometry given in the scene file:
+  * revolute: ``points`` points on each of the two end circles (radius r, at +-length/2 along the
+    axis) of a cylinder around the axis; at each point a radial and an axial normal (together they
+    span the 5 constraint directions: forces in 3D and the two moments normal to the axis);
+  * prismatic: the same two circles around the sliding axis, with a radial and a circumferential
+    normal at each point (forces normal to the axis, all three moments);
+  * spherical: six points on a ball of radius r (+-x, +-y, +-z), radial normals (the 3 forces).
+The local least squares of Eq. (16), alpha_i = h (N_i M_i^-1 N_i^T + eps I)^-1 N_i M_i^-1 f_ai, uses
+the child body's spatial inertia M_i in the joint frame, so its operator L_i is a constant of the
+mechanism (precomputed here, with the projection that removes the joint's motion-subspace part of
+the wrench: only the constraint part of the reaction is distributed to the contact points).
+Friction in a 1-DOF joint: every implicit point slips at the same rate (r qdot for a revolute, qdot
+for a prismatic), so the friction QP row is r e_j (or e_j) with the exact box bound
+mu sum_k |alpha_k| ("for 1 DOF joints the cone degenerates into a box", §5.1). Spherical: two tangent
+rows per point with the four-sided pyramid bound mu |alpha_k|.
+Loop-closing pins (paper §5.3): points around the pin axis (world direction) at the loop's site,
+same layout as a revolute joint, unweighted least squares (M_i = I: a loop has no single child body).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import pinocchio as pin
+
+from .errors import SceneError
+from .kinematics import point_jacobians
+from .spatial import rpy_matrix
+
+
+@dataclass
+class FrictionModel:
+    settings: object  # contact_schema.FrictionSettings
+    plane_n: np.ndarray  # (P,3)
+    plane_off: np.ndarray  # (P,)
+    plane_mu: np.ndarray  # (P,)
+    plane_t: np.ndarray  # (P,2,3) tangent directions
+    plane_names: list
+    sph_jid: np.ndarray  # (K,) joint of each contact sphere (sampled primitives)
+    sph_local: np.ndarray  # (K,3) centre in the joint frame
+    sph_radius: np.ndarray  # (K,)
+    sph_mu: np.ndarray  # (K,) NaN = the plane's mu
+    sph_support: np.ndarray  # (K,nv) bool
+    sph_label: list  # "contact 'name'[i]"
+    # frictional tree joints and loops: padded implicit-contact operators (Eq. 16)
+    fj_names: list  # tree joints then loops
+    fj_jid: np.ndarray  # (J,) Pinocchio joint of each frictional tree joint
+    n_tree: int
+    L: np.ndarray  # (J+Lf, kmax, 6) alpha = h L f (f: joint wrench, local frame / world for loops)
+    rows_fixed: np.ndarray  # (F1, ndof) constant friction rows of the tree joints
+    bound_B: np.ndarray  # (F1 + Lf, (J+Lf)*kmax) bound = B |alpha| (mu included)
+    loop_index: np.ndarray  # (Lf,) indices into mech.loop_names
+    loop_axis: np.ndarray  # (Lf,3)
+    loop_radius: np.ndarray  # (Lf,)
+    loop_rowslices: list  # rows of each frictional loop in the loop block of G
+    loop_sites: np.ndarray  # (Lf,2) site indices (a, b)
+    fext: object = None  # pin.StdVec_Force workspace
+    sub: np.ndarray | None = None  # (J, njoints) subtree membership of the frictional tree joints
+
+    @property
+    def has_joint_friction(self) -> bool:
+        return len(self.fj_names) > 0
+
+
+def _perp(a):
+    e = np.eye(3)[int(np.argmin(np.abs(a)))]
+    e1 = np.cross(a, e)
+    e1 /= np.linalg.norm(e1)
+    return e1, np.cross(a, e1)
+
+
+def implicit_points(jtype: str, axis, spec):
+    """(points (k,3), normals (k,3), groups) of the implicit contacts of a joint, in its frame.
+    ``groups``: list of (row vector in the joint's DOFs (nv,), normal indices bounding it)."""
+    r, L, n = spec.radius, spec.length, spec.points
+    P, Nn = [], []
+    if jtype in ("revolute", "prismatic"):
+        a = np.asarray(axis, float)
+        e1, e2 = _perp(a)
+        for s in (-0.5 * L, 0.5 * L):
+            for i in range(n):
+                th = 2 * np.pi * i / n
+                u = np.cos(th) * e1 + np.sin(th) * e2
+                p = s * a + r * u
+                P += [p, p]
+                Nn += [u, a if jtype == "revolute" else np.cross(a, u)]
+        rows = [(np.array([r if jtype == "revolute" else 1.0]), list(range(len(P))))]
+        return np.array(P), np.array(Nn), rows
+    if jtype == "spherical":
+        rows = []
+        for k, u in enumerate(np.vstack([np.eye(3), -np.eye(3)])):
+            P.append(r * u)
+            Nn.append(u)
+            for t in _perp(u):
+                rows.append((r * np.cross(u, t), [k]))  # slip t . (w x r u) = r (u x t) . w
+        return np.array(P), np.array(Nn), rows
+    raise AssertionError(jtype)
+
+
+def ls_operator(P, Nn, M, eps):
+    """L of Eq. (16) without h: alpha = h L f, L = (N M^-1 N^T + eps I)^-1 N M^-1 (N rows: wrench of a unit
+    normal force, Pinocchio order (force, moment))."""
+    N = np.hstack([Nn, np.cross(P, Nn)])
+    Minv_Nt = np.linalg.solve(M, N.T)
+    return np.linalg.solve(N @ Minv_Nt + eps * np.eye(len(N)), Minv_Nt.T)
+
+
+def compile_friction(mech, fspec) -> FrictionModel | None:
+    """Constant contact/friction data of a mechanism (called by mechanism.compile_scene); None when
+    the scene has neither contacts nor friction (the step then takes the frictionless path)."""
+    src = mech.spec.source
+    st = fspec.settings
+    model, nv = mech.model, mech.nv
+    T = mech.T
+    # planes
+    pn = np.array([p.normal for p in fspec.planes]).reshape(-1, 3)
+    pt = np.zeros((len(pn), 2, 3))
+    for i, n in enumerate(pn):
+        e = np.array([1.0, 0, 0]) if abs(n[0]) < 0.9 else np.array([0, 1.0, 0])
+        t1 = e - (e @ n) * n
+        t1 /= np.linalg.norm(t1)
+        pt[i] = t1, np.cross(n, t1)
+    # contact spheres
+    bidx = {b: i for i, b in enumerate(mech.bodies)}
+    jid, loc, rad, mu, lab = [], [], [], [], []
+    for c in fspec.contacts:
+        bi = bidx[c.body]
+        j, M = int(mech.body_jid[bi]), mech.body_placement[bi]
+        R = rpy_matrix(c.rpy)
+        if c.type in ("point", "sphere"):
+            cs, r = [c.pos], c.radius
+        elif c.type == "capsule":
+            ax = R[:, 2] * 0.5 * c.length
+            cs, r = [c.pos - ax, c.pos + ax], c.radius
+        else:
+            h = 0.5 * c.size
+            cs = [c.pos + R @ (h * np.array([sx, sy, sz])) for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)]
+            r = 0.0
+        if j == 0:
+            raise SceneError(src, f"contacts '{c.name}'", "contacts on world-fixed bodies are not needed")
+        for k, p in enumerate(cs):
+            jid.append(j)
+            loc.append(M.act(np.asarray(p, float)))
+            rad.append(r)
+            mu.append(np.nan if c.mu is None else c.mu)
+            lab.append(f"contact '{c.name}'" + (f"[{k}]" if len(cs) > 1 else ""))
+    sph_support = np.array([_support(model, j) for j in jid], dtype=bool).reshape(-1, nv)
+    # frictional tree joints
+    names, jids, Ls, rows, groups = [], [], [], [], []
+    jmu = st.joint_mu
+    for name, js in fspec.joints.items():
+        if (js.mu if jmu is None else jmu) == 0.0:
+            continue  # frictionless: no implicit contacts needed
+        if name not in mech.joint_index:
+            raise SceneError(src, f"joints '{name}'", "friction on a joint that is not in the model")
+        ji = mech.joint_index[name]
+        jspec = next(j for j in mech.spec.joints if j.name == name)
+        axis = jspec.axes[0] if len(jspec.axes) else None
+        P, Nn, rws = implicit_points(ji.type, axis, js)
+        Minert = model.inertias[ji.jid].matrix()
+        S = np.zeros((6, ji.nv))
+        if ji.type == "revolute":
+            S[3:, 0] = axis
+        elif ji.type == "prismatic":
+            S[:3, 0] = axis
+        else:
+            S[3:] = np.eye(3)
+        Pc = np.eye(6) - S @ S.T
+        Ls.append(ls_operator(P, Nn, Minert, st.epsilon) @ Pc)
+        names.append(name)
+        jids.append(ji.jid)
+        for vec, grp in rws:
+            row = np.zeros(nv)
+            row[ji.idx_v:ji.idx_v + ji.nv] = vec
+            rows.append(row if T is None else row @ T)
+            groups.append((len(names) - 1, grp, js.mu if jmu is None else jmu))
+    n_tree = len(names)
+    # frictional loops
+    lidx, laxis, lrad, lslices, lsites = [], [], [], [], []
+    starts = np.cumsum([0] + [len(a) for a in mech.loop_axes])
+    for lname, lf in fspec.loops.items():
+        if (lf.friction.mu if jmu is None else jmu) == 0.0:
+            continue
+        if lname not in mech.loop_names:
+            raise SceneError(src, f"loops '{lname}'", "unknown loop")
+        i = mech.loop_names.index(lname)
+        P, Nn, _ = implicit_points("revolute", lf.axis, lf.friction)
+        Ls.append(ls_operator(P, Nn, np.eye(6), st.epsilon))
+        names.append(lname)
+        lidx.append(i)
+        laxis.append(lf.axis)
+        lrad.append(lf.friction.radius)
+        lslices.append(slice(int(starts[i]), int(starts[i + 1])))
+        lsites.append(mech.loop_ab[i])
+        groups.append((len(names) - 1, list(range(len(P))), lf.friction.mu if jmu is None else jmu))
+    if not names and not (len(jid) and len(pn)):
+        return None  # nothing frictional or in contact (e.g. joint_mu = 0, no contacts): plain step
+    kmax = max((len(L) for L in Ls), default=0)
+    Lpad = np.zeros((len(Ls), kmax, 6))
+    for i, L in enumerate(Ls):
+        Lpad[i, :len(L)] = L
+    B = np.zeros((len(groups), len(Ls) * kmax))
+    for r, (j, grp, m) in enumerate(groups):
+        B[r, j * kmax + np.asarray(grp)] = m
+    fext = pin.StdVec_Force()
+    for _ in range(model.njoints):
+        fext.append(pin.Force.Zero())
+    return FrictionModel(
+        settings=st, plane_n=pn, plane_off=np.array([p.offset for p in fspec.planes]),
+        plane_mu=np.array([p.mu for p in fspec.planes]), plane_t=pt, plane_names=[p.name for p in fspec.planes],
+        sph_jid=np.array(jid, dtype=int), sph_local=np.array(loc).reshape(-1, 3), sph_radius=np.array(rad),
+        sph_mu=np.array(mu), sph_support=sph_support, sph_label=lab,
+        fj_names=names, fj_jid=np.array(jids, dtype=int), n_tree=n_tree, L=Lpad,
+        rows_fixed=np.array(rows).reshape(-1, mech.ndof), bound_B=B,
+        loop_index=np.array(lidx, dtype=int), loop_axis=np.array(laxis).reshape(-1, 3), loop_radius=np.array(lrad),
+        loop_rowslices=lslices, loop_sites=np.array(lsites, dtype=int).reshape(-1, 2), fext=fext,
+        sub=_subtrees(model, jids))
+
+
+def _subtrees(model, jids):
+    Sub = np.zeros((len(jids), model.njoints))
+    for r, j in enumerate(jids):
+        Sub[r, list(model.subtrees[int(j)])] = 1.0
+    return Sub
+
+
+def _support(model, jid):
+    mask = np.zeros(model.nv, dtype=bool)
+    jid = int(jid)
+    while jid > 0:
+        jm = model.joints[jid]
+        mask[jm.idx_v:jm.idx_v + jm.nv] = True
+        jid = int(model.parents[jid])
+    return mask
+
+
+@dataclass
+class ContactSet:
+    keys: list  # (sphere, plane) per contact
+    X: np.ndarray  # (c,3) contact points, world
+    n: np.ndarray  # (c,3) normals
+    t: np.ndarray  # (c,2,3) tangents
+    gap: np.ndarray  # (c,) signed gap [m] (negative = penetration)
+    mu: np.ndarray  # (c,)
+    jid: np.ndarray  # (c,)
+    N: np.ndarray  # (c,n) normal rows (hyper-reduced)
+    T: np.ndarray  # (2c,n) tangent rows, contact-major
+    lo: np.ndarray  # (c,) N qdot >= lo
+
+
+def detect(mech, fm: FrictionModel, data, h) -> ContactSet:
+    """Sphere/plane pairs closer than the margin, with their rows. Needs forward kinematics and joint
+    Jacobians in ``data`` (kinematics.compute does both)."""
+    K = len(fm.sph_jid)
+    if K == 0 or len(fm.plane_n) == 0:
+        return None
+    oMi = data.oMi
+    C = np.array([oMi[int(j)].act(p) for j, p in zip(fm.sph_jid, fm.sph_local)])
+    gap = C @ fm.plane_n.T - fm.plane_off[None, :] - fm.sph_radius[:, None]  # (K,P)
+    ks, ps = np.nonzero(gap < fm.settings.margin)
+    if len(ks) == 0:
+        return None
+    n = fm.plane_n[ps]
+    X = C[ks] - fm.sph_radius[ks, None] * n
+    J = point_jacobians(data.J.reshape(6, mech.nv), X, fm.sph_support[ks])  # (c,3,nv)
+    if mech.T is not None:
+        J = J @ mech.T
+    t = fm.plane_t[ps]
+    N = np.einsum("ci,cin->cn", n, J)
+    Tr = np.einsum("cki,cin->ckn", t, J).reshape(2 * len(ks), -1)
+    d = gap[ks, ps]
+    lo = np.where(d >= 0, -d / h, -fm.settings.erp * d / h)
+    mu = np.where(np.isnan(fm.sph_mu[ks]), fm.plane_mu[ps], fm.sph_mu[ks])
+    return ContactSet(list(zip(ks.tolist(), ps.tolist())), X, n, t, d, mu, fm.sph_jid[ks], N, Tr, lo)
+
+
+def loop_friction_rows(mech, fm: FrictionModel, data):
+    """(Lf, ndof) friction rows of the loop pins: r axis^T (J_w,a - J_w,b) (relative spin about the pin)."""
+    if not len(fm.loop_index):
+        return np.zeros((0, mech.ndof))
+    Jw = data.J.reshape(6, mech.nv)[3:]
+    sup = mech.site_support
+    a, b = fm.loop_sites[:, 0], fm.loop_sites[:, 1]
+    axw = fm.loop_axis @ Jw  # (Lf,nv)
+    rows = fm.loop_radius[:, None] * axw * (sup[a].astype(float) - sup[b].astype(float))
+    return rows if mech.T is None else rows @ mech.T

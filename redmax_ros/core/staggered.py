@@ -1,0 +1,253 @@
+"""Staggered Projections (paper Alg. 2, Eq. 11-12) for ground contact and Bilateral Staggered
+Projections (Alg. 3, Eq. 15-18) for joint friction, in one loop, in (hyper-)reduced coordinates.
+
+The step's linear system A qdot = b (Eq. 2) with the bilateral rows G qdot = g (loops, prescriptions)
+is condensed once per step: with P = A^-1 - A^-1 G^T (G A^-1 G^T)^-1 G A^-1 (the inverse of the
+bilaterally constrained mass matrix) every impulse R^T x changes the velocity by P R^T x and
+    qdot(alpha, beta) = qdot_0 + P U^T alpha - P T^T beta,     qdot_0 = P b + A^-1 G^T S^-1 g.
+(This is the dual / Schur-complement form of the QPs of Eq. 17c/18: their equality rows are
+eliminated, which the paper suggests for the small external systems.)
+  * CONTACT (Alg. 2 line 9, Eq. 11 in reduced coordinates through Eq. 5): the unilateral rows U =
+    [ground normals N; joint-limit rows +-C] with lower bounds lo, dual QP over alpha >= 0:
+        min 1/2 alpha^T (U P U^T) alpha + alpha^T (U qdot(0, beta) - lo)      (ProxSuite)
+  * BISP (Alg. 3 lines 8-14): joint reaction forces of the constrained velocity (Eq. 15/17), their
+    leaf-to-root distribution (§5.2.2) and the local least squares of Eq. (16) -> joint alphas
+    (bisp.joint_alphas); loop pins from lambda (§5.3).
+  * CONVERGENCE (Alg. 2 line 12): ||f_alpha - f_alpha^0||_{M^-1} <= eps, measured per contact as the
+    velocity change the change of its normal impulse (ground) or of its friction bound (joints) makes,
+    max_k W_kk |delta_k| <= tol [m/s] (the diagonal of the Delassus operator stands in for M^-1).
+  * FRICTION (Eq. 12): box QP over beta with W_T = T P T^T,
+        min 1/2 beta^T W_T beta - beta^T T qdot(alpha, 0),  -bound <= beta <= bound   (ProxSuite)
+    bounds: mu alpha on both tangents of a ground contact (four-sided pyramid), mu sum_k |alpha_k| on
+    a 1-DOF joint's row, mu |alpha_k| on a spherical joint's tangent rows.
+The friction impulses are cached per contact (sphere, plane) and per joint in the returned state and
+warm-start the next step [Kaufman et al. 2008]. The loop exits after a CONTACT stage, so the returned
+velocity always satisfies the bilateral and unilateral rows (feasible) even when the iteration cap is
+reached; that case is reported (FrictionReport.converged = False), never silent.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import eigenpy
+import numba
+import numpy as np
+import proxsuite
+
+from . import bisp
+from .contact import detect, loop_friction_rows
+from .errors import StepError
+from .forces import LinearSystem
+from .solve import Solution
+
+_SUCCESS = eigenpy.ComputationInfo.Success
+_INF = 1e20
+
+
+@dataclass
+class FrictionReport:
+    iterations: int = 0  # staggered iterations (contact stages) this step
+    converged: bool = True
+    residual: float = 0.0  # last convergence measure [m/s]
+    contacts: int = 0  # ground contacts in the QP (gap < margin)
+    active: int = 0  # ground contacts with a positive normal impulse
+    max_penetration: float = 0.0  # m, before the step
+    sticking: int = 0  # friction rows strictly inside their bound (static friction)
+    joint_normal: dict = field(default_factory=dict, repr=False)  # joint/loop -> sum |alpha| / h [N]
+
+
+@numba.njit(cache=True)
+def _pgs(W, c, lo, hi, x, tol, max_sweeps):
+    """Projected Gauss-Seidel for min 1/2 x^T W x + c^T x, lo <= x <= hi (W symmetric PSD), warm-started
+    from x (updated in place). Stops when no coordinate moves the velocity W_ii |dx_i| by more than tol.
+    Returns the sweeps used."""
+    n = len(c)
+    for sweep in range(max_sweeps):
+        big = 0.0
+        for i in range(n):
+            d = W[i, i]
+            if d <= 1e-300:
+                continue
+            r = c[i]
+            for j in range(n):
+                r += W[i, j] * x[j]
+            xi = min(max(x[i] - r / d, lo[i]), hi[i])
+            ch = abs(xi - x[i]) * d
+            if ch > big:
+                big = ch
+            x[i] = xi
+        if big <= tol:
+            return sweep + 1
+    return max_sweeps
+
+
+def _box_qp(W, c, lo, hi, x0, tol, solver):
+    """min 1/2 x^T W x + c^T x on a box: ProxSuite (dense) or warm-started projected Gauss-Seidel."""
+    if solver == "proxsuite":
+        return _qp(W, c, lo, hi, np.clip(x0, lo, hi), 1e-12)
+    x = np.clip(x0, lo, hi)
+    _pgs(W, c, lo, hi, x, tol, 500)
+    return x
+
+
+def _qp(H, c, lo, hi, x0, eps):
+    n = len(c)
+    qp = proxsuite.proxqp.dense.QP(n, 0, n)
+    s = qp.settings
+    s.eps_abs, s.eps_rel, s.verbose = eps, 0.0, False
+    s.initial_guess = proxsuite.proxqp.InitialGuess.WARM_START
+    qp.init(H, c, None, None, np.eye(n), lo, hi)
+    qp.solve(x0, None, None)
+    x = np.array(qp.results.x)
+    if not np.all(np.isfinite(x)):
+        raise StepError("friction/contact QP returned non-finite impulses")
+    return np.clip(x, lo, hi)
+
+
+def solve(mech, data, kin, system: LinearSystem, cons, q, v_prev_r, h, cache, site_forces=None):
+    """Frictional contact step. Returns (Solution, FrictionReport, new cache)."""
+    fm = mech.friction
+    st = fm.settings
+    A, b = system.A, system.b
+    n = len(b)
+    llt = eigenpy.LLT(A)
+    if llt.info() != _SUCCESS:
+        raise StepError("the LHS matrix of Eq. (2) is not positive definite (Cholesky failed)")
+    Ainv = np.asarray(llt.solve(np.eye(n))).reshape(n, n)
+    m = cons.m
+    if m:
+        Y = Ainv @ cons.G.T
+        S = cons.G @ Y
+        try:
+            Sinv = np.linalg.inv(S)
+        except np.linalg.LinAlgError:
+            raise StepError("bilateral constraints are redundant or conflicting (singular Schur complement)") from None
+        P = Ainv - Y @ Sinv @ Y.T
+        v0 = P @ b + Y @ (Sinv @ cons.g)
+    else:
+        P, v0 = Ainv, Ainv @ b
+    P = 0.5 * (P + P.T)
+
+    # rows: unilateral U (ground normals, limits) and friction T (ground tangents, joints, loops)
+    cs = detect(mech, fm, data, h)
+    nc = 0 if cs is None else len(cs.keys)
+    U, lo_U = [], []
+    if nc:
+        U.append(cs.N)
+        lo_U.append(cs.lo)
+    if cons.C is not None:
+        fin_lo, fin_hi = np.isfinite(cons.lo), np.isfinite(cons.hi)
+        U += [cons.C[fin_lo], -cons.C[fin_hi]]
+        lo_U += [cons.lo[fin_lo], -cons.hi[fin_hi]]
+    U = np.vstack(U) if U else np.zeros((0, n))
+    lo_U = np.concatenate(lo_U) if lo_U else np.zeros(0)
+    Tl = loop_friction_rows(mech, fm, data)
+    Tr = np.vstack([cs.T if nc else np.zeros((0, n)), fm.rows_fixed, Tl])
+    nu, nf, ng = len(U), len(Tr), 2 * nc
+    PU, PT = P @ U.T, P @ Tr.T
+    W_U, W_T, X_UT = U @ PU, Tr @ PT, U @ PT
+    U_v0, T_v0 = U @ v0, Tr @ v0
+    wU, wT = np.maximum(np.diag(W_U), 0.0), np.maximum(np.diag(W_T), 0.0)
+
+    # warm start of the friction impulses
+    keys = [("g", k, p, i) for (k, p) in (cs.keys if nc else []) for i in (0, 1)] \
+        + [("j", i) for i in range(len(fm.rows_fixed))] + [("l", i) for i in range(len(Tl))]
+    beta = np.array([cache.get(kk, 0.0) for kk in keys]) if cache else np.zeros(nf)
+    joint_fric = fm.has_joint_friction
+    if joint_fric:  # Eq. (15)-(17) as an affine map of x = [alpha_U; beta] (bisp.linear_alphas)
+        ext = bisp.ExternalForces(mech, data)
+        fx_static = bisp.static_external(mech, kin, ext, data, site_forces).copy()
+        RX = np.vstack([U, -Tr])  # (nu+nf, n): generalized impulse = RX^T x
+        PX = np.hstack([PU, -PT])
+        if m:
+            lam0 = Sinv @ (Y.T @ b - cons.g)
+            LamX = Sinv @ (Y.T @ RX.T)
+        else:
+            lam0, LamX = np.zeros(0), np.zeros((0, nu + nf))
+        a0, Mx = bisp.linear_alphas(mech, fm, data, kin, q, v_prev_r, h, v0, PX, lam0, LamX, fx_static, cs,
+                                    nu, nf, cons, site_forces)
+        kmax = fm.L.shape[1]
+    alpha = np.zeros(nu)
+    prev_u, prev_b = None, None
+    bound = np.zeros(nf)
+    it, converged, resid = 0, False, np.inf
+    while True:
+        it += 1
+        # CONTACT (Eq. 11 / 17c)
+        if nu:
+            c = U_v0 - X_UT @ beta - lo_U
+            if np.all(c >= 0):
+                alpha = np.zeros(nu)
+            else:
+                alpha = _box_qp(W_U, c, np.zeros(nu), np.full(nu, _INF), alpha, 0.1 * st.tol, st.qp)
+        v = v0 + PU @ alpha - PT @ beta
+        # BISP (Eq. 15-17): joint alphas -> bounds of the joint friction rows
+        if nc:
+            a = alpha[:nc]
+            bound[:ng] = np.repeat(cs.mu * a, 2)
+        if joint_fric:
+            al = a0 + Mx @ np.concatenate([alpha, beta])
+            bound[ng:] = fm.bound_B @ np.abs(al)
+        # CONVERGENCE CHECK (Alg. 2 line 12)
+        du = np.abs(alpha - (prev_u if prev_u is not None else 0.0)) * wU  # f_alpha^0 = 0 at first
+        db = np.abs(bound - (prev_b if prev_b is not None else 0.0)) * wT
+        resid = max(du.max(initial=0.0), db.max(initial=0.0))
+        if resid <= st.tol and np.all(np.abs(beta) <= bound * (1 + 1e-9) + 1e-14):
+            converged = True
+            break
+        if it >= st.max_iter:
+            break
+        prev_u, prev_b = alpha.copy(), bound.copy()
+        # FRICTION (Eq. 12)
+        if nf:
+            cf = T_v0 + X_UT.T @ alpha
+            beta = _box_qp(W_T, -cf, -bound, bound, beta, 0.1 * st.tol, st.qp)
+
+    r = b + U.T @ alpha - Tr.T @ beta
+    lam = Sinv @ (Y.T @ r - cons.g) if m else np.zeros(0)
+    sol = Solution(v, lam, np.zeros(0), it, "staggered", LinearSystem(A, r), _no_unilateral(cons))
+    rep = FrictionReport(it, converged, float(resid), nc)
+    if nc:
+        rep.active = int(np.sum(alpha[:nc] > 1e-12))
+        rep.max_penetration = float(max(0.0, -cs.gap.min()))
+    slack = bound - np.abs(beta)
+    rep.sticking = int(np.sum((bound > 1e-12) & (slack > 1e-9 * np.maximum(bound, 1e-300))))
+    new_cache = {kk: float(x) for kk, x in zip(keys, beta) if x != 0.0}
+    if joint_fric:
+        rep.joint_normal = {name: float(x) for name, x in zip(fm.fj_names, np.abs(al).reshape(-1, kmax).sum(1) / h)}
+    return sol, rep, new_cache
+
+
+def _no_unilateral(cons):
+    import copy
+    c = copy.copy(cons)
+    c.C = None
+    return c
+
+
+def _loop_external(mech, fm, kin, ext, fx, lam_loops, beta_loops, h, loop_force):
+    """Loop-closure forces -J^T G^T lambda / h (both sites) and loop-pin friction moments as external
+    forces of the tree (§5.3); fills loop_force (force on site b of each frictional loop)."""
+    r = 0
+    ab = mech.loop_ab
+    rows_ab = mech.loop_rows_ab
+    Fb = np.zeros((len(ab), 3))
+    for i, P in enumerate(mech.loop_axes):
+        k = len(P)
+        Fb[i] = P.T @ lam_loops[r:r + k] / h
+        r += k
+    xa, xb = kin.X[rows_ab[:, 0]], kin.X[rows_ab[:, 1]]
+    ext.add(fx, mech.site_jid[ab[:, 0]], -Fb, xa)
+    ext.add(fx, mech.site_jid[ab[:, 1]], Fb, xb)
+    if len(fm.loop_index):
+        li = fm.loop_index
+        loop_force[:] = Fb[li]
+        Mw = (fm.loop_radius * beta_loops / h)[:, None] * fm.loop_axis
+        ext.add(fx, mech.site_jid[ab[li, 0]], np.zeros_like(Mw), None, -Mw)
+        ext.add(fx, mech.site_jid[ab[li, 1]], np.zeros_like(Mw), None, Mw)
+
+
+def _site_external(mech, kin, ext, fx, cons, lam, h):
+    for name, sl in cons.site_rows.items():
+        s = mech.site_index[name]
+        ext.add(fx, [mech.site_jid[s]], (-lam[sl] / h)[None], kin.X[kin.row[s]][None])
