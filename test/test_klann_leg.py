@@ -179,10 +179,11 @@ def test_crank_torque_inverse_dynamics(five_seconds):
 
 
 def test_walker_scene_loads_loops_close_and_falls_freely():
-    """scenes/klann.yaml (six legs, planar chassis, no contact yet): 4 DOF after the crank coupling and the
-    24 loop rows; over 0.2 s the loops stay closed, both cranks turn at the prescribed speed and, with only
-    internal forces besides gravity, the centre of mass falls at g."""
-    sim = Simulator.load("klann")
+    """scenes/klann.yaml with its floor contacts and joint friction removed: 4 DOF after the crank coupling
+    and the 24 loop rows; over 0.2 s the loops stay closed, both cranks turn at the prescribed speed and,
+    with only internal forces besides gravity, the centre of mass falls at g."""
+    sim = Simulator.load("klann", overrides=["contacts=[]", "ground=[]", "friction.joint_mu=0"])
+    assert sim.mech.friction is None
     d = sim.describe()
     assert d.joint_types.count("planar") == 1 and d.joint_types.count("revolute") == 26
     assert (d.nv, d.ndof, len(d.loops)) == (29, 28, 12)

@@ -56,11 +56,12 @@ def wheel(params: dict) -> dict:
 @register_builder("friction_chain")
 def friction_chain(params: dict) -> dict:
     """The paper's CHAIN (Fig. 5a/b): ``n`` box links in a horizontal line (along +x) on revolute joints
-    whose axes lie at ``tilt`` degrees (45) from gravity (in the xz plane... the axis is (sin, 0, cos) of the
-    tilt, rotated so that it is normal to the chain), released from rest; every joint has friction with
-    coefficient ``mu`` on a cylinder of radius ``radius`` and length ``length``."""
-    p = _take(params, dict(n=5, length=0.1, width=0.02, density=1000.0, tilt=45.0, mu=0.3, radius=0.01,
-                           pin_length=0.02, points=8, damping=0.0))
+    whose axes (0, sin tilt, cos tilt) are normal to the chain and at ``tilt`` degrees (45) from gravity,
+    released from rest; every joint has friction ``mu`` on a pin cylinder of radius ``radius`` and length
+    ``pin_length``. The gravity component along the axes loads the pins with bending moments that grow
+    towards the root, so the root joints hold the most friction (Fig. 5a/b)."""
+    p = _take(params, dict(n=5, length=0.1, width=0.02, density=1000.0, tilt=45.0, mu=0.3, radius=0.001,
+                           pin_length=0.004, points=8, damping=0.0))
     n = _int(p, "n", 1)
     L, w = float(p["length"]), float(p["width"])
     a = math.radians(float(p["tilt"]))

@@ -25,6 +25,10 @@ LEGS = [  # name, mirrored (aft-facing), crank, layer y [m], phase psi [rad] (si
     ('a1', True, 'crank_aft', -0.06, -math.pi/3), ('a2', True, 'crank_aft', -0.10, -math.pi), ('a3', True, 'crank_aft', -0.14, -5*math.pi/3)]
 CRANK_Y = {'crank_fwd': 0.10, 'crank_aft': -0.10}
 CH_Z = 0.36  # initial crank axle height [m]
+# joint friction geometry of every pin (BISP, paper §5.2): 8 mm pins, 12 mm bearing length; mu = 0.2 by
+# default, changed for all joints and loop pins at once with --set friction.joint_mu=...
+JF = {'mu': 0.2, 'radius': 0.004, 'length': 0.012, 'points': 8}
+FOOT_R = 0.0125  # foot contact sphere radius [m] (half the bar width W)
 
 bodies, joints, sites, loops = [], [], [], []
 bodies.append({'name': 'chassis', 'shape': {'type': 'box', 'size': [0.5, 0.32, 0.04]}, 'mass': 3.0})
@@ -52,7 +56,8 @@ for name, mir, crank, y, psi in LEGS:
     def jent(jn, parent, M):
         j = J[jn]; qq, vv = qv[jn]
         return {'name': f'{jn}_{name}', 'type': 'revolute', 'axis': 'y', 'parent': parent, 'child': f"{j['child']}_{name}",
-                'placement': pose_dict(M), 'body_placement': {'pos': j['body_placement']['pos']}, 'q0': r6(qq), 'v0': r6(vv)}
+                'placement': pose_dict(M), 'body_placement': {'pos': j['body_placement']['pos']}, 'q0': r6(qq), 'v0': r6(vv),
+                'friction': JF}
     ents['joints'].append(jent('crank_pin', crank, pin_M))
     ents['joints'].append(jent('knee', f'connector_{name}', P(J['knee'])))
     for jn in ('lower_pivot', 'upper_pivot'):
@@ -61,7 +66,10 @@ for name, mir, crank, y, psi in LEGS:
     for s in d['sites']:
         ents['sites'].append({'name': f"{s['name']}_{name}", 'body': f"{s['body']}_{name}", 'pos': s['pos']})
     for lp in d['loops']:
-        ents['loops'].append({'name': f"{lp['name']}_{name}", 'a': f"{lp['a']}_{name}", 'b': f"{lp['b']}_{name}", 'rows': ['x', 'z']})
+        ents['loops'].append({'name': f"{lp['name']}_{name}", 'a': f"{lp['a']}_{name}", 'b': f"{lp['b']}_{name}", 'rows': ['x', 'z'],
+                              'axis': 'y', 'friction': JF})
+    foot = next(s for s in d['sites'] if s['name'] == 'foot')
+    ents['contacts'] = [{'name': f'foot_{name}', 'body': f"{foot['body']}_{name}", 'type': 'sphere', 'pos': foot['pos'], 'radius': FOOT_R}]
     leg_entries.append((name, mir, crank, y, psi, ents))
 
 crank_bodies = []
@@ -78,7 +86,7 @@ for c, parts in crank_parts.items():
     crank_bodies.append({'name': c, 'mass': float(round(mt, 6)), 'com': [r6(v) for v in com],
                          'inertia': [0.0 if abs(v) < 1e-15 else float('%.6g' % v) for v in (I[0,0], I[1,1], I[2,2], I[0,1], I[0,2], I[1,2])]})
     joints.append({'name': c, 'type': 'revolute', 'axis': 'y', 'parent': 'chassis', 'child': c,
-                   'placement': {'pos': [0.0, CRANK_Y[c], 0.0]}, 'q0': 0.0, 'v0': r6(OMEGA)})
+                   'placement': {'pos': [0.0, CRANK_Y[c], 0.0]}, 'q0': 0.0, 'v0': r6(OMEGA), 'friction': JF})
 
 out = []
 w = out.append
@@ -99,5 +107,11 @@ for name, mir, crank, y, psi, e in leg_entries:
 w('loops:')
 for name, mir, crank, y, psi, e in leg_entries:
     for lp in e['loops']: w('  - ' + flow(lp))
+w('ground:')
+w('  - ' + flow({'name': 'floor', 'normal': [0, 0, 1], 'offset': 0.0, 'mu': 0.8}))
+w('contacts:')
+for name, mir, crank, y, psi, e in leg_entries:
+    for c in e['contacts']: w('  - ' + flow(c))
+w('friction: ' + flow({'max_iter': 50, 'tol': 1e-5}))
 w(open(HERE / 'walker_footer.yaml').read().rstrip())
 open(HERE.parents[1] / 'scenes' / 'klann.yaml', 'w').write('\n'.join(out) + '\n')
