@@ -177,3 +177,4 @@ def hand(params: dict) -> dict:
         "prescribable": {"joints": ["elbow", "wrist"], "sites": tips},
     }
 from . import builders_friction  # noqa: E402,F401  (incline, wheel, friction_chain: docs/friction.md)
+from . import builders_large  # noqa: E402,F401  (bridge, umbrella: the Table 2 scaling scenes)

@@ -563,15 +563,19 @@ class _Validator:
         for b in spec.bodies:
             if b.name not in parent_of:
                 self.err(f"bodies '{b.name}'", "no joint attaches this body (add a joint with it as child)")
-        # cycles: walk up from every body; must reach the world
+        # cycles: walk up from every body; must reach the world (bodies known to reach it are
+        # remembered, so a long chain costs O(n), not O(n^2) walks with O(n) membership tests)
+        reaches = {WORLD}
         for b in spec.bodies:
-            seen, cur = [], b.name
-            while cur != WORLD:
+            seen, cur = {}, b.name  # dict: ordered, O(1) membership
+            while cur not in reaches:
                 if cur in seen:
-                    cyc = " -> ".join(seen[seen.index(cur):] + [cur])
+                    path = list(seen)
+                    cyc = " -> ".join(path[path.index(cur):] + [cur])
                     self.err(f"joints '{parent_of[cur].name}'", f"the joints form a cycle ({cyc}); use a loop constraint")
-                seen.append(cur)
+                seen[cur] = None
                 cur = parent_of[cur].parent
+            reaches.update(seen)
         # Depth-first order, children in file order: Pinocchio needs each joint after its parent AND
         # every subtree's DOFs contiguous (CRBA's sparsity pattern relies on it).
         children = {}
