@@ -270,15 +270,14 @@ def compile_scene(spec: SceneSpec) -> Mechanism:
         Is = [M.rotation @ inertia_of[n].inertia @ M.rotation.T for n, M in zip(body_names, body_pl)]
     body_damping = np.array([inertia_of[n].damping if n in inertia_of else 0.0 for n in body_names])
     damped = np.flatnonzero(body_damping > 0)
-    body_support = np.array([_support_mask(model, j) for j in body_jid], dtype=bool).reshape(-1, nv)
+    support_of = _support_table(model)  # (njoints, nv) bool, one pass (model.joints[j] copies are slow)
+    body_support = support_of[body_jid].reshape(-1, nv)
 
     # sites
     site_names = [s.name for s in spec.sites]
     site_jid = np.array([frame_of[s.body][0] for s in spec.sites], dtype=int)
     site_local = np.array([frame_of[s.body][1].act(np.asarray(s.pos, float)) for s in spec.sites]).reshape(-1, 3)
-    support = np.zeros((len(site_names), nv), dtype=bool)
-    for i, jid in enumerate(site_jid):
-        support[i] = _support_mask(model, jid)
+    support = support_of[site_jid].reshape(-1, nv)
     site_index = {n: i for i, n in enumerate(site_names)}
 
     # couplings: T = J_rR (Eq. 9)
@@ -356,9 +355,8 @@ def compile_scene(spec: SceneSpec) -> Mechanism:
     _check_couplings_q0(mech, spec, src)
     mech.v0 = _hyper_reduced_v0(mech, v0r, src)
     # Assemble loops at the initial configuration (and check they do not over-constrain).
-    from .stabilization import assemble_loops
-    mech.q0 = assemble_loops(mech, mech.q0)
-    rest = _spring_lengths(mech, mech.q0)
+    from .data_free import compile_helpers  # no pin.Data for large models (its memory grows as nv^3)
+    mech.q0, rest = compile_helpers(mech, mech.q0)
     for i, s in enumerate(spec.springs):
         mech.spring_rest[i] = rest[i] if s.rest_length is None else s.rest_length
     if spec.friction is not None:
@@ -384,6 +382,17 @@ def _q_index(joints, dof):
             assert j.nq == j.nv
             return j.idx_q + dof - j.idx_v
     raise AssertionError(dof)
+
+
+def _support_table(model):
+    """Row j: the velocity DOFs that move joint j's body (j and its ancestors); row 0 (world) empty."""
+    nj = model.njoints
+    table = np.zeros((nj, model.nv), dtype=bool)
+    idx_v, nv_j, parents = model.idx_vs, model.nvs, model.parents
+    for j in range(1, nj):
+        table[j] = table[int(parents[j])]
+        table[j, idx_v[j]:idx_v[j] + nv_j[j]] = True
+    return table
 
 
 def _support_mask(model, jid):

@@ -13,7 +13,9 @@ import numpy as np
 from .errors import CommandError, StepError
 from .mechanism import Mechanism, compile_scene
 from .scene import SceneSpec, load_scene
-from .stepper import Commands, State, StepResult, step
+from .data_free import PIN_DATA_MAX_NV, all_site_positions, body_poses
+from .matrix_free import make_backend
+from .stepper import Commands, State, StepResult
 
 
 _AXES = {"x": (1.0, 0.0, 0.0), "y": (0.0, 1.0, 0.0), "z": (0.0, 0.0, 1.0)}
@@ -65,17 +67,19 @@ class SceneDescription:
 
 
 class Simulator:
-    def __init__(self, spec: SceneSpec):
+    def __init__(self, spec: SceneSpec, solver: str | None = None):
         self.spec = spec
         self.mech: Mechanism = compile_scene(spec)
-        self.data = self.mech.model.createData()
+        # solver: the scene's 'solver' key (direct | pcg | auto) unless overridden; see docs/solvers.md
+        self.backend = make_backend(self.mech, solver or spec.solver)
+        self.data = self.backend.data  # pin.Data of the direct pipeline; None for data-free solvers
         self.dt = float(spec.dt)
         self.reset()
 
     @classmethod
-    def load(cls, name_or_path: str, overrides=()) -> "Simulator":
+    def load(cls, name_or_path: str, overrides=(), solver: str | None = None) -> "Simulator":
         """Load a scene by name (scenes/) or path; ``overrides``: ["key=value", ...]. Raises SceneError."""
-        return cls(load_scene(name_or_path, overrides))
+        return cls(load_scene(name_or_path, overrides), solver)
 
     # -- state
     @property
@@ -205,7 +209,7 @@ class Simulator:
         res = None
         for i in range(int(n)):
             try:
-                self.state, res = step(self.mech, self.data, self.state, self.commands, self.dt)
+                self.state, res = self.backend.step(self.state, self.commands, self.dt)
             except StepError as e:
                 raise StepError(f"step at t = {self.state.t:.6g} s failed: {e.reason}", steps_done=i) from None
             self.last = res
@@ -230,6 +234,8 @@ class Simulator:
         """Body frames in the world: name -> (position (3,) [m], quaternion xyzw (4,))."""
         import pinocchio as pin
         m = self.mech
+        if m.nv > PIN_DATA_MAX_NV:
+            return body_poses(m, self.state.q)
         data = m.model.createData()
         pin.forwardKinematics(m.model, data, self.state.q)
         out = {}
@@ -243,7 +249,10 @@ class Simulator:
         import pinocchio as pin
         from .kinematics import site_positions
         m = self.mech
-        data = m.model.createData()
-        pin.forwardKinematics(m.model, data, self.state.q)
-        x = site_positions(m, data)
+        if m.nv > PIN_DATA_MAX_NV:
+            x = all_site_positions(m, self.state.q)
+        else:
+            data = m.model.createData()
+            pin.forwardKinematics(m.model, data, self.state.q)
+            x = site_positions(m, data)
         return [(n, x[a].copy(), x[b].copy()) for n, (a, b) in zip(m.spring_names, m.spring_ab)]

@@ -1,0 +1,205 @@
+"""Matrix-free step (PCG + Projected Block Jacobi Preconditioner, Eq. (2)-(4), Alg. 1) and the
+data-free direct solver, against the Pinocchio direct pipeline (stepper.step) on the shipped scenes.
+
+PCG solves are compared at rtol = 1e-10 (a relative residual of 1e-6, the default, gives a
+solution error of up to cond(P^-1 A) x 1e-6); the default rtol is checked for its residual.
+"""
+import numpy as np
+import pytest
+
+from redmax_ros.core import Simulator, StepError, list_scenes, load_scene
+from redmax_ros.core import recursive as rc
+from redmax_ros.core.data_free import PIN_DATA_MAX_NV, assemble_loops, context
+from redmax_ros.core.errors import SceneError
+from redmax_ros.core.matrix_free import AUTO_DIRECT_NV, step_matrix_free
+from redmax_ros.core.mechanism import compile_scene
+from redmax_ros.core.stepper import State
+from redmax_ros.core.stepper import step as direct_step
+
+SMALL = [s for s in list_scenes() if sum(j.nv for j in load_scene(s).joints) <= PIN_DATA_MAX_NV]
+EXTRA = [("bridge", ["params.variant=flexy"]), ("chain", ["params.n=8", "params.springs=4"]),
+         ("bridge", ["params.n_deck=12"])]
+
+
+def _rel(a, b):
+    return float(np.abs(a - b).max() / max(np.abs(b).max(), 1e-12))
+
+
+def _compare(name, overrides, warm=15, prepare=None, want=None):
+    """One step from the same state: data-free direct and PCG (rtol 1e-10) vs stepper.step.
+    ``want``: keep stepping (up to 300 steps) until the direct solve of the compared step is ``want``."""
+    sim = Simulator.load(name, overrides, solver="direct")
+    if getattr(sim.mech, "friction", None) is not None:
+        with pytest.raises(SceneError, match="pcg"):
+            Simulator.load(name, overrides, solver="pcg")
+        return None
+    if prepare:
+        prepare(sim)
+    sim.step(warm)
+    m, cmd, h = sim.mech, sim.commands, sim.dt
+    data = m.model.createData()
+    for _ in range(300):
+        st = sim.state
+        _, ref = direct_step(m, data, st, cmd, h)
+        if want is None or ref.diagnostics.solver == want:
+            break
+        sim.step()
+    ctx = context(m)
+    _, dense = step_matrix_free(m, ctx, st, cmd, h, "direct")
+    _, it = step_matrix_free(m, ctx, st, cmd, h, "pcg", rtol=1e-10)
+    scale_v = max(np.abs(ref.v).max(), 1e-3)
+    for res, tol_v in ((dense, 1e-9), (it, 1e-6)):
+        d = res.diagnostics
+        assert np.abs(res.v - ref.v).max() <= tol_v * scale_v, (name, d.solver)
+        assert np.abs(res.q - ref.q).max() <= 1.01 * h * tol_v * scale_v + 1e-12  # q+ = q + h v+
+        assert np.abs(res.effort - ref.effort).max() <= 1e-6 * max(np.abs(ref.effort).max(), 1.0)
+        for s, f in ref.site_forces.items():
+            assert np.abs(res.site_forces[s] - f).max() <= 1e-6 * max(np.abs(f).max(), 1.0)
+        rd = ref.diagnostics
+        for k in ("E_kin", "E_pot", "E_spring"):
+            assert abs(getattr(d, k) - getattr(rd, k)) <= 1e-8 * max(abs(rd.E_total), abs(getattr(rd, k)), 1.0), k
+        assert abs(d.violation_pos - rd.violation_pos) <= 1e-9
+    assert it.diagnostics.solver == "pcg" and it.diagnostics.residual < 1e-9
+    return sim, ref, it
+
+
+@pytest.mark.parametrize("name", SMALL)
+def test_shipped_scene_pcg_and_dataless_direct_equal_direct(name):
+    _compare(name, [])
+
+
+@pytest.mark.parametrize("name,overrides", EXTRA)
+def test_more_scenes_equal_direct(name, overrides):
+    _compare(name, overrides)
+
+
+def test_hybrid_prescriptions_couplings_limits_equal_direct():
+    """Hand: couplings (Eq. 8-10 as bilateral rows on the PCG path), prescribed elbow (reduced, Eq. 7),
+    a prescribed fingertip along two axes (maximal), torques driving joints into their limits (Eq. 5:
+    ProxSuite QP on the direct path, active set on the PCG path), a site force."""
+    def prepare(sim):
+        sim.prescribe_sites({"index_tip": [0.0, 0.0, 0.02]}, axes={"index_tip": ["x", "z"]})
+        sim.set_joint_torques({"wrist": [3.0, 0.0], "index_mcp": [0.5, 0.0]})
+        sim.set_site_forces({"thumb_tip": [0.0, 0.3, 0.0]})
+    out = _compare("hand", [], warm=30, prepare=prepare, want="qp")
+    _, ref, it = out
+    assert ref.diagnostics.solver == "qp"  # a joint limit is active
+    assert context(out[0].mech).last_stats.get("active_limits", 0) >= 1
+
+
+def test_default_rtol_residual_and_warm_start():
+    sim = Simulator.load("umbrella", [], solver="pcg")
+    r0 = sim.step()
+    r = sim.step(5)
+    d = r.diagnostics
+    assert d.solver == "pcg" and d.residual < 1e-5
+    assert d.iterations < r0.diagnostics.iterations  # warm starts (velocity, previous Z) pay off
+    stats = sim.backend.ctx.last_stats
+    assert len(stats["solves"]) == 1 + 24  # Eq. (4): one RHS solve + one per loop row (8 loops x 3)
+
+
+def test_bridge_rigid_pcg_converges_in_at_most_two_iterations():
+    """Rigid towers: every cable joins a deck body to the world, the maximal stiffness is block
+    diagonal over bodies and Alg. 1 is the exact inverse of the LHS (the paper's single iteration)."""
+    for overrides in ([], ["params.scale=2"]):
+        sim = Simulator.load("bridge", overrides, solver="pcg")
+        ctx = sim.backend.ctx
+        for _ in range(15):
+            r = sim.step()
+            assert r.diagnostics.solver == "pcg"
+            assert max(ctx.last_stats["solves"]) <= 2, ctx.last_stats
+        # also from a cold start (no warm start at all)
+        m, st = sim.mech, sim.state
+        ctx.z_cache = None
+        _, r = step_matrix_free(m, ctx, State(st.t, st.q, np.zeros_like(st.v)), sim.commands, sim.dt, "pcg")
+        assert max(ctx.last_stats["solves"]) <= 2
+
+
+def test_pcg_fallback_to_direct_is_reported_and_correct():
+    sim = Simulator.load("bridge", ["params.variant=flexy"], solver="direct")
+    sim.step(10)
+    m, st, cmd, h = sim.mech, sim.state, sim.commands, sim.dt
+    _, ref = direct_step(m, sim.data, st, cmd, h)
+    ctx = context(m)
+    ctx.z_cache = None
+    _, r = step_matrix_free(m, ctx, st, cmd, h, "pcg", rtol=1e-12, max_iter=1)
+    assert r.diagnostics.solver == "pcg->direct"
+    assert "did not reach" in ctx.last_stats["fallback"]
+    assert _rel(r.v, ref.v) < 1e-9
+
+
+def test_step_error_leaves_state_unchanged():
+    sim = Simulator.load("bridge", ["params.n_deck=10"], solver="pcg")
+    sim.step(2)
+    q, v, t = sim.state.q.copy(), sim.state.v.copy(), sim.time
+    bad = sim.commands.joint_torques.copy()
+    bad[3] = np.nan
+    sim.commands.joint_torques = bad
+    with pytest.raises(StepError, match="non-finite joint torques"):
+        sim.step()
+    assert np.array_equal(sim.state.q, q) and np.array_equal(sim.state.v, v) and sim.time == t
+    with pytest.raises(StepError, match="time step"):
+        step_matrix_free(sim.mech, None, sim.state, sim.commands, -1.0)
+
+
+def test_universal_joint_kernel_matches_recursive_fallback():
+    sim = Simulator.load("umbrella", ["params.ribs=2"], solver="pcg")
+    sim.step(3)
+    m = sim.mech
+    ctx = context(m)
+    rng = np.random.default_rng(3)
+    v = rng.normal(size=m.nv)
+    ctx.invalidate()
+    ws = ctx.fk(sim.state.q, v)
+    ref = rc.update_kinematics(ctx.topo, rc.make_workspace(ctx.topo), sim.state.q, v)
+    for f in ("R", "p", "St", "I", "ov"):
+        assert np.abs(getattr(ws, f) - getattr(ref, f)).max() < 1e-13, f
+    assert np.abs(rc.bias_acceleration(ctx.topo, ws) - rc.bias_acceleration(ctx.topo, ref)).max() < 1e-12
+
+
+def test_data_free_loop_assembly_matches_pinocchio():
+    from redmax_ros.core.stabilization import assemble_loops as assemble_pin
+    for name in ("fourbar", "klann_leg", "umbrella"):
+        m = compile_scene(load_scene(name, ["params.ribs=2"] if name == "umbrella" else []))
+        rng = np.random.default_rng(0)
+        q = m.q0.copy()
+        q[:m.nv] += 1e-3 * rng.normal(size=m.nv) if m.nq == m.nv else 0.0
+        a, b = assemble_loops(m, q.copy()), assemble_pin(m, q.copy())
+        assert np.abs(a - b).max() < 1e-9, name
+
+
+def test_large_scene_compiles_and_runs_without_pin_data():
+    """nv > PIN_DATA_MAX_NV: compile_scene (loop assembly, spring rest lengths) and the Simulator
+    (poses, spring segments, stepping) never create a pin.Data."""
+    sim = Simulator.load("bridge", ["params.n_deck=130"], solver="direct")
+    assert sim.mech.nv == 130 > PIN_DATA_MAX_NV and sim.data is None
+    r = sim.step(2)
+    assert r.diagnostics.solver == "direct" and r.diagnostics.violation_pos < 1e-9
+    poses = sim.body_poses()
+    assert len(poses) == len(sim.mech.bodies)
+    segs = sim.spring_segments()
+    assert len(segs) == len(sim.mech.spring_names)
+    sim2 = Simulator.load("bridge", ["params.n_deck=130"], solver="pcg")
+    sim2.backend.rtol = 1e-10
+    r2 = sim2.step(2)
+    assert r2.diagnostics.solver == "pcg" and _rel(r2.v, r.v) < 1e-6
+
+
+def test_auto_rule():
+    small = Simulator.load("chain", [], solver="auto")
+    assert small.mech.nv <= AUTO_DIRECT_NV and small.backend.choice == "direct" and small.data is not None
+    sim = Simulator.load("bridge", ["params.scale=2"])  # scene key solver: auto
+    assert sim.backend.choice is None and sim.data is None
+    sim.step(6)
+    assert sim.backend.choice == "pcg", sim.backend.reason
+    assert sim.step().diagnostics.solver == "pcg"
+
+
+def test_scaling_scene_dofs():
+    def nv(name, ov):
+        return sum(j.nv for j in load_scene(name, ov).joints)
+    assert [nv("bridge", [f"params.scale={s}"]) for s in (1, 2, 16)] == [80, 160, 1280]
+    assert [nv("bridge", ["params.variant=flexy", f"params.scale={s}"]) for s in (1, 16)] == [60, 960]
+    assert [nv("umbrella", [f"params.ribs={r}"]) for r in (10, 16, 22, 32, 46)] == [241, 385, 529, 769, 1105]
+    with pytest.raises(SceneError, match="variant"):
+        load_scene("bridge", ["params.variant=wobbly"])
