@@ -1,6 +1,6 @@
 """redmax_run: run a scene offline (no ROS) and write a CSV of the trajectory.
 
-    redmax_run SCENE [--dt H] [--duration T] [--solver direct] [--set key=value ...] [--out FILE.csv]
+    redmax_run SCENE [--dt H] [--duration T] [--solver direct|pcg|auto] [--set key=value ...] [--out FILE.csv]
 
 CSV columns: t; q:<joint> and v:<joint> (``[i]`` per component of multi-DOF joints); E_kin, E_pot,
 E_spring, E_total [J]; violation (max loop-closure residual [m]); tau:<joint> for prescribed joints
@@ -23,7 +23,8 @@ def parse_args(argv=None):
     ap.add_argument("scene", help="scene name (scenes/) or path to a scene YAML")
     ap.add_argument("--dt", type=float, help="time step h [s] (default: the scene's)")
     ap.add_argument("--duration", type=float, help="simulated time [s] (default: the scene's)")
-    ap.add_argument("--solver", choices=["direct"], default=None, help="linear solver (default: the scene's)")
+    ap.add_argument("--solver", choices=["direct", "pcg", "auto"], default=None,
+                    help="linear solver (default: the scene's; see docs/solvers.md)")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                     help="override a scene value or builder parameter, e.g. params.n=20, joints.elbow.q0=0.3")
     ap.add_argument("--out", type=Path, help="CSV file to write (default: runs/<scene>.csv)")
@@ -106,11 +107,14 @@ def run(sim: Simulator, n_steps: int, quiet=False):
 
 
 def initial_row(sim: Simulator) -> np.ndarray:
+    from .core import data_free
     from .core.energy import energies
     m = sim.mech
-    data = m.model.createData()
     v = sim.joint_velocities()
-    ek, ep, es = energies(m, data, sim.state.q, v)
+    if m.nv > data_free.PIN_DATA_MAX_NV:  # no pin.Data for large models (memory ~ nv^3)
+        ek, ep, es = data_free.energies(data_free.context(m), sim.state.q, v)
+    else:
+        ek, ep, es = energies(m, m.model.createData(), sim.state.q, v)
     return np.concatenate([[sim.time], sim.state.q, v, [ek, ep, es, ek + ep + es, 0.0]])
 
 

@@ -655,12 +655,16 @@ class AutoBackend:
 def make_backend(mech, solver: str, rtol: float = DEFAULT_RTOL, max_iter: int | None = None):
     """The stepping backend for ``solver`` ('direct' | 'pcg' | 'auto'). 'direct' uses the Pinocchio
     pipeline when nv <= PIN_DATA_MAX_NV (pin.Data fits) and the data-free dense solver above.
-    Scenes with contact or joint friction (Mechanism.friction, Staggered Projections / BISP) need the
-    Pinocchio pipeline: 'direct' and 'auto' use it at any size, 'pcg' is a SceneError."""
-    if getattr(mech, "friction", None) is not None:
+    Scenes with contact or joint friction (Mechanism.friction, Staggered Projections / BISP) or catalogue
+    joints and force elements (Mechanism.extras) need the Pinocchio pipeline: 'direct' and 'auto' use
+    it at any size, 'pcg' is a SceneError."""
+    unsupported = [what for what, attr in (("contact or joint friction", "friction"),
+                                           ("catalogue joints/force elements", "extras"))
+                   if getattr(mech, attr, None) is not None]
+    if unsupported:
         if solver == "pcg":
             raise SceneError(mech.spec.source, "solver",
-                             "solver 'pcg' does not support contact or joint friction (use direct or auto)")
+                             f"solver 'pcg' does not support {' and '.join(unsupported)} (use direct or auto)")
         if solver in ("direct", "auto"):
             return DirectBackend(mech)
     if solver == "direct":
