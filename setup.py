@@ -57,6 +57,7 @@ setup(
     install_requires=[
         "numpy",
         "pin>=4.1,<5",
+        "numba",  # JIT kernels of the O(n) passes and the matrix-free PCG solver (core/recursive.py, docs/solvers.md)
         "proxsuite",
         "pyyaml",
         "mcap",
