@@ -63,6 +63,7 @@ class FrictionSettings:
     epsilon: float = 1e-6  # regularization of the local joint least squares (Eq. 16)
     joint_mu: float | None = None  # when given, replaces mu of every frictional joint and loop pin
     qp: str = "pgs"  # box QP solver of the contact and friction stages: pgs | proxsuite
+    anderson: int = 5  # depth of the Anderson acceleration of the staggered loop with joint friction (0: off)
 
 
 @dataclass
@@ -147,10 +148,14 @@ def parse(v, raw: dict, spec, bodies: set):
             out.loops[d["name"]] = LoopFrictionSpec(v.axis(entry, "axis", d["axis"]),
                                                     _joint_friction(v, f"{entry} friction", d["friction"], "revolute"))
     s = raw.get("friction") or {}
-    v.keys("friction", s, {"max_iter", "tol", "erp", "margin", "epsilon", "joint_mu", "qp"})
+    v.keys("friction", s, {"max_iter", "tol", "erp", "margin", "epsilon", "joint_mu", "qp", "anderson"})
     if s.get("qp", "pgs") not in ("pgs", "proxsuite"):
         v.err("friction", f"'qp' must be pgs or proxsuite, got {s.get('qp')!r}")
     out.settings.qp = s.get("qp", "pgs")
+    an = s.get("anderson", out.settings.anderson)
+    if isinstance(an, bool) or not isinstance(an, int) or an < 0:
+        v.err("friction", f"'anderson' must be an integer >= 0, got {an!r}")
+    out.settings.anderson = an
     st = out.settings
     if "max_iter" in s:
         mi = s["max_iter"]

@@ -168,6 +168,7 @@ def solve(mech, data, kin, system: LinearSystem, cons, q, v_prev_r, h, cache, si
                                     nu, nf, cons, site_forces)
         kmax = fm.L.shape[1]
     alpha = np.zeros(nu)
+    acc = _Anderson(st.anderson)
     prev_u, prev_b = None, None
     bound = np.zeros(nf)
     it, converged, resid = 0, False, np.inf
@@ -201,7 +202,10 @@ def solve(mech, data, kin, system: LinearSystem, cons, q, v_prev_r, h, cache, si
         # FRICTION (Eq. 12)
         if nf:
             cf = T_v0 + X_UT.T @ alpha
+            b_in = beta
             beta = _box_qp(W_T, -cf, -bound, bound, beta, 0.1 * st.tol, st.qp)
+            if st.anderson:
+                beta = acc.update(b_in, beta, bound)
 
     r = b + U.T @ alpha - Tr.T @ beta
     lam = Sinv @ (Y.T @ r - cons.g) if m else np.zeros(0)
@@ -216,6 +220,38 @@ def solve(mech, data, kin, system: LinearSystem, cons, q, v_prev_r, h, cache, si
     if joint_fric:
         rep.joint_normal = {name: float(x) for name, x in zip(fm.fj_names, np.abs(al).reshape(-1, kmax).sum(1) / h)}
     return sol, rep, new_cache
+
+
+class _Anderson:
+    """Anderson acceleration (type II, depth m) of the staggered fixed point beta_{k+1} = G(beta_k).
+
+    With joint friction the staggered iteration converges linearly (measured contraction ~0.9 per
+    iteration on the walker: joint friction changes the loop forces, which change the joint normal
+    forces); extrapolating over the last m iterates cuts the iteration count several-fold. The
+    extrapolated impulses are clipped to the current friction bounds; the convergence test of Alg. 2
+    is unchanged (it still needs the contact forces to stop changing and beta inside its bounds)."""
+
+    def __init__(self, m):
+        self.m = m
+        self.X, self.F = [], []  # G(beta_k), residuals G(beta_k) - beta_k
+
+    def update(self, b_in, g, bound):
+        f = g - b_in
+        self.X.append(g.copy())
+        self.F.append(f)
+        if len(self.F) > self.m + 1:
+            self.X.pop(0)
+            self.F.pop(0)
+        if len(self.F) < 2:
+            return g
+        dF = np.diff(np.array(self.F), axis=0).T  # (n, k)
+        dX = np.diff(np.array(self.X), axis=0).T
+        gam, *_ = np.linalg.lstsq(dF, f, rcond=1e-10)
+        out = g - dX @ gam
+        if not np.all(np.isfinite(out)):
+            self.X, self.F = [], []
+            return g
+        return np.clip(out, -bound, bound)
 
 
 def _no_unilateral(cons):

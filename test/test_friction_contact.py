@@ -1,0 +1,165 @@
+"""Physics of ground contact with friction (Staggered Projections, paper Alg. 2) and joint friction
+(BISP, Alg. 3): incline stick/slip, a revolute joint's static friction threshold, the CHAIN orderings
+(Fig. 5a/b), the Klann walker (Fig. 5c), reporting of non-convergence, scene errors."""
+import math
+
+import numpy as np
+import pytest
+
+from redmax_ros.core import SceneError, Simulator
+from redmax_ros.core.scene import scene_from_dict
+
+G = 9.81
+
+
+def _incline(angle, mu, steps=300):
+    sim = Simulator(scene_from_dict({"builder": "incline", "params": {"angle": angle, "mu": mu}}))
+    th = math.radians(angle)
+    down = np.array([math.cos(th), 0.0, -math.sin(th)])
+    normal = np.array([math.sin(th), 0.0, math.cos(th)])
+    s, h = [], []
+    for _ in range(steps):
+        r = sim.step()
+        assert r.diagnostics.friction.converged
+        s.append(sim.state.q[:3] @ down)
+        h.append(sim.state.q[:3] @ normal)
+    t = sim.dt * (np.arange(steps) + 1)
+    return t, np.array(s), np.array(h)
+
+
+@pytest.mark.parametrize("angle,mu", [(30.0, 0.3), (20.0, 0.2), (35.0, 0.5)])
+def test_incline_slides_with_analytic_acceleration(angle, mu):
+    """tan(angle) > mu: the box slides with a = g (sin - mu cos) (within 1%), staying on the plane."""
+    t, s, h = _incline(angle, mu)
+    a = 2 * np.polyfit(t[50:], s[50:], 2)[0]
+    th = math.radians(angle)
+    a_an = G * (math.sin(th) - mu * math.cos(th))
+    assert abs(a - a_an) < 0.01 * a_an, (a, a_an)
+    assert np.abs(h - 0.05).max() < 1e-6  # the box centre stays half a side above the plane
+
+
+@pytest.mark.parametrize("angle,mu", [(30.0, 0.8), (20.0, 0.4)])
+def test_incline_sticks_below_the_friction_angle(angle, mu):
+    t, s, h = _incline(angle, mu, steps=200)
+    assert np.abs(s - s[0]).max() < 1e-6
+    assert np.abs(h - 0.05).max() < 1e-6
+
+
+def _wheel_speed(q0, torque, mu=0.3, r=0.01, points=8, steps=200):
+    sim = Simulator(scene_from_dict({"builder": "wheel", "params": {
+        "mu": mu, "radius": r, "points": points, "q0": q0, "torque": torque}}))
+    for _ in range(steps):
+        res = sim.step()
+    assert res.diagnostics.friction.converged
+    return abs(sim.state.v[0])
+
+
+@pytest.mark.parametrize("q0", [0.0, math.pi / 8])
+def test_revolute_static_friction_threshold(q0):
+    """A disc (2 kg) on a horizontal frictional axle under a constant applied torque: at rest below the
+    static friction torque of the joint geometry and the normal load (the weight), turning above it.
+    The implicit contacts (8 points on each end circle, child-fixed) take the minimum-norm distribution
+    of the load F: alpha_k = F . u_k / 8, so tau_s = mu r (F/4) sum_i |cos(q0 + i pi/4)| (docs/friction.md)."""
+    mu, r, m, n = 0.3, 0.01, 2.0, 8
+    th = q0 + np.arange(n) * 2 * np.pi / n
+    tau_s = mu * r * (2 * m * G / n) * np.abs(np.cos(th)).sum()
+    assert _wheel_speed(q0, 0.98 * tau_s) < 1e-8
+    assert _wheel_speed(q0, 1.02 * tau_s) > 1e-3
+
+
+def _chain_stop_times(radius, T=3.0):
+    sim = Simulator.load("friction_chain", overrides=[f"params.radius={radius}"])
+    last = np.zeros(5)
+    for _ in range(int(round(T / sim.dt))):
+        r = sim.step()
+        assert r.diagnostics.friction.converged
+        last[np.abs(sim.state.v) > 1e-4] = sim.time
+    return last
+
+
+def test_friction_chain_stops_root_first_and_earlier_with_a_larger_radius():
+    """Fig. 5a/b: the root joints carry the largest load, so they stop rotating first; a larger joint radius
+    (same mu) gives more friction torque and the chain comes to rest earlier."""
+    small, large = _chain_stop_times(0.001), _chain_stop_times(0.003)
+    for last in (small, large):
+        assert last.max() < 2.9  # everything at rest before the end of the run
+        assert last[0] <= last[1:].min() + 1e-9 and last[0] < last[-1]
+    assert large.max() < 0.8 * small.max()
+
+
+@pytest.fixture(scope="module")
+def walker_runs():
+    """klann at h = 2 ms for 0.6 s for each joint mu of Fig. 5c."""
+    out = {}
+    for jm in (0.0, 0.2, 0.4, 0.6, 0.8):
+        sim = Simulator.load("klann", overrides=[f"friction.joint_mu={jm}", "dt=0.002"])
+        m = sim.mech
+        cf = m.joint_index["crank_fwd"].idx_v
+        tq, viol, pen, nc = [], 0.0, 0.0, 0
+        x0 = sim.state.q[0]
+        for _ in range(300):
+            r = sim.step()
+            d = r.diagnostics
+            tq.append(r.effort[cf] * np.sign(r.v[cf]))
+            viol = max(viol, d.violation_pos)
+            pen = max(pen, d.friction.max_penetration)
+            nc += not d.friction.converged
+        out[jm] = dict(dx=sim.state.q[0] - x0, tau=float(np.mean(tq[100:])), viol=viol, pen=pen, nc=nc)
+    return out
+
+
+def test_walker_walks_with_closed_loops_and_feet_on_the_floor(walker_runs):
+    for jm, r in walker_runs.items():
+        assert r["dx"] > 0.2, (jm, r)  # forward (+x) at ~0.65 m/s
+        assert r["viol"] < 1e-6
+        assert r["pen"] < 1e-3
+        assert r["nc"] <= 15  # a few capped steps at most (reported, see the next test)
+
+
+def test_walker_crank_torque_rises_with_joint_friction(walker_runs):
+    """Fig. 5c: the mean torque the crank motor must deliver grows with the joint friction coefficient."""
+    taus = [walker_runs[jm]["tau"] for jm in (0.0, 0.2, 0.4, 0.6, 0.8)]
+    assert all(b > a + 1.0 for a, b in zip(taus, taus[1:])), taus
+
+
+def test_nonconvergence_is_reported_and_the_state_stays_feasible():
+    sim = Simulator.load("klann", overrides=["friction.max_iter=2", "dt=0.002"])
+    flagged = 0
+    for _ in range(100):
+        r = sim.step()
+        f = r.diagnostics.friction
+        flagged += not f.converged
+        assert f.iterations <= 2
+        assert np.all(np.isfinite(r.q)) and np.all(np.isfinite(r.v))
+        assert r.diagnostics.violation_pos < 1e-6
+        assert f.max_penetration < 1e-3
+    assert flagged > 0
+
+
+def test_contactless_scenes_keep_the_plain_step():
+    sim = Simulator.load("pendulum")
+    assert sim.mech.friction is None
+    assert sim.step().diagnostics.friction is None
+
+
+@pytest.mark.parametrize("patch,msg", [
+    ({"contacts": [{"name": "c", "body": "b", "type": "sphere", "radius": 0.1}]}, "need at least one 'ground'"),
+    ({"ground": [{"name": "g", "normal": [0, 0, 0]}]}, "zero vector"),
+    ({"ground": [{"name": "g"}], "contacts": [{"name": "c", "body": "b", "type": "sphere"}]}, "needs 'radius'"),
+    ({"ground": [{"name": "g"}], "contacts": [{"name": "c", "body": "nope", "type": "point"}]}, "unknown body"),
+    ({"friction": {"max_iter": 0}}, "max_iter"),
+    ({"friction": {"qp": "mosek"}}, "pgs or proxsuite"),
+])
+def test_bad_contact_keys_are_named(patch, msg):
+    raw = {"bodies": [{"name": "b", "mass": 1.0, "shape": {"type": "sphere", "radius": 0.1}}],
+           "joints": [{"name": "j", "type": "free", "parent": "world", "child": "b"}], **patch}
+    with pytest.raises(SceneError, match=msg):
+        scene_from_dict(raw)
+
+
+def test_joint_friction_on_an_unsupported_joint_type_is_named():
+    raw = {"bodies": [{"name": "b", "mass": 1.0, "shape": {"type": "sphere", "radius": 0.1}}],
+           "joints": [{"name": "j", "type": "planar", "parent": "world", "child": "b",
+                       "friction": {"mu": 0.2, "radius": 0.01}}]}
+    with pytest.raises(SceneError, match="joint friction is supported on"):
+        scene_from_dict(raw)
