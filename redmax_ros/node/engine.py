@@ -87,6 +87,7 @@ class Engine:
         self._jobs = collections.deque()
         self._cv = threading.Condition()
         self._running = False
+        self._busy = False  # a thread (simulation or caller) is using the Simulator
         self._thread = None
         self.pacer = Pacer(self.rtf)
         self.meter = RateMeter()
@@ -111,15 +112,35 @@ class Engine:
             self._thread.join(timeout)
 
     def submit(self, fn, *args) -> Future:
-        """Run ``fn(*args)`` on the simulation thread after everything submitted before it."""
+        """Run ``fn(*args)`` after everything submitted before it, with exclusive use of the
+        Simulator. If nothing is queued and the simulation is not busy (paused, or between two
+        free-run steps), the calling thread runs it at once (no thread hop, lower latency);
+        otherwise it is queued for the simulation thread. Either way requests keep their order."""
         fut = Future()
         with self._cv:
             if not self._running:
                 fut.set_exception(RuntimeError("the simulation thread is not running"))
                 return fut
-            self._jobs.append((fut, fn, args))
-            self._cv.notify()
+            if self._jobs or self._busy:
+                self._jobs.append((fut, fn, args))
+                self._cv.notify_all()
+                return fut
+            self._busy = True
+        try:
+            self._run_job(fut, fn, args)
+        finally:
+            with self._cv:
+                self._busy = False
+                self._cv.notify_all()
         return fut
+
+    @staticmethod
+    def _run_job(fut, fn, args):
+        if fut.set_running_or_notify_cancel():
+            try:
+                fut.set_result(fn(*args))
+            except BaseException as e:  # reported to the caller; the simulation lives on
+                fut.set_exception(e)
 
     def call(self, fn, *args, timeout=None):
         return self.submit(fn, *args).result(timeout)
@@ -129,7 +150,10 @@ class Engine:
         while True:
             job, step_due = None, False
             with self._cv:
-                while self._running and not self._jobs:
+                while self._running and (self._busy or not self._jobs):
+                    if self._busy:  # another thread runs a request inline
+                        self._cv.wait(0.05)
+                        continue
                     if self.state == PLAYING:
                         wait = self.pacer.wait_time(self.sim.time + self.sim.dt)
                         if wait <= 0:
@@ -140,41 +164,49 @@ class Engine:
                         if wait <= 0:
                             break
                     self._cv.wait(min(wait, max(0.0, next_diag - time.monotonic()) + 1e-4))
-                    if time.monotonic() >= next_diag:
+                    if time.monotonic() >= next_diag and not self._busy:
                         break
                 if not self._running:
                     break
                 if self._jobs:
                     job = self._jobs.popleft()
-            if job is not None:
-                fut, fn, args = job
-                if fut.set_running_or_notify_cancel():
+                self._busy = True
+            try:
+                if job is not None:
+                    self._run_job(*job)
+                elif step_due and self.state == PLAYING:
                     try:
-                        fut.set_result(fn(*args))
-                    except BaseException as e:  # reported to the caller; the thread lives on
-                        fut.set_exception(e)
-            elif step_due and self.state == PLAYING:
-                try:
-                    out = self._advance(1, lockstep=False)
-                except Exception as e:  # a sink failure must not kill the simulation thread
-                    out = Outcome(OPERATION_FAILED, f"{type(e).__name__}: {e}")
-                if not out.ok:
-                    self.state = PAUSED
-                    self.sink.sim_state(self.state)
-                    self.sink.warn(f"free-run stopped, simulation paused: {out.message}")
-            now = time.monotonic()
-            if now >= next_diag:
-                next_diag = now + self.diagnostics_period
-                try:
-                    self._report()
-                except Exception as e:  # diagnostics must never stop the simulation
-                    self.sink.warn(f"diagnostics failed: {type(e).__name__}: {e}")
+                        out = self._advance(1, lockstep=False)
+                    except Exception as e:  # a sink failure must not kill the simulation thread
+                        out = Outcome(OPERATION_FAILED, f"{type(e).__name__}: {e}")
+                    if not out.ok:
+                        self.state = PAUSED
+                        self._safe(self.sink.sim_state, self.state)
+                        self._safe(self.sink.warn, f"free-run stopped, simulation paused: {out.message}")
+                now = time.monotonic()
+                if now >= next_diag:
+                    next_diag = now + self.diagnostics_period
+                    try:
+                        self._report()
+                    except Exception as e:  # diagnostics must never stop the simulation
+                        self._safe(self.sink.warn, f"diagnostics failed: {type(e).__name__}: {e}")
+            finally:
+                with self._cv:
+                    self._busy = False
+                    self._cv.notify_all()
         # drain: fail whatever is still queued so no caller waits forever
         with self._cv:
             jobs, self._jobs = list(self._jobs), collections.deque()
         for fut, _, _ in jobs:
             if fut.set_running_or_notify_cancel():
                 fut.set_exception(RuntimeError("the simulation thread stopped"))
+
+    @staticmethod
+    def _safe(fn, *args):
+        try:
+            fn(*args)
+        except Exception:
+            pass
 
     # ------------------------------------------------------------------ scene
     def _load(self, scene, overrides):

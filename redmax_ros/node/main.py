@@ -39,6 +39,7 @@ from redmax_msgs.srv import (DescribeScene, GetSimulationState, LoadScene, Relea
 from redmax_ros.core import SceneError
 
 from . import engine as eng
+from .cdr import JointStateEncoder, SolverStatsEncoder, encode_clock
 from .convert import StateMessages, description_msg, diagnostics_msg, markers_msg, point_prescriptions_msg
 from .convert import prescriptions_msg, time_msg
 
@@ -158,6 +159,7 @@ class RedmaxNode(Node):
 
         # --- outputs
         self._pubs = {}
+        self._topic_names = {}
         self.pub_js = self._pub(JointState, "joint_states", QOS_STATE)
         self.pub_pf = self._pub(PointForces, "point_forces", QOS_STATE)
         self.pub_stats = self._pub(SolverStats, "solver_stats", QOS_STATE)
@@ -182,6 +184,7 @@ class RedmaxNode(Node):
             overrides.append(f"solver={p['solver']}")
         self._last_pf_nonempty = False
         self.msgs = None
+        self.stats_enc = SolverStatsEncoder(self.frame_id)
         self.engine = eng.Engine(
             self, p["scene"], overrides,
             initial_state=eng.PLAYING if p["mode"] == "free_run" else eng.PAUSED,
@@ -224,6 +227,7 @@ class RedmaxNode(Node):
     def _pub(self, cls, topic, qos):
         pub = self.create_publisher(cls, topic, qos)
         self._pubs[pub.topic_name] = (cls, qos)
+        self._topic_names[pub] = pub.topic_name
         return pub
 
     def _sub(self, cls, topic, cb, group):
@@ -248,11 +252,18 @@ class RedmaxNode(Node):
             self.logger_mcap.add_topic(topic, _type_name(cls), [_qos_dict(qos)])
 
     def _send(self, pub, msg):
-        data = serialize_message(msg)
-        pub.publish(data)
+        self._send_bytes(pub, serialize_message(msg))
+
+    def _send_bytes(self, pub, data: bytes):
+        """Log first (a message is never lost from the log), then publish the same bytes."""
         lg = self.logger_mcap
         if lg is not None:
-            lg.write(pub.topic_name, data)
+            lg.write(self._topic_names[pub], data)
+        try:
+            pub.publish(data)
+        except Exception:
+            if self.context.ok():
+                raise  # a real failure; during shutdown the context is gone: drop silently
 
     def _initial_publish(self):
         self.sim_state(self.engine.state)
@@ -274,17 +285,18 @@ class RedmaxNode(Node):
     # ------------------------------------------------------------------ engine sink (simulation thread)
     def scene_loaded(self, info):
         self.msgs = StateMessages(info, self.frame_id)
+        self.js_enc = JointStateEncoder(info.velocity_names, "")
         self._desc_cache = (None, None)
 
     def state(self, t, q, v, effort, site_forces, diag, step_index):
-        m = self.msgs
-        self._send(self.pub_js, m.joint_state(t, q, v, effort))
-        self._send(self.pub_clock, m.clock_msg(t))
+        # fast path: CDR written directly (test_node_cdr.py checks it against rclpy's serializer)
+        self._send_bytes(self.pub_js, self.js_enc.encode(t, self.msgs.info.positions(q), v, effort))
+        self._send_bytes(self.pub_clock, encode_clock(t))
         if site_forces or self._last_pf_nonempty:
-            self._send(self.pub_pf, m.point_forces(t, site_forces))
+            self._send(self.pub_pf, self.msgs.point_forces(t, site_forces))
             self._last_pf_nonempty = bool(site_forces)
         if diag is not None:
-            self._send(self.pub_stats, m.solver_stats(t, step_index, diag))
+            self._send_bytes(self.pub_stats, self.stats_enc.encode(t, step_index, diag))
 
     def markers(self, t, poses, springs):
         self._send(self.pub_markers, markers_msg(t, poses, springs, self.frame_id))
@@ -431,6 +443,9 @@ class RedmaxNode(Node):
 
 def main(argv=None):
     args = sys.argv if argv is None else argv
+    # The simulation thread and the executor threads share the GIL; a short switch interval
+    # (default 5 ms) bounds how long a command or a service request waits for a running step.
+    sys.setswitchinterval(float(os.environ.get("REDMAX_SWITCH_INTERVAL", "0.0005")))
     rclpy.init(args=args)
     node = None
     try:

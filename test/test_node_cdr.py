@@ -1,0 +1,68 @@
+"""The node's fast CDR encoders write exactly the bytes rclpy's serializer writes."""
+import math
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+pytest.importorskip("redmax_msgs.msg", reason="redmax_msgs not built (scripts/setup.sh builds msg_defs/)")
+
+from rclpy.serialization import deserialize_message, serialize_message  # noqa: E402
+from rosgraph_msgs.msg import Clock  # noqa: E402
+from sensor_msgs.msg import JointState  # noqa: E402
+
+from redmax_msgs.msg import SolverStats  # noqa: E402
+from redmax_ros.node.cdr import JointStateEncoder, SolverStatsEncoder, encode_clock  # noqa: E402
+from redmax_ros.node.convert import time_msg  # noqa: E402
+
+
+def same_bytes(ours, ref, padding):
+    """Equal length and equal bytes except alignment padding (rclpy leaves it uninitialized)."""
+    if len(ours) != len(ref):
+        return False
+    pad = set(padding)
+    return all(a == b for i, (a, b) in enumerate(zip(ours, ref)) if i not in pad)
+
+
+@pytest.mark.parametrize("names,frame", [(["elbow", "wrist[0]", "wrist[1]", "ab"], ""), (["hinge"], "world"),
+                                          ([f"j{i}" for i in range(23)], "x"), ([], "")])
+def test_joint_state_bytes(names, frame):
+    rng = np.random.default_rng(len(names))
+    enc = JointStateEncoder(names, frame)
+    for t in (0.0, 0.001, 1.2345678901, 12345.000000001):
+        q, v, e = (rng.normal(size=len(names)) for _ in range(3))
+        if len(names):
+            q[0] = math.nan  # NaN positions (joints whose nq != nv) are kept
+        ref = JointState(name=names, position=q.tolist(), velocity=v.tolist(), effort=e.tolist())
+        ref.header.stamp = time_msg(t)
+        ref.header.frame_id = frame
+        got = enc.encode(t, q, v, e)
+        if len(names):
+            back = deserialize_message(got, JointState)
+            assert list(back.name) == names and np.array_equal(back.velocity, v)
+            q2 = np.asarray(back.position)
+            assert math.isnan(q2[0]) and np.array_equal(q2[1:], q[1:])
+            q[0] = 0.0
+            ref.position = q.tolist()
+            got = enc.encode(t, q, v, e)
+        assert same_bytes(got, serialize_message(ref), enc.padding)
+
+
+def test_clock_bytes():
+    for t in (0.0, 0.001, 3.999999999, 1e6 + 0.5):
+        assert encode_clock(t) == serialize_message(Clock(clock=time_msg(t)))
+
+
+@pytest.mark.parametrize("solver", ["direct", "pcg", "", "a-much-longer-solver-name"])
+def test_solver_stats_bytes(solver):
+    d = SimpleNamespace(E_kin=1.5, E_pot=-2.25, E_spring=0.125, E_total=-0.625, violation_pos=1e-12,
+                        violation_vel=3e-15, residual=2e-16, iterations=7, solver=solver, wall_time=2.5e-4)
+    enc = SolverStatsEncoder("world")
+    ref = SolverStats(step=123456789012, solver=solver, iterations=7, residual=2e-16, violation_pos=1e-12,
+                      violation_vel=3e-15, energy_kinetic=1.5, energy_potential=-2.25, energy_spring=0.125,
+                      energy_total=-0.625, step_wall_time=2.5e-4)
+    ref.header.stamp = time_msg(0.042)
+    ref.header.frame_id = "world"
+    got = enc.encode(0.042, 123456789012, d)
+    assert same_bytes(got, serialize_message(ref), enc.padding)
+    assert deserialize_message(got, SolverStats) == ref
