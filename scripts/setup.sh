@@ -150,6 +150,17 @@ PYEOF
 fi
 
 # --- 5. interface packages in msg_defs/ ----------------------------------------
+build_msgs() {  # colcon build of msg_defs/ into the merged prefix install_msgs/
+  (
+    export VIRTUAL_ENV="$VENV" PATH="$VENV/bin:$PATH"
+    export CMAKE_PREFIX_PATH="$VENV" AMENT_PREFIX_PATH="$VENV"
+    colcon --log-base log/colcon build --merge-install --base-paths msg_defs \
+      --build-base build_msgs --install-base install_msgs \
+      --cmake-args -DPython3_EXECUTABLE="$PY" -DPython3_FIND_VIRTUALENV=ONLY \
+        -DBUILD_TESTING=OFF -Wno-dev 2>&1 \
+      | { grep -v "in the environment variable AMENT_PREFIX_PATH doesn't contain any 'local_setup" || true; }
+  )
+}
 MSG_STAMP="$ROOT/install_msgs/.redmax_msgs.stamp"
 if [ -n "$(find msg_defs -mindepth 2 -maxdepth 2 -name package.xml 2>/dev/null)" ]; then
   mapfile -t msg_files < <(find msg_defs -type f | LC_ALL=C sort)
@@ -158,17 +169,15 @@ if [ -n "$(find msg_defs -mindepth 2 -maxdepth 2 -name package.xml 2>/dev/null)"
   if [ "${REDMAX_FORCE_SETUP:-0}" != 1 ] && [ -f "$MSG_STAMP" ] && [ "$(cat "$MSG_STAMP")" = "$msg_hash" ]; then
     say "msg_defs up to date (install_msgs/)"
   else
+    # Incremental build in place (others may be importing from install_msgs/ right
+    # now); if that fails (e.g. an install_msgs/ of another layout), build clean.
     say "building msg_defs with colcon"
-    rm -rf build_msgs install_msgs
-    (
-      export VIRTUAL_ENV="$VENV" PATH="$VENV/bin:$PATH"
-      export CMAKE_PREFIX_PATH="$VENV" AMENT_PREFIX_PATH="$VENV"
-      colcon --log-base log/colcon build --merge-install --base-paths msg_defs \
-        --build-base build_msgs --install-base install_msgs \
-        --cmake-args -DPython3_EXECUTABLE="$PY" -DPython3_FIND_VIRTUALENV=ONLY \
-          -DBUILD_TESTING=OFF -Wno-dev 2>&1 \
-        | { grep -v "in the environment variable AMENT_PREFIX_PATH doesn't contain any 'local_setup" || true; }
-    ) || die "colcon build of msg_defs failed (logs: log/colcon/latest_build)"
+    rm -f "$MSG_STAMP"
+    if ! build_msgs; then
+      say "incremental build failed: building msg_defs from scratch"
+      rm -rf build_msgs install_msgs
+      build_msgs || die "colcon build of msg_defs failed (logs: log/colcon/latest_build)"
+    fi
     echo "$msg_hash" > "$MSG_STAMP"
   fi
 elif [ -d install_msgs ]; then
