@@ -190,7 +190,7 @@ class Client:
             return [r.msg for r in self.rosout if r.level >= Log.WARN]
 
 
-def run_node_in_thread(params: dict, name="redmax"):
+def run_node_in_thread(params: dict, name="redmax", namespace=""):
     """Start RedmaxNode in this process with the given parameters; returns (node, stop)."""
     from rclpy.executors import MultiThreadedExecutor
     from rclpy.parameter import Parameter
@@ -198,7 +198,7 @@ def run_node_in_thread(params: dict, name="redmax"):
     from redmax_ros.node.main import RedmaxNode
 
     overrides = [Parameter(k, value=v) for k, v in params.items()]
-    node = RedmaxNode(name, parameter_overrides=overrides)
+    node = RedmaxNode(name, namespace=namespace, parameter_overrides=overrides)
     ex = MultiThreadedExecutor(num_threads=4)
     ex.add_node(node)
     stop = threading.Event()

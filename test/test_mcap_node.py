@@ -16,6 +16,7 @@ from node_fixtures import Client, rclpy  # noqa: F401  (sets ROS_DOMAIN_ID / dis
 from redmax_msgs.msg import Result, SimulationState  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
+PID = os.getpid()  # namespace of our own, in case another run shares the ROS domain
 
 
 def _stamp_ns(st):
@@ -29,10 +30,10 @@ def run(tmp_path_factory):
     cmd = [sys.executable, "-m", "redmax_ros.node.main", "--ros-args", "--params-file",
            str(ROOT / "config" / "hand.yaml"), "-p", "mode:=lockstep", "-p", f"log_path:={logdir}",
            "-p", "command_timeout:=100.0", "-p", "marker_rate:=50.0", "-p", "real_time_factor:=0.0",
-           "-p", "diagnostics_period:=0.2", "-r", "__ns:=/sim"]
+           "-p", "diagnostics_period:=0.2", "-r", f"__ns:=/sim{PID}"]
     proc = subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     rclpy.init()
-    client = Client("mcap_test_client", ns="/sim")
+    client = Client("mcap_test_client", ns=f"/sim{PID}")
     out = {"logdir": logdir}
     try:
         client.wait_ready(timeout=30)
@@ -98,17 +99,18 @@ def test_log_has_ros2_conventions(run):
         summary = reader.get_summary()
     assert header.profile == "ros2"
     topics = {c.topic: c for c in summary.channels.values()}
-    for t in ["/sim/joint_states", "/clock", "/sim/point_forces", "/sim/solver_stats", "/sim/markers",
-              "/diagnostics", "/sim/simulation_state", "/sim/prescribed_joints", "/sim/joint_commands"]:
+    ns = f"/sim{PID}"
+    for t in [f"{ns}/joint_states", "/clock", f"{ns}/point_forces", f"{ns}/solver_stats", f"{ns}/markers",
+              "/diagnostics", f"{ns}/simulation_state", f"{ns}/prescribed_joints", f"{ns}/joint_commands"]:
         assert t in topics, t
     for c in summary.channels.values():
         assert c.message_encoding == "cdr"
         schema = summary.schemas[c.schema_id]
         assert schema.encoding == "ros2msg" and "/msg/" in schema.name
         assert parse_qos(c.metadata["offered_qos_profiles"])  # rosbag2 YAML that parses
-    js_schema = summary.schemas[topics["/sim/joint_states"].schema_id].data.decode()
+    js_schema = summary.schemas[topics[f"/sim{PID}/joint_states"].schema_id].data.decode()
     assert "MSG: std_msgs/Header" in js_schema and "MSG: builtin_interfaces/Time" in js_schema
-    assert summary.statistics.channel_message_counts[topics["/sim/joint_commands"].id] >= 2
+    assert summary.statistics.channel_message_counts[topics[f"/sim{PID}/joint_commands"].id] >= 2
 
 
 def _decode_mcap_ros2(path, topic):
@@ -136,7 +138,7 @@ def _decode_rosbags(path, topic):
 
 @pytest.mark.parametrize("decode", [_decode_mcap_ros2, _decode_rosbags], ids=["mcap_ros2", "rosbags"])
 def test_logged_joint_states_equal_published(run, decode):
-    logged = decode(_mcap_file(run), "/sim/joint_states")
+    logged = decode(_mcap_file(run), f"/sim{PID}/joint_states")
     by_stamp = {}
     for m in logged:
         by_stamp.setdefault(_stamp_ns(m.header.stamp), m)
@@ -155,7 +157,7 @@ def test_logged_joint_states_equal_published(run, decode):
 
 @pytest.mark.parametrize("decode", [_decode_mcap_ros2, _decode_rosbags], ids=["mcap_ros2", "rosbags"])
 def test_logged_commands_equal_sent(run, decode):
-    cmds = decode(_mcap_file(run), "/sim/joint_commands")
+    cmds = decode(_mcap_file(run), f"/sim{PID}/joint_commands")
     assert [list(c.name) for c in cmds] == [["elbow", "wrist[0]", "wrist[1]"], ["nope"]]
     assert list(cmds[0].velocity) == [0.4, 0.1, -0.1]
     diags = decode(_mcap_file(run), "/diagnostics")

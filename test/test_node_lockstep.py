@@ -5,6 +5,7 @@ Every physics check replays the same commands on a separate in-process core Simu
 compares bitwise: the node must publish exactly the core's state and required torques.
 """
 import math
+import os
 import time
 
 import numpy as np
@@ -31,16 +32,19 @@ def ros():
     rclpy.shutdown()
 
 
+NS = f"/lockstep{os.getpid()}"  # a namespace of our own, in case another run shares the domain
+
+
 @pytest.fixture(scope="module")
 def node(ros):
-    node, shutdown = run_node_in_thread(PARAMS)
+    node, shutdown = run_node_in_thread(PARAMS, namespace=NS)
     yield node
     shutdown()
 
 
 @pytest.fixture(scope="module")
 def client(node):
-    c = Client()
+    c = Client(ns=NS)
     c.wait_ready()
     yield c
     c.close()
@@ -68,7 +72,7 @@ def stamp(m):
 
 
 def set_param(client, name, value):
-    cli = client.node.create_client(SetParameters, "/redmax/set_parameters")
+    cli = client.node.create_client(SetParameters, f"{NS}/redmax/set_parameters")
     assert cli.wait_for_service(timeout_sec=10)
     fut = cli.call_async(SetParameters.Request(parameters=[Parameter(name, value=value).to_parameter_msg()]))
     end = time.monotonic() + 10

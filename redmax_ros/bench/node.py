@@ -87,12 +87,14 @@ class _Client:
         now = time.perf_counter()
         self.js_count += 1
         w = self.waiting_for
-        if w is not None and self.hit_time is None and len(m.velocity) and m.velocity[0] == w:
+        if w is not None and self.hit_time is None and len(m.velocity) and abs(m.velocity[0] - w) < 1e-9:
             self.hit_time = now
             with self.cond:
                 self.cond.notify_all()
 
     def _on_diag(self, m):
+        if not m.status or not m.status[0].name.startswith(self.node.get_namespace() + "/"):
+            return  # another simulation node on this ROS graph
         vals = {kv.key: kv.value for kv in m.status[0].values}
         self.diag.append((time.monotonic(), vals))
 

@@ -309,7 +309,7 @@ class RedmaxNode(Node):
             if self.logger_mcap.error is not None:
                 level, message = DiagnosticStatus.ERROR, f"MCAP logging failed: {self.logger_mcap.error}"
         stamp = self.get_clock().now().to_msg()
-        self._send(self.pub_diag, diagnostics_msg(stamp, self.get_name(), self.engine.info.name, values, level,
+        self._send(self.pub_diag, diagnostics_msg(stamp, self.get_fully_qualified_name(), self.engine.info.name, values, level,
                                                   message))
 
     def sim_state(self, state):
