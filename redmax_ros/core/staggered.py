@@ -246,7 +246,13 @@ class _Anderson:
             return g
         dF = np.diff(np.array(self.F), axis=0).T  # (n, k)
         dX = np.diff(np.array(self.X), axis=0).T
-        gam, *_ = np.linalg.lstsq(dF, f, rcond=1e-10)
+        H = dF.T @ dF
+        H[np.diag_indices_from(H)] += 1e-12 * max(float(np.trace(H)), 1e-300)
+        try:
+            gam = np.linalg.solve(H, dF.T @ f)
+        except np.linalg.LinAlgError:
+            self.X, self.F = [], []
+            return g
         out = g - dX @ gam
         if not np.all(np.isfinite(out)):
             self.X, self.F = [], []
