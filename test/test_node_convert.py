@@ -1,0 +1,34 @@
+"""Message conversion without ROS communication: joint_states positions per DOF."""
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+pytest.importorskip("redmax_msgs.msg", reason="redmax_msgs not built (scripts/setup.sh builds msg_defs/)")
+
+from redmax_ros.node.convert import SceneInfo  # noqa: E402
+
+
+def _desc(types, nq, nv):
+    names = [f"j{i}" for i in range(len(types))]
+    vnames = [n if v == 1 else f"{n}[{k}]" for n, v in zip(names, nv) for k in range(v)]
+    return SimpleNamespace(name="x", dt=1e-3, joint_names=names, joint_types=types, joint_nq=nq, joint_nv=nv,
+                           velocity_names=vnames, position_names=[], sites=[], prescribable_joints=[],
+                           prescribable_sites=[], nq=sum(nq), nv=sum(nv), ndof=sum(nv))
+
+
+def test_positions_planar_angle_and_nan_for_spherical():
+    info = SceneInfo(_desc(["planar", "revolute", "spherical", "universal"], [4, 1, 4, 2], [3, 1, 3, 2]))
+    a = 0.3
+    q = np.array([1.0, 2.0, np.cos(a), np.sin(a), 0.7, 0, 0, 0, 1, 0.1, 0.2])
+    p = info.positions(q)
+    assert len(p) == 9
+    assert np.allclose(p[:3], [1.0, 2.0, a]) and p[3] == 0.7
+    assert np.isnan(p[4:7]).all() and np.array_equal(p[7:], [0.1, 0.2])
+    assert info.dof_index["j2[1]"] == ("j2", 1) and info.dof_index["j1"] == ("j1", 0)
+
+
+def test_positions_identity_when_nq_equals_nv():
+    info = SceneInfo(_desc(["revolute", "universal"], [1, 2], [1, 2]))
+    q = np.array([0.1, 0.2, 0.3])
+    assert info.positions(q) is q or np.array_equal(info.positions(q), q)
