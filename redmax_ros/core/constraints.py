@@ -91,6 +91,12 @@ def build(mech, kin, q, prescribed_joints: dict, prescribed_sites: dict, h: floa
             spans.append((f"prescribed site '{name}'", len(Js)))
             out.site_rows[name] = slice(r, r + len(Js))
             r += len(Js)
+    if mech.extras is not None and mech.extras.has_rows:  # linear joint constraints, G_r (catalogue.py)
+        G_l, g_l, sp = mech.extras.rows(mech)
+        rows.append(G_l)
+        rhs.append(g_l)
+        spans += sp
+        r += len(G_l)
     if r:
         out.G = np.vstack(rows) if len(rows) > 1 else rows[0]
         out.g = np.concatenate(rhs) if len(rhs) > 1 else np.asarray(rhs[0], float)

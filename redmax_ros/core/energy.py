@@ -23,4 +23,6 @@ def energies(mech, data, q, v_r):
     if mech.has_stiffness:
         dq = joint_displacement(mech, q)
         es += 0.5 * float(mech.stiffness @ (dq * dq))
+    if mech.extras is not None:  # direction springs (catalogue.py)
+        es += mech.extras.energy(mech, data)
     return float(ek), float(ep), es

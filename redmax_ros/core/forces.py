@@ -89,6 +89,8 @@ def assemble(mech, data, kin: Kinematics, q, v_r, tau, h, site_forces=None) -> L
     if site_forces:
         for s, fv in site_forces.items():
             f += kin.J[kin.row[s]].T @ fv
+    if mech.extras is not None:  # catalogue force elements; Jdot_rR qdot_R of spline/exp joints (catalogue.py)
+        mech.extras.forces(mech, data, kin, q, v_r, h, A, f)
     b = M @ v_r + h * f
     T = mech.T
     if T is not None:

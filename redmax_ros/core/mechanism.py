@@ -13,7 +13,9 @@ from dataclasses import dataclass, field
 import numpy as np
 import pinocchio as pin
 
+from . import joint_maps
 from .errors import SceneError
+from .joints import q_index as _catalogue_q_index
 from .scene import WORLD, SceneSpec
 from .spatial import placement, rpy_matrix
 
@@ -88,6 +90,7 @@ class Mechanism:
     armature: np.ndarray | None = None  # (nv,)
     limit_rows: np.ndarray | None = None  # (p,ndof) rows of J_rR for the limited DOFs
     limit_labels: list = field(default_factory=list)
+    extras: object = None  # catalogue.Extras: mapped joints, linear joint constraints, force elements (or None)
     friction: object = None  # contact.FrictionModel (ground contact, joint friction) or None
 
     def joint_rows(self, name: str) -> np.ndarray:
@@ -192,6 +195,13 @@ def _build_tree(spec: SceneSpec):
         bM = placement(*j.body_placement)
         if j.type == "fixed":
             jid, M = pj, jM * bM
+        elif j.extra:  # notes §2.5 catalogue joints (joints.py; spline/exp joints: carrier + coordinates)
+            jid, added = joint_maps.add_to_model(model, pj, j, jM)
+            M = bM
+            for js, q_, r_ in added:
+                q0.append(q_)
+                rest.append(r_)
+                joint_specs.append(js)
         else:
             jid = model.addJoint(pj, _joint_model(j), jM, j.name)
             M = bM
@@ -253,7 +263,7 @@ def compile_scene(spec: SceneSpec) -> Mechanism:
                     lower[ji.idx_v], upper[ji.idx_v] = lo, up
         damping[:] = np.asarray(model.damping)
     limited = np.flatnonzero(np.isfinite(lower) | np.isfinite(upper))
-    limited_q = np.array([_q_index(joints, i) for i in limited], dtype=int)
+    limited_q = np.array([_catalogue_q_index(model, int(i)) for i in limited], dtype=int)
 
     # bodies
     body_names = [n for n in frame_of if n != WORLD]
@@ -282,6 +292,9 @@ def compile_scene(spec: SceneSpec) -> Mechanism:
 
     # couplings: T = J_rR (Eq. 9)
     T, cnames = _coupling_matrix(spec, joint_index, nv, src)
+    maps = joint_maps.Maps.build(model, joints, jspecs, T, q0, v0r) if jspecs else None
+    if maps is not None:  # spline/exp joints: configuration-dependent J_rR (joint_maps.py)
+        T = maps.T0
 
     # wrenches
     bidx = {n: i for i, n in enumerate(body_names)}
@@ -289,7 +302,7 @@ def compile_scene(spec: SceneSpec) -> Mechanism:
     wrench_fw = np.array([np.concatenate([w.force, w.torque]) for w in spec.wrenches]).reshape(-1, 6)
 
     # prescriptions
-    movable = [j.name for j in joints]
+    movable = [j.name for j in joints if j.type != "carrier"]
     pj = spec.prescribable_joints if spec.prescribable_joints is not None else movable
     for n in pj:
         if n not in joint_index:
@@ -352,6 +365,8 @@ def compile_scene(spec: SceneSpec) -> Mechanism:
         if joint_index[name].nv != len(spec.prescribed_joints[name]):
             raise SceneError(src, f"prescribed.joints.{name}",
                              f"needs {joint_index[name].nv} values, got {len(spec.prescribed_joints[name])}")
+    from .catalogue import attach
+    attach(mech, maps)  # mech.extras for catalogue features (None otherwise)
     _check_couplings_q0(mech, spec, src)
     mech.v0 = _hyper_reduced_v0(mech, v0r, src)
     # Assemble loops at the initial configuration (and check they do not over-constrain).

@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from . import contact_schema
+from . import catalogue_schema, contact_schema
 from .errors import SceneError
 from .inertia import shape_inertia, shape_volume
 
@@ -28,6 +28,7 @@ JOINT_TYPES = {
     "fixed": (0, 0),
     "free": (6, 6),  # q0 as x, y, z [m], roll, pitch, yaw [rad]
 }
+JOINT_TYPES.update(catalogue_schema.TYPES)  # notes §2.5 catalogue (joints.py, joint_maps.py; composite: per joint)
 SHAPES = {"box": ("size",), "sphere": ("radius",), "cylinder": ("radius", "length"), "capsule": ("radius", "length")}
 AXES = {"x": (1.0, 0.0, 0.0), "y": (0.0, 1.0, 0.0), "z": (0.0, 0.0, 1.0)}
 WORLD = "world"
@@ -63,10 +64,11 @@ class JointSpec:
     damping: np.ndarray  # (nv,) D_r [N m s/rad or N s/m]
     armature: np.ndarray  # (nv,) [kg m^2 or kg]
     torque: np.ndarray  # (nv,) constant explicit joint torque/force
+    extra: dict = field(default_factory=dict)  # type-specific data (catalogue_schema): nv, chart, parts, geometry
 
     @property
     def nv(self) -> int:
-        return JOINT_TYPES[self.type][0]
+        return self.extra["nv"] if "nv" in self.extra else JOINT_TYPES[self.type][0]
 
 
 @dataclass
@@ -134,6 +136,7 @@ class SceneSpec:
     description: str = ""
     raw: dict = field(default_factory=dict, repr=False)
     friction: object = None  # contact_schema.FrictionSpec: ground, contacts, joint/loop friction (or None)
+    catalogue: object = None  # catalogue_schema.CatalogueSpec: linear joint constraints, force elements (or None)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -377,7 +380,7 @@ class _Validator:
     def scene(self, raw) -> SceneSpec:
         top = {"name", "description", "units", "gravity", "dt", "duration", "bodies", "joints", "sites", "springs",
                "wrenches", "loops", "couplings", "prescribable", "prescribed", "urdf", "params", "solver"}
-        top |= contact_schema.TOP_KEYS
+        top |= contact_schema.TOP_KEYS | catalogue_schema.TOP_KEYS
         self.keys("scene", raw, top)
         if raw.get("units", "SI") != "SI":
             self.err("units", f"only SI units are supported, got {raw.get('units')!r}")
@@ -410,6 +413,7 @@ class _Validator:
         spec.couplings = [self.coupling(e, d, spec) for e, d in self.entries(raw, "couplings")]
         self.prescriptions(spec, raw, site_names)
         spec.friction = contact_schema.parse(self, raw, spec, body_names)
+        spec.catalogue = catalogue_schema.parse(self, raw, spec, body_names)
         return spec
 
     def urdf(self, spec, d):
@@ -425,6 +429,9 @@ class _Validator:
         spec.urdf_fixed_base = bool(d.get("fixed_base", True))
 
     def body(self, entry, d) -> BodySpec:
+        from . import bodies
+        if bodies.handles(d):  # composite (parts) and mesh bodies
+            return bodies.validate_body(self, entry, d, self.base_dir)
         self.keys(entry, d, {"name", "shape", "density", "mass", "com", "inertia", "damping", "rgba"})
         shape = d.get("shape")
         if shape is not None:
@@ -481,6 +488,8 @@ class _Validator:
         return BodySpec(d["name"], mass, com, I, shape, damping, rgba)
 
     def joint(self, entry, d) -> JointSpec:
+        if d.get("type") in catalogue_schema.TYPES:  # notes §2.5 catalogue joints
+            return catalogue_schema.validate_joint(self, entry, d, self.base_dir)
         allowed = {"name", "type", "parent", "child", "placement", "body_placement", "axis", "axes", "q0", "v0",
                    "limits", "stiffness", "rest", "damping", "armature", "torque", "friction"}
         self.keys(entry, d, allowed, required=("type", "parent", "child"))

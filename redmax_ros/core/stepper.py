@@ -105,6 +105,9 @@ def step(mech, data, state: State, cmd: Commands, h: float) -> tuple:
     sf = {mech.site_index[n]: f for n, f in cmd.site_forces.items()} if cmd.site_forces else None
     extra = [mech.site_index[n] for n in psites] + (list(sf) if sf else [])
 
+    ext = mech.extras
+    if ext is not None:  # catalogue: time of the timed loads, J_rR of spline/exp joints at q (catalogue.py)
+        ext.begin(mech, state)
     v_r = mech.to_reduced(state.v)
     kin = kinematics.compute(mech, data, state.q, v_r, extra)  # 1
     system = forces.assemble(mech, data, kin, state.q, v_r, tau, h, sf)  # 2
@@ -128,6 +131,9 @@ def step(mech, data, state: State, cmd: Commands, h: float) -> tuple:
                                                _held_dofs(mech, cmd.joint_velocities))
         if not math.isfinite(q_new.sum()):
             raise StepError("non-finite configuration after loop stabilization")
+    v_hyper = sol.v
+    if ext is not None:  # catalogue: spline/exp joint coordinates and carriers, linear joint constraints
+        q_new, v_hyper, v_new = ext.end(mech, data, q_new, sol.v, _held_dofs(mech, cmd.joint_velocities), h)
 
     effort = tau.copy()  # 6: *f_r = *G_r^T lam / h (Eq. 7), sign: A qdot = b - G^T lam
     for name, sl in cons.joint_rows.items():
@@ -147,7 +153,7 @@ def step(mech, data, state: State, cmd: Commands, h: float) -> tuple:
         raise StepError("non-finite energy after the step")
     diag = Diagnostics(ek, ep, es, ek + ep + es, viol_pos, viol_vel, sol.iterations, sol.solver,
                        time.perf_counter() - t0, sol, fric)
-    new = State(state.t + h, q_new, sol.v, fcache)
+    new = State(state.t + h, q_new, v_hyper, fcache)
     return new, StepResult(new.t, q_new, v_new, effort, site_forces, diag)
 
 
