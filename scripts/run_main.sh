@@ -11,4 +11,4 @@ source scripts/env.sh
 mkdir -p runs
 
 # ---- MAIN JOB: the one command this script runs (change it here) ----
-redmax_run hand --duration 2 --out runs/hand.csv "$@"
+redmax_node --ros-args --params-file config/hand.yaml "$@"   # the hand, free-run at 1x, MCAP logs in logs/; Ctrl-C to stop
