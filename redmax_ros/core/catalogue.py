@@ -128,6 +128,7 @@ class Extras:
         mech.q0 = q
         if self.maps is not None:
             self.maps.refresh(mech.T, q)
+            self.maps.fill_velocity(q)
 
     def _check_rank(self, mech, data, q):
         G = self.G_lin if mech.T is None else self.G_lin @ mech.T

@@ -145,10 +145,16 @@ class Maps:
         maps = cls(model, joint_infos, mapped)
         maps.T0 = maps.compose_T(T, model.nv)
         maps.refresh(maps.T0, q0)
-        for m in maps.items:
-            _, S, _ = m.kin(q0)
-            v0r[m.cv] = carrier_rows(m.spec.type, S) @ v0r[m.gv]
+        maps.v0r = v0r
+        maps.fill_velocity(q0)
         return maps
+
+    def fill_velocity(self, q):
+        """Carrier rows of the initial reduced velocity (compile_scene's v0r, in place) at configuration q
+        (again after the initial projection onto loops/constraints has moved q0)."""
+        for m in self.items:
+            _, S, _ = m.kin(q)
+            self.v0r[m.cv] = carrier_rows(m.spec.type, S) @ self.v0r[m.gv]
 
     def __init__(self, model, joint_infos, specs_by_name):
         self.items = []
