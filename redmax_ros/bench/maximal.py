@@ -194,8 +194,10 @@ class MaximalModel:
             lv[i - 1] = M.rotation @ (vi.linear + _cross(vi.angular, self.com[i - 1]))
         return MaxState(x, R, lv, w)
 
-    def to_reduced(self, s: MaxState) -> np.ndarray:
-        """Pinocchio configuration q of the bodies' poses (joint values from relative transforms)."""
+    def to_reduced(self, s: MaxState, q_prev=None) -> np.ndarray:
+        """Pinocchio configuration q of the bodies' poses (joint values from relative transforms).
+        Revolute and universal angles are unwrapped to the branch nearest ``q_prev`` (a crank that
+        turns keeps counting turns, as Pinocchio's unbounded revolute coordinate does)."""
         q = np.zeros(self.model.nq)
         for i in range(1, self.nb + 1):
             c, p = i - 1, self.parent[i - 1]
@@ -225,6 +227,12 @@ class MaximalModel:
             elif kind == "free":
                 q[iq:iq + 3] = trel
                 q[iq + 3:iq + 7] = pin.Quaternion(Rrel).coeffs()
+        if q_prev is not None:
+            for i in range(1, self.nb + 1):
+                if self.kinds[i - 1] in ("revolute", "universal"):
+                    jm = self.model.joints[i]
+                    sl = slice(jm.idx_q, jm.idx_q + jm.nq)
+                    q[sl] += 2 * np.pi * np.round((q_prev[sl] - q[sl]) / (2 * np.pi))
         return q
 
     # -- constraint terms ---------------------------------------------------------------------
