@@ -12,18 +12,20 @@ count is set by parameters, spanning the paper's Table 2.
     rejected by the loop rank check). Joint stiffness EI/l and damping model the deck's bending.
     The deck is cambered (pieces on a circular arc of rise ``camber``, its stress-free shape).
     Two towers stand at x = span/4 and 3 span/4; every deck piece within ``fan`` of a tower (and
-    not closer than 0.05 span) gets two cables (one per deck side, y = +-width/2) to the top of
-    that tower: maximal point-to-point springs with stiffness ``cable_k`` x (piece length) / 2 per
-    cable (N/m per metre of deck), rest length = initial length.
+    not closer than 0.05 span) gets two cables (one per deck side, y = +-width/2) to that tower, a
+    semi-fan: the longest cables reach the tower top, shorter ones anchor lower, over the top
+    ``anchor_spread`` fraction of the tower height (0 = pure fan, every cable at the top). Cables are
+    maximal point-to-point springs with stiffness ``cable_k`` x (piece length) / 2 per cable (N/m per
+    metre of deck), rest length = initial length.
 
     * ``variant: rigid``: towers are infinitely stiff, i.e. fixed bodies (merged into the world):
       every cable joins one deck body to the world, so the maximal stiffness matrix is block
       diagonal over bodies and the Projected Block Jacobi Preconditioner is the exact inverse of
       the LHS (the paper's single PCG iteration). DOF = n_deck, default 80 x ``scale``.
     * ``variant: flexy``: each tower is a chain of ``n_tower`` pieces on revolute joints about y
-      with joint stiffness EI_t/l (flexible towers), the cables hang from the top tower piece and
-      the deck is ``weight`` times heavier (exaggerated weight). DOF = n_deck + 2 n_tower, default
-      40 x scale + 2 x 10 x scale = 60 x scale.
+      with joint stiffness EI_t/l (flexible towers), the cables hang from the tower pieces at
+      their anchor heights and the deck is ``weight`` times heavier (exaggerated weight).
+      DOF = n_deck + 2 n_tower, default 40 x scale + 2 x 10 x scale = 60 x scale.
 
     ``scale`` 1, 2, 4, 8, 16 gives Table 2's DOF: rigid 80 ... 1280, flexy 60 ... 960.
 
@@ -42,11 +44,11 @@ from __future__ import annotations
 import math
 
 from .builders import _int, _take
-from .scene import register_builder
+from .scene import _numeric, register_builder
 
 
 def _num(p, key, positive=True):
-    v = p[key]
+    v = _numeric(p[key])  # YAML 1.1 reads 5e9 (no dot) as a string
     if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or (positive and v <= 0):
         raise ValueError(f"'{key}' must be a {'positive ' if positive else ''}number, got {v!r}")
     return float(v)
@@ -56,8 +58,8 @@ def _num(p, key, positive=True):
 def bridge(params: dict) -> dict:
     p = _take(params, dict(variant="rigid", scale=1, n_deck=None, n_tower=None, span=60.0, camber=1.0, width=4.0,
                            thickness=0.5, density=2500.0, weight=4.0, deck_EI=2.0e8, deck_damping=2.0e5,
-                           tower_height=28.0, tower_base=-10.0, tower_EI=2.0e10, tower_damping=2.0e6,
-                           cable_k=1.0e6, cable_d=1.0e4, fan=None))
+                           tower_height=28.0, tower_base=-10.0, tower_density=2500.0, tower_EI=2.0e10, tower_damping=2.0e6,
+                           cable_k=1.0e6, cable_d=1.0e4, fan=None, anchor_spread=0.3))
     variant = p["variant"]
     if variant not in ("rigid", "flexy"):
         raise ValueError(f"'variant' must be 'rigid' or 'flexy', got {variant!r}")
@@ -68,6 +70,7 @@ def bridge(params: dict) -> dict:
     L, W, T = _num(p, "span"), _num(p, "width"), _num(p, "thickness")
     rho = _num(p, "density") * (_num(p, "weight") if flexy else 1.0)
     H, zb = _num(p, "tower_height"), _num(p, "tower_base", positive=False)
+    tower_rho = _num(p, "tower_density")
     fan = _num(p, "fan") if p["fan"] is not None else 0.25 * L
     # Cambered deck: the pieces are the chords of a circular arc of rise `camber` between the two
     # supports (a straight pinned-pinned chain would be a singular configuration for the x row of
@@ -87,37 +90,48 @@ def bridge(params: dict) -> dict:
                        "body_placement": {"pos": [ld / 2, 0.0, 0.0]}, "q0": q0, "rest": q0,
                        "stiffness": _num(p, "deck_EI") / ld, "damping": _num(p, "deck_damping") / ld})
     towers = [0.25 * L, 0.75 * L]
-    top = []  # per tower: (body of the cable anchors, anchor position in that body's frame)
+    lt = H / max(n_tower, 1)
     for t, xt in enumerate(towers):
         if not flexy:
             bodies.append({"name": f"tower{t}", "shape": {"type": "box", "size": [1.5, W, H]}, "density": 2500.0})
             joints.append({"name": f"tower{t}_fix", "type": "fixed", "parent": "world", "child": f"tower{t}",
                            "placement": {"pos": [xt, 0.0, zb + H / 2]}})
-            top.append((f"tower{t}", H / 2))
             continue
-        lt = H / n_tower
         for k in range(n_tower):
             b = f"tower{t}_{k}"
-            bodies.append({"name": b, "shape": {"type": "box", "size": [1.5, W, lt]}, "density": 2500.0})
+            bodies.append({"name": b, "shape": {"type": "box", "size": [1.5, W, lt]}, "density": tower_rho})
             joints.append({"name": f"t{t}_{k}", "type": "revolute", "axis": "y",
                            "parent": "world" if k == 0 else f"tower{t}_{k - 1}", "child": b,
                            "placement": {"pos": [xt, 0.0, zb] if k == 0 else [0.0, 0.0, lt / 2]},
                            "body_placement": {"pos": [0.0, 0.0, lt / 2]},
                            "stiffness": _num(p, "tower_EI") / lt, "damping": _num(p, "tower_damping") / lt})
-        top.append((f"tower{t}_{n_tower - 1}", lt / 2))
-    for t, (body, z) in enumerate(top):
-        for side, y in (("l", W / 2), ("r", -W / 2)):
-            sites.append({"name": f"top{t}_{side}", "body": body, "pos": [0.0, y, z]})
+
+    def anchor(t, z):
+        """(body, position in its frame) of a cable anchor at height z on tower t."""
+        if not flexy:
+            return f"tower{t}", z - (zb + H / 2)
+        k = min(n_tower - 1, max(0, int((z - zb) / lt)))
+        return f"tower{t}_{k}", z - (zb + (k + 0.5) * lt)
+
     kc = _num(p, "cable_k") * ld / 2
     dc = _num(p, "cable_d", positive=False) * ld / 2
+    spread = _num(p, "anchor_spread", positive=False)
+    if not 0.0 <= spread < 1.0:
+        raise ValueError(f"'anchor_spread' must be in [0, 1), got {spread}")
+    near = 0.05 * L
     for k in range(n_deck):
         xc = (k + 0.5) * L / n_deck
         t = min(range(len(towers)), key=lambda i: abs(xc - towers[i]))
-        if not 0.05 * L <= abs(xc - towers[t]) <= fan:
+        dist = abs(xc - towers[t])
+        if not near <= dist <= fan:
             continue
+        # semi-fan: the longest cables reach the tower top, shorter ones anchor lower
+        z = zb + H * (1.0 - spread * (fan - dist) / max(fan - near, 1e-12))
+        body, zl = anchor(t, min(z, zb + H - 1e-9))
         for side, y in (("l", W / 2), ("r", -W / 2)):
             sites.append({"name": f"deck{k}_{side}", "body": f"deck{k}", "pos": [0.0, y, 0.0]})
-            springs.append({"name": f"cable{k}_{side}", "a": f"deck{k}_{side}", "b": f"top{t}_{side}",
+            sites.append({"name": f"anchor{k}_{side}", "body": body, "pos": [0.0, y, zl]})
+            springs.append({"name": f"cable{k}_{side}", "a": f"deck{k}_{side}", "b": f"anchor{k}_{side}",
                             "stiffness": kc, "damping": dc})
     sites.append({"name": "deck_end", "body": f"deck{n_deck - 1}", "pos": [ld / 2, 0.0, 0.0]})
     sites.append({"name": "abutment", "body": "world", "pos": [L, 0.0, 0.0]})
