@@ -588,21 +588,24 @@ class DataFreeBackend:
         return step_matrix_free(self.mech, self.ctx, state, cmd, h, self.solver, self.rtol, self.max_iter)
 
 
-# The auto rule (docs/solvers.md). Per-step cost models, seconds, fitted on this project's
-# benchmark machine (redmax_bench scaling); only their ratio matters for the choice.
-AUTO_DIRECT_NV = 48  # at or below: direct without probing (PCG's per-iteration Python overhead dominates)
+# The auto rule (docs/solvers.md). Per-step cost models [s], fitted to redmax_bench scaling on the
+# project's 2-core benchmark machine (CPU time, single-threaded BLAS); only their ratio matters.
+AUTO_DIRECT_NV = 48  # at or below: direct without probing (PCG's fixed per-step Python cost dominates)
 AUTO_PROBE_STEPS = 5
-PCG_S_PER_JOINT_ITER = 1.2e-7  # one A product + one P^-1 application, per joint and iteration
-PCG_S_PER_ITER = 3.0e-5  # fixed per-iteration overhead (numpy/Python)
-PCG_S_PER_JOINT_STEP = 1.5e-6  # kinematics, RHS, factorisation, stabilization, energies per joint
-DENSE_S_PER_N3 = 2.5e-11  # dense Cholesky + KKT of the direct solver, per nv^3
-DENSE_S_PER_N2 = 4.0e-8  # dense assembly per nv^2 (chains; less on bushy trees)
+PCG_S_PER_STEP = 1.0e-3  # fixed: numpy/Python work of a step (rows, small solves, stabilization)
+PCG_S_PER_JOINT_STEP = 1.5e-6  # kinematics, RHS, factorisation, stabilization, energies, per DOF
+PCG_S_PER_JOINT_ITER = 1.2e-7  # one LHS product + one P^-1 application, per DOF and iteration
+PCG_S_PER_ITER = 3.0e-5  # fixed per-iteration overhead
+DENSE_S_PER_STEP = 6.0e-4
+DENSE_S_PER_N3 = 2.5e-11  # dense Cholesky (Eigen LLT) + KKT, per nv^3
+DENSE_S_PER_N2 = 4.0e-8  # dense assembly per nv^2 (deep chains; less on bushy trees)
 
 
 def predicted_costs(nv: int, iters_per_step: float) -> tuple:
-    """(PCG, direct) predicted seconds per step for nv DOFs and the measured PCG iterations per step."""
-    pcg_t = iters_per_step * (PCG_S_PER_JOINT_ITER * nv + PCG_S_PER_ITER) + PCG_S_PER_JOINT_STEP * nv
-    direct_t = DENSE_S_PER_N3 * nv ** 3 + DENSE_S_PER_N2 * nv ** 2 + PCG_S_PER_JOINT_STEP * nv
+    """(PCG, direct) predicted seconds per step for nv DOFs and the measured PCG iterations per step
+    (summed over the l + 1 solves of Eq. 4)."""
+    pcg_t = PCG_S_PER_STEP + PCG_S_PER_JOINT_STEP * nv + iters_per_step * (PCG_S_PER_JOINT_ITER * nv + PCG_S_PER_ITER)
+    direct_t = DENSE_S_PER_STEP + PCG_S_PER_JOINT_STEP * nv + DENSE_S_PER_N3 * nv ** 3 + DENSE_S_PER_N2 * nv ** 2
     return pcg_t, direct_t
 
 
