@@ -18,7 +18,9 @@ from redmax_ros.core.stepper import step as direct_step
 
 SMALL = [s for s in list_scenes() if sum(j.nv for j in load_scene(s).joints) <= PIN_DATA_MAX_NV]
 EXTRA = [("bridge", ["params.variant=flexy"]), ("chain", ["params.n=8", "params.springs=4"]),
-         ("bridge", ["params.n_deck=12"])]
+         ("bridge", ["params.n_deck=12"]),
+         ("chain", ["params.n=6", "params.springs=2", "bodies.link2.damping=3.0", "bodies.link4.damping=1.0",
+                    "wrenches=[{name: w, body: link3, force: [1.0, 0.5, -2.0], torque: [0.1, 0.2, 0.3]}]"])]
 
 
 def _rel(a, b):
@@ -203,3 +205,12 @@ def test_scaling_scene_dofs():
     assert [nv("umbrella", [f"params.ribs={r}"]) for r in (10, 16, 22, 32, 46)] == [241, 385, 529, 769, 1105]
     with pytest.raises(SceneError, match="variant"):
         load_scene("bridge", ["params.variant=wobbly"])
+
+
+def test_runner_solver_option(tmp_path):
+    from redmax_ros.runner import main
+    out = tmp_path / "b.csv"
+    assert main(["bridge", "--solver", "pcg", "--set", "params.n_deck=110", "--duration", "0.03", "--quiet",
+                 "--out", str(out)]) == 0
+    rows = np.loadtxt(out, delimiter=",", skiprows=1)
+    assert rows.shape[0] == 4 and np.all(np.isfinite(rows))
