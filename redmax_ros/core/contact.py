@@ -71,6 +71,7 @@ class FrictionModel:
     loop_sites: np.ndarray  # (Lf,2) site indices (a, b)
     fext: object = None  # pin.StdVec_Force workspace
     sub: np.ndarray | None = None  # (J, njoints) subtree membership of the frictional tree joints
+    bound_mu: np.ndarray | None = None  # (J+Lf,) when every row is a whole joint (no spherical): bound = mu |alpha|_1
 
     @property
     def has_joint_friction(self) -> bool:
@@ -229,7 +230,9 @@ def compile_friction(mech, fspec) -> FrictionModel | None:
         rows_fixed=np.array(rows).reshape(-1, mech.ndof), bound_B=B,
         loop_index=np.array(lidx, dtype=int), loop_axis=np.array(laxis).reshape(-1, 3), loop_radius=np.array(lrad),
         loop_rowslices=lslices, loop_sites=np.array(lsites, dtype=int).reshape(-1, 2), fext=fext,
-        sub=_subtrees(model, jids))
+        sub=_subtrees(model, jids),
+        bound_mu=(np.array([mu_ for _, _, mu_ in groups]) if all(j == r and len(grp) == len(Ls[j])
+                  for r, (j, grp, _) in enumerate(groups)) else None))
 
 
 def _subtrees(model, jids):

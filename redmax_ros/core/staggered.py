@@ -27,6 +27,7 @@ reached; that case is reported (FrictionReport.converged = False), never silent.
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import eigenpy
@@ -181,14 +182,16 @@ def solve(mech, data, kin, system: LinearSystem, cons, q, v_prev_r, h, cache, si
                 alpha = np.zeros(nu)
             else:
                 alpha = _box_qp(W_U, c, np.zeros(nu), np.full(nu, _INF), alpha, 0.1 * st.tol, st.qp)
-        v = v0 + PU @ alpha - PT @ beta
         # BISP (Eq. 15-17): joint alphas -> bounds of the joint friction rows
         if nc:
             a = alpha[:nc]
             bound[:ng] = np.repeat(cs.mu * a, 2)
         if joint_fric:
             al = a0 + Mx @ np.concatenate([alpha, beta])
-            bound[ng:] = fm.bound_B @ np.abs(al)
+            if fm.bound_mu is not None:  # 1-DOF joints and pins: mu_j sum_k |alpha_jk|
+                bound[ng:] = fm.bound_mu * np.abs(al).reshape(-1, kmax).sum(1)
+            else:
+                bound[ng:] = fm.bound_B @ np.abs(al)
         # CONVERGENCE CHECK (Alg. 2 line 12)
         du = np.abs(alpha - (prev_u if prev_u is not None else 0.0)) * wU  # f_alpha^0 = 0 at first
         db = np.abs(bound - (prev_b if prev_b is not None else 0.0)) * wT
@@ -207,6 +210,7 @@ def solve(mech, data, kin, system: LinearSystem, cons, q, v_prev_r, h, cache, si
             if st.anderson:
                 beta = acc.update(b_in, beta, bound)
 
+    v = v0 + PU @ alpha - PT @ beta  # velocity of the last contact stage (Alg. 2 line 20)
     r = b + U.T @ alpha - Tr.T @ beta
     lam = Sinv @ (Y.T @ r - cons.g) if m else np.zeros(0)
     sol = Solution(v, lam, np.zeros(0), it, "staggered", LinearSystem(A, r), _no_unilateral(cons))
@@ -233,31 +237,37 @@ class _Anderson:
 
     def __init__(self, m):
         self.m = m
-        self.X, self.F = [], []  # G(beta_k), residuals G(beta_k) - beta_k
+        self.dX, self.dF = [], []  # differences of successive G(beta_k) and residuals
+        self.g = self.f = None
+
+    def reset(self):
+        self.dX, self.dF = [], []
+        self.g = self.f = None
 
     def update(self, b_in, g, bound):
         f = g - b_in
-        self.X.append(g.copy())
-        self.F.append(f)
-        if len(self.F) > self.m + 1:
-            self.X.pop(0)
-            self.F.pop(0)
-        if len(self.F) < 2:
+        if self.f is not None:
+            self.dX.append(g - self.g)
+            self.dF.append(f - self.f)
+            if len(self.dF) > self.m:
+                del self.dX[0], self.dF[0]
+        self.g, self.f = g, f
+        k = len(self.dF)
+        if k == 0:
             return g
-        dF = np.diff(np.array(self.F), axis=0).T  # (n, k)
-        dX = np.diff(np.array(self.X), axis=0).T
-        H = dF.T @ dF
-        H[np.diag_indices_from(H)] += 1e-12 * max(float(np.trace(H)), 1e-300)
+        dF = np.array(self.dF)  # (k, n)
+        H = dF @ dF.T
+        H.flat[::k + 1] += 1e-12 * max(float(H.trace()), 1e-300)
         try:
-            gam = np.linalg.solve(H, dF.T @ f)
+            gam = np.linalg.solve(H, dF @ f)
         except np.linalg.LinAlgError:
-            self.X, self.F = [], []
+            self.reset()
             return g
-        out = g - dX @ gam
-        if not np.all(np.isfinite(out)):
-            self.X, self.F = [], []
+        out = g - gam @ np.array(self.dX)
+        if not math.isfinite(out.sum()):
+            self.reset()
             return g
-        return np.clip(out, -bound, bound)
+        return np.minimum(np.maximum(out, -bound), bound)
 
 
 def _no_unilateral(cons):
