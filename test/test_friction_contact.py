@@ -163,3 +163,36 @@ def test_joint_friction_on_an_unsupported_joint_type_is_named():
                        "friction": {"mu": 0.2, "radius": 0.01}}]}
     with pytest.raises(SceneError, match="joint friction is supported on"):
         scene_from_dict(raw)
+
+
+def _moves(joint, torque, steps=100):
+    """A 2 kg ball (COM at the joint) on a frictional joint, weight as the normal load, constant
+    applied joint torque/force; True when it moves."""
+    raw = {"bodies": [{"name": "b", "mass": 2.0, "shape": {"type": "sphere", "radius": 0.05}}],
+           "joints": [{"name": "j", "parent": "world", "child": "b", "torque": torque, **joint}]}
+    sim = Simulator(scene_from_dict(raw))
+    for _ in range(steps):
+        r = sim.step()
+    assert r.diagnostics.friction.converged
+    return np.abs(sim.state.v).max() > 1e-6
+
+
+def test_prismatic_static_friction_threshold():
+    """Prismatic along x with radial + circumferential normals on 8 points per end circle: under a load F
+    normal to the axis, sum|alpha| = (F/8) sum_i (|cos th_i| + |sin th_i|), threshold mu sum|alpha|."""
+    mu, F = 0.25, 2.0 * G
+    th = np.arange(8) * 2 * np.pi / 8
+    f_s = mu * F / 8 * (np.abs(np.cos(th)) + np.abs(np.sin(th))).sum()
+    joint = {"type": "prismatic", "axis": "x", "friction": {"mu": mu, "radius": 0.01, "length": 0.02}}
+    assert not _moves(joint, 0.98 * f_s)
+    assert _moves(joint, 1.02 * f_s)
+
+
+def test_spherical_static_friction_threshold():
+    """Spherical joint (6 points on a ball of radius r): the weight F loads the +-z points with |alpha| = F/2
+    each; a torque about x is resisted by one tangent row at each of them: threshold mu r F."""
+    mu, r, F = 0.3, 0.01, 2.0 * G
+    tau_s = mu * r * F
+    joint = {"type": "spherical", "friction": {"mu": mu, "radius": r}}
+    assert not _moves(joint, [0.98 * tau_s, 0.0, 0.0])
+    assert _moves(joint, [1.02 * tau_s, 0.0, 0.0])
