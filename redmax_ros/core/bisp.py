@@ -38,7 +38,7 @@ class ExternalForces:
         R, p = self.R[jid], self.p[jid]
         mom = np.zeros_like(F) if Mw is None else Mw.copy()
         if x is not None:
-            mom += np.cross(x - p, F)  # moment about the joint origin
+            mom += _cross(x - p, F)  # moment about the joint origin
         return np.concatenate([np.einsum("cji,cj->ci", R, F), np.einsum("cji,cj->ci", R, mom)], axis=1)
 
     def add(self, out, jid, F, x=None, Mw=None):
@@ -94,13 +94,59 @@ def subtree_matrix(mech, jids):
     return Sub
 
 
+def _cross(a, b, axis=-1):
+    """a x b along ``axis`` (np.cross without its per-call overhead; broadcasting)."""
+    a0, a1, a2 = np.take(a, 0, axis), np.take(a, 1, axis), np.take(a, 2, axis)
+    b0, b1, b2 = np.take(b, 0, axis), np.take(b, 1, axis), np.take(b, 2, axis)
+    return np.stack([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0], axis=axis)
+
+
 def _wrench_cols(x, F):
     """World wrenches (force, moment about the origin) of forces F (...,3) at points x (...,3)."""
-    return np.concatenate([F, np.cross(x, F)], axis=-1)
+    return np.concatenate([F, _cross(x, F)], axis=-1)
+
+
+def _skew_batch(v):
+    z = np.zeros(len(v))
+    return np.stack([np.stack([z, -v[:, 2], v[:, 1]], 1), np.stack([v[:, 2], z, -v[:, 0]], 1),
+                     np.stack([-v[:, 1], v[:, 0], z], 1)], 1)
+
+
+def _world_inertias(mech, R, p):
+    """(nj-1,6,6) spatial inertias of the joint bodies about the world origin, world axes (Pinocchio
+    order: linear, angular), from the joint placements R (nj,3,3), p (nj,3)."""
+    cache = getattr(mech, "_inertia_cache", None)
+    if cache is None:
+        model = mech.model
+        ins = [model.inertias[i] for i in range(1, model.njoints)]
+        cache = (np.array([y.mass for y in ins]), np.array([y.lever for y in ins]),
+                 np.array([y.inertia for y in ins]))
+        mech._inertia_cache = cache
+    m, c, Ic = cache
+    R, p = R[1:], p[1:]
+    cw = p + np.einsum("bij,bj->bi", R, c)
+    Icw = np.matmul(np.matmul(R, Ic), R.transpose(0, 2, 1))
+    C = _skew_batch(cw)
+    out = np.zeros((len(m), 6, 6))
+    out[:, :3, :3] = m[:, None, None] * np.eye(3)
+    out[:, :3, 3:] = -m[:, None, None] * C
+    out[:, 3:, :3] = m[:, None, None] * C
+    out[:, 3:, 3:] = Icw - m[:, None, None] * np.matmul(C, C)
+    return out
+
+
+def _dual_inverse(R, p):
+    """(k,6,6) maps of world wrenches (about the origin) to local joint-frame wrenches."""
+    Rt = R.transpose(0, 2, 1)
+    D = np.zeros((len(R), 6, 6))
+    D[:, :3, :3] = Rt
+    D[:, 3:, 3:] = Rt
+    D[:, 3:, :3] = -np.matmul(Rt, _skew_batch(p))
+    return D
 
 
 def linear_alphas(mech, fm, data, kin, q, v_prev_r, h, v0, PX, lam0, LamX, fx_static_local, cs, nu, nf,
-                  cons, site_forces=None):
+                  cons, site_forces=None, ext=None):
     """The joint multipliers as an affine function of the staggered unknowns x = [alpha_U; beta]:
     alpha_joints = a0 + M x  (shapes ((J+Lf)*kmax,), ((J+Lf)*kmax, nu+nf)).
 
@@ -116,7 +162,7 @@ def linear_alphas(mech, fm, data, kin, q, v_prev_r, h, v0, PX, lam0, LamX, fx_st
     T = mech.T
     to_r = (lambda X: X) if T is None else (lambda X: T @ X)
     nj = model.njoints
-    ext = ExternalForces(mech, data)
+    ext = ExternalForces(mech, data) if ext is None else ext
     # constant part: a0 = (qdot_0 - qdot_prev)/h, external forces at x = 0 (static + lambda_0 terms)
     fx0 = fx_static_local.copy()
     loopF0, loopdF, E = _lambda_forces(mech, fm, kin, ext, fx0, lam0, LamX, cons, h, nx)
@@ -145,13 +191,13 @@ def linear_alphas(mech, fm, data, kin, q, v_prev_r, h, v0, PX, lam0, LamX, fx_st
         np.add.at(E, (mech.site_jid[ab[:, 0]], slice(None), cols), -Mw)
     A_x = to_r(PX) / h  # (nv, nx) acceleration per unit x
     Jw = data.J.reshape(6, nv)
-    Iw = np.array([data.oMi[i].act(model.inertias[i]).matrix() for i in range(1, nj)])  # (nj-1,6,6)
+    Iw = _world_inertias(mech, ext.R, ext.p)  # (nj-1,6,6)
     IJ = np.matmul(Iw, Jw[None] * mech_support(mech)[1:, None, :])  # (nj-1,6,nv)
     Sub = fm.sub[:, 1:]
     Kw = np.tensordot(Sub, IJ, axes=(1, 0))  # (J,6,nv)
     Ew = np.tensordot(Sub, E[1:], axes=(1, 0))  # (J,6,nx)
     Wx_w = np.matmul(Kw, A_x) - Ew  # (J,6,nx) world
-    D = np.array([data.oMi[int(j)].inverse().toDualActionMatrix() for j in fm.fj_jid])
+    D = _dual_inverse(ext.R[fm.fj_jid], ext.p[fm.fj_jid])
     Wx = np.zeros((len(fm.fj_names), 6, nx))
     Wx[:ntree] = np.matmul(D, Wx_w)
     Wx[ntree:, :3] = loopdF
@@ -192,8 +238,8 @@ def _lambda_forces(mech, fm, kin, ext, fx0, lam0, LamX, cons, h, nx):
             r += k
         ext.add(fx0, mech.site_jid[ab[:, 0]], -F0, xa)
         ext.add(fx0, mech.site_jid[ab[:, 1]], F0, xb)
-        wa = np.concatenate([dF, np.cross(xa[:, :, None], dF, axis=1)], axis=1)  # (L,6,nx)
-        wb = np.concatenate([dF, np.cross(xb[:, :, None], dF, axis=1)], axis=1)
+        wa = np.concatenate([dF, _cross(xa[:, :, None], dF, axis=1)], axis=1)  # (L,6,nx)
+        wb = np.concatenate([dF, _cross(xb[:, :, None], dF, axis=1)], axis=1)
         np.add.at(E, mech.site_jid[ab[:, 0]], -wa)
         np.add.at(E, mech.site_jid[ab[:, 1]], wb)
         if nl:
@@ -204,5 +250,5 @@ def _lambda_forces(mech, fm, kin, ext, fx0, lam0, LamX, cons, h, nx):
         x = kin.X[kin.row[s]]
         ext.add(fx0, [mech.site_jid[s]], (-lam0[sl] / h)[None], x[None])
         dF = -LamX[sl] / h  # (3,nx)
-        E[mech.site_jid[s]] += np.concatenate([dF, np.cross(x[:, None], dF, axis=0)], axis=0)
+        E[mech.site_jid[s]] += np.concatenate([dF, _cross(x[:, None], dF, axis=0)], axis=0)
     return loopF0, loopdF, E

@@ -166,7 +166,7 @@ def solve(mech, data, kin, system: LinearSystem, cons, q, v_prev_r, h, cache, si
         else:
             lam0, LamX = np.zeros(0), np.zeros((0, nu + nf))
         a0, Mx = bisp.linear_alphas(mech, fm, data, kin, q, v_prev_r, h, v0, PX, lam0, LamX, fx_static, cs,
-                                    nu, nf, cons, site_forces)
+                                    nu, nf, cons, site_forces, ext)
         kmax = fm.L.shape[1]
     alpha = np.zeros(nu)
     acc = _Anderson(st.anderson)
