@@ -196,3 +196,52 @@ def test_spherical_static_friction_threshold():
     joint = {"type": "spherical", "friction": {"mu": mu, "radius": r}}
     assert not _moves(joint, [0.98 * tau_s, 0.0, 0.0])
     assert _moves(joint, [1.02 * tau_s, 0.0, 0.0])
+
+
+def test_bisp_affine_map_matches_newton_euler_pass():
+    """bisp.linear_alphas (the joint multipliers as an affine map of the staggered unknowns) equals the
+    direct evaluation of Eq. (15)/(17) by one RNEA pass with all external forces (bisp.joint_alphas) at
+    an arbitrary iterate x = [alpha; beta] of the walker in stance."""
+    from redmax_ros.core import bisp, constraints, forces, kinematics, staggered
+    from redmax_ros.core.contact import detect, loop_friction_rows
+
+    sim = Simulator.load("klann", overrides=["friction.joint_mu=0.4", "dt=0.002"])
+    sim.step(150)
+    m, data, st, h = sim.mech, sim.data, sim.state, sim.dt
+    fm = m.friction
+    v_r = m.to_reduced(st.v)
+    kin = kinematics.compute(m, data, st.q, v_r, [])
+    system = forces.assemble(m, data, kin, st.q, v_r, m.torque0.copy(), h)
+    cons = constraints.build(m, kin, st.q, sim.commands.joint_velocities, {}, h)
+    A, b = system.A, system.b
+    Ainv = np.linalg.inv(A)
+    Y = Ainv @ cons.G.T
+    Sinv = np.linalg.inv(cons.G @ Y)
+    P = Ainv - Y @ Sinv @ Y.T
+    v0 = P @ b + Y @ (Sinv @ cons.g)
+    cs = detect(m, fm, data, h)
+    assert cs is not None and len(cs.keys) >= 2
+    U = cs.N
+    Tr = np.vstack([cs.T, fm.rows_fixed, loop_friction_rows(m, fm, data)])
+    nu, nf, nc = len(U), len(Tr), len(cs.keys)
+    RX = np.vstack([U, -Tr])
+    lam0, LamX = Sinv @ (Y.T @ b - cons.g), Sinv @ (Y.T @ RX.T)
+    ext = bisp.ExternalForces(m, data)
+    fx_static = bisp.static_external(m, kin, ext, data).copy()
+    a0, Mx = bisp.linear_alphas(m, fm, data, kin, st.q, v_r, h, v0, P @ RX.T, lam0, LamX, fx_static, cs, nu, nf,
+                                cons, None, ext)
+    rng = np.random.default_rng(1)
+    alpha, beta = rng.uniform(0, 0.05, nu), rng.uniform(-0.01, 0.01, nf)
+    x = np.concatenate([alpha, beta])
+    # direct: constrained velocity, lambda, all external forces, one RNEA (bisp.joint_alphas)
+    v = v0 + P @ RX.T @ x
+    lam = lam0 + LamX @ x
+    fx = fx_static.copy()
+    F = (alpha[:, None] * cs.n - np.einsum("ck,cki->ci", beta[:2 * nc].reshape(nc, 2), cs.t)) / h
+    ext.add(fx, cs.jid, F, cs.X)
+    loop_force = np.zeros((len(fm.loop_index), 3))
+    staggered._loop_external(m, fm, kin, ext, fx, lam[cons.loop_rows], beta[2 * nc + len(fm.rows_fixed):], h,
+                             loop_force)
+    direct = bisp.joint_alphas(m, fm, data, st.q, v_r, m.to_reduced(v), h, fx, loop_force).reshape(-1)
+    affine = a0 + Mx @ x
+    assert np.abs(affine - direct).max() < 1e-9 * max(1.0, np.abs(direct).max())
