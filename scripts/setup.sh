@@ -54,7 +54,7 @@ pick_python() {
   for cand in "${REDMAX_PYTHON:-}" python3.11 python3; do
     [ -n "$cand" ] || continue
     command -v "$cand" >/dev/null 2>&1 || continue
-    if "$cand" -c 'import sys, venv; sys.exit(sys.version_info[:2] != (3, 11))' 2>/dev/null; then
+    if "$cand" -c 'import sys, venv, ensurepip; sys.exit(sys.version_info[:2] != (3, 11))' 2>/dev/null; then
       "$cand" -c 'import sys; print(sys.executable)'; return 0
     fi
   done
