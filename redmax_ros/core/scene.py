@@ -32,7 +32,26 @@ JOINT_TYPES.update(catalogue_schema.TYPES)  # notes §2.5 catalogue (joints.py, 
 SHAPES = {"box": ("size",), "sphere": ("radius",), "cylinder": ("radius", "length"), "capsule": ("radius", "length")}
 AXES = {"x": (1.0, 0.0, 0.0), "y": (0.0, 1.0, 0.0), "z": (0.0, 0.0, 1.0)}
 WORLD = "world"
-SCENES_DIR = Path(__file__).resolve().parents[2] / "scenes"
+def _scenes_dir() -> Path:
+    """Where shipped scenes live: $REDMAX_SCENES_DIR, the source tree (scenes/ beside the package),
+    or an install prefix's share/redmax_ros/scenes (colcon/pip install: <prefix>/lib/python3.X/
+    site-packages/redmax_ros/core/scene.py)."""
+    import os
+    env = os.environ.get("REDMAX_SCENES_DIR")
+    if env:
+        return Path(env)
+    here = Path(__file__).resolve()
+    source = here.parents[2] / "scenes"
+    if source.is_dir():
+        return source
+    for parent in here.parents:
+        cand = parent / "share" / "redmax_ros" / "scenes"
+        if cand.is_dir():
+            return cand
+    return source
+
+
+SCENES_DIR = _scenes_dir()
 
 
 @dataclass
