@@ -279,7 +279,8 @@ def _no_unilateral(cons):
 
 def _loop_external(mech, fm, kin, ext, fx, lam_loops, beta_loops, h, loop_force):
     """Loop-closure forces -J^T G^T lambda / h (both sites) and loop-pin friction moments as external
-    forces of the tree (§5.3); fills loop_force (force on site b of each frictional loop)."""
+    forces of the tree (§5.3); fills loop_force (force on site b of each frictional loop). Used with
+    bisp.joint_alphas as the direct (one RNEA per iterate) reference of bisp.linear_alphas (tests)."""
     r = 0
     ab = mech.loop_ab
     rows_ab = mech.loop_rows_ab
@@ -297,9 +298,3 @@ def _loop_external(mech, fm, kin, ext, fx, lam_loops, beta_loops, h, loop_force)
         Mw = (fm.loop_radius * beta_loops / h)[:, None] * fm.loop_axis
         ext.add(fx, mech.site_jid[ab[li, 0]], np.zeros_like(Mw), None, -Mw)
         ext.add(fx, mech.site_jid[ab[li, 1]], np.zeros_like(Mw), None, Mw)
-
-
-def _site_external(mech, kin, ext, fx, cons, lam, h):
-    for name, sl in cons.site_rows.items():
-        s = mech.site_index[name]
-        ext.add(fx, [mech.site_jid[s]], (-lam[sl] / h)[None], kin.X[kin.row[s]][None])
