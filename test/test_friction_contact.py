@@ -245,3 +245,44 @@ def test_bisp_affine_map_matches_newton_euler_pass():
     direct = bisp.joint_alphas(m, fm, data, st.q, v_r, m.to_reduced(v), h, fx, loop_force).reshape(-1)
     affine = a0 + Mx @ x
     assert np.abs(affine - direct).max() < 1e-9 * max(1.0, np.abs(direct).max())
+
+
+def _drop(contact, z0, v0):
+    raw = {"bodies": [{"name": "b", "mass": 1.0, "shape": {"type": "sphere", "radius": 0.05}}],
+           "joints": [{"name": "j", "type": "free", "parent": "world", "child": "b",
+                       "q0": [0, 0, z0, 0, 0, 0], "v0": [v0, 0, 0, 0, 0, 0]}],
+           "ground": [{"name": "floor", "mu": 0.5}],
+           "contacts": [{"name": "c", "body": "b", **contact}]}
+    sim = Simulator(scene_from_dict(raw))
+    zs = []
+    for _ in range(400):
+        r = sim.step()
+        zs.append(sim.state.q[2])
+        assert r.diagnostics.friction.converged
+    return sim, np.array(zs)
+
+
+def test_sphere_lands_without_bouncing_and_rolls_at_five_sevenths():
+    """A solid sphere dropped 5 mm onto the floor with a horizontal speed v0 lands without bouncing
+    (restitution 0), stays on the floor, and friction brings it to rolling at v = 5/7 v0."""
+    sim, zs = _drop({"type": "sphere", "radius": 0.05}, 0.055, 0.3)
+    assert zs.min() > 0.05 - 1e-5 and abs(zs[-1] - 0.05) < 1e-5
+    data = sim.mech.model.createData()
+    import pinocchio as pin
+    pin.forwardKinematics(sim.mech.model, data, sim.state.q, sim.mech.to_reduced(sim.state.v))
+    vw = data.oMi[1].rotation @ data.v[1].linear
+    assert abs(vw[0] - 0.3 * 5 / 7) < 1e-3
+
+
+@pytest.mark.parametrize("contact,rest_z,v0", [
+    ({"type": "capsule", "radius": 0.02, "length": 0.2, "rpy": [0, math.pi / 2, 0]}, 0.02, 0.3),
+    ({"type": "box", "size": [0.1, 0.1, 0.06]}, 0.03, 0.3),
+    ({"type": "point", "pos": [0, 0, -0.03]}, 0.03, 0.0),
+])
+def test_primitives_drop_and_rest_on_the_floor(contact, rest_z, v0):
+    """Dropped from 5 mm, lands without bouncing, never sinks more than 1 mm, rests at the primitive's
+    height; a sliding capsule or box is stopped by Coulomb friction."""
+    sim, zs = _drop(contact, rest_z + 0.005, v0)
+    assert zs.min() > rest_z - 1e-3
+    assert abs(zs[-1] - rest_z) < 1e-4
+    assert np.abs(sim.state.v).max() < 1e-6
