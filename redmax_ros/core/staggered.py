@@ -82,6 +82,141 @@ def _pgs(W, c, lo, hi, x, tol, max_sweeps):
     return max_sweeps
 
 
+@numba.njit(cache=True)
+def _small_solve(H, r):
+    """Gaussian elimination with partial pivoting (k <= Anderson depth); returns (x, ok)."""
+    k = len(r)
+    A = H.copy()
+    x = r.copy()
+    for i in range(k):
+        p = i
+        for j in range(i + 1, k):
+            if abs(A[j, i]) > abs(A[p, i]):
+                p = j
+        if abs(A[p, i]) < 1e-300:
+            return x, False
+        if p != i:
+            for c in range(k):
+                A[i, c], A[p, c] = A[p, c], A[i, c]
+            x[i], x[p] = x[p], x[i]
+        for j in range(i + 1, k):
+            f = A[j, i] / A[i, i]
+            for c in range(i, k):
+                A[j, c] -= f * A[i, c]
+            x[j] -= f * x[i]
+    for i in range(k - 1, -1, -1):
+        sacc = x[i]
+        for c in range(i + 1, k):
+            sacc -= A[i, c] * x[c]
+        x[i] = sacc / A[i, i]
+    return x, True
+
+
+@numba.njit(cache=True)
+def _loop_kernel(W_U, X_UT, X_TU, U_v0, lo_U, W_T, T_v0, mu_g, a0, Mx, bound_mu, kmax, joint, wU, wT, tol,
+                 max_iter, depth, alpha, beta):
+    """The staggered loop of solve() (same steps, same tests, PGS inner solves, Anderson) compiled:
+    used when the friction bounds are whole-joint sums (no spherical joints) and qp = pgs.
+    Returns (alpha, beta, bound, al, iterations, converged, residual)."""
+    nu, nf, nc = len(U_v0), len(T_v0), len(mu_g)
+    ng = 2 * nc
+    nx = nu + nf
+    bound = np.zeros(nf)
+    prev_u = np.zeros(nu)
+    prev_b = np.zeros(nf)
+    zeros_u = np.zeros(nu)
+    inf_u = np.full(nu, 1e20)
+    al = np.zeros(len(a0))
+    x = np.zeros(nx)
+    dX = np.zeros((depth, nf))
+    dF = np.zeros((depth, nf))
+    gprev = np.zeros(nf)
+    fprev = np.zeros(nf)
+    have_prev = False
+    k_hist = 0
+    it = 0
+    converged = False
+    resid = np.inf
+    while True:
+        it += 1
+        if nu:
+            c = U_v0 - X_UT @ beta - lo_U
+            if np.all(c >= 0.0):
+                alpha[:] = 0.0
+            else:
+                for i in range(nu):
+                    alpha[i] = max(alpha[i], 0.0)
+                _pgs(W_U, c, zeros_u, inf_u, alpha, 0.1 * tol, 500)
+        for i in range(nc):
+            bound[2 * i] = mu_g[i] * alpha[i]
+            bound[2 * i + 1] = mu_g[i] * alpha[i]
+        if joint:
+            x[:nu] = alpha
+            x[nu:] = beta
+            al[:] = a0 + Mx @ x
+            nj = len(bound_mu)
+            for j in range(nj):
+                sacc = 0.0
+                for kk in range(kmax):
+                    sacc += abs(al[j * kmax + kk])
+                bound[ng + j] = bound_mu[j] * sacc
+        resid = 0.0
+        for i in range(nu):
+            resid = max(resid, abs(alpha[i] - prev_u[i]) * wU[i])
+        for i in range(nf):
+            resid = max(resid, abs(bound[i] - prev_b[i]) * wT[i])
+        feasible = True
+        for i in range(nf):
+            if abs(beta[i]) > bound[i] * (1 + 1e-9) + 1e-14:
+                feasible = False
+                break
+        if resid <= tol and feasible:
+            converged = True
+            break
+        if it >= max_iter:
+            break
+        prev_u[:] = alpha
+        prev_b[:] = bound
+        if nf:
+            cf = T_v0 + X_TU @ alpha if nu else T_v0.copy()
+            b_in = beta.copy()
+            for i in range(nf):
+                beta[i] = min(max(beta[i], -bound[i]), bound[i])
+            _pgs(W_T, -cf, -bound, bound, beta, 0.1 * tol, 500)
+            if depth > 0:  # Anderson (see _Anderson)
+                g = beta.copy()
+                f = g - b_in
+                if have_prev:
+                    if k_hist == depth:
+                        for r in range(depth - 1):
+                            dX[r] = dX[r + 1]
+                            dF[r] = dF[r + 1]
+                        k_hist -= 1
+                    dX[k_hist] = g - gprev
+                    dF[k_hist] = f - fprev
+                    k_hist += 1
+                gprev[:] = g
+                fprev[:] = f
+                have_prev = True
+                if k_hist > 0:
+                    D = dF[:k_hist]
+                    H = D @ D.T
+                    tr = 0.0
+                    for r in range(k_hist):
+                        tr += H[r, r]
+                    for r in range(k_hist):
+                        H[r, r] += 1e-12 * max(tr, 1e-300)
+                    gam, ok = _small_solve(H, D @ f)
+                    out = g - gam @ dX[:k_hist]
+                    if ok and np.isfinite(out.sum()):
+                        for i in range(nf):
+                            beta[i] = min(max(out[i], -bound[i]), bound[i])
+                    else:
+                        k_hist = 0
+                        have_prev = False
+    return alpha, beta, bound, al, it, converged, resid
+
+
 def _box_qp(W, c, lo, hi, x0, tol, solver):
     """min 1/2 x^T W x + c^T x on a box: ProxSuite (dense) or warm-started projected Gauss-Seidel."""
     if solver == "proxsuite":
@@ -173,7 +308,17 @@ def solve(mech, data, kin, system: LinearSystem, cons, q, v_prev_r, h, cache, si
     prev_u, prev_b = None, None
     bound = np.zeros(nf)
     it, converged, resid = 0, False, np.inf
-    while True:
+    use_kernel = st.qp == "pgs" and (not joint_fric or fm.bound_mu is not None)
+    if use_kernel:  # compiled loop, same steps
+        if not joint_fric:
+            kmax, a0, Mx, bmu = 1, np.zeros(0), np.zeros((0, nu + nf)), np.zeros(0)
+        else:
+            bmu = fm.bound_mu
+        alpha, beta, bound, al, it, converged, resid = _loop_kernel(
+            W_U, X_UT, np.ascontiguousarray(X_UT.T), U_v0, lo_U, W_T, T_v0, cs.mu if nc else np.zeros(0), a0,
+            np.ascontiguousarray(Mx), bmu,
+            kmax, joint_fric, wU, wT, st.tol, st.max_iter, st.anderson, alpha, np.ascontiguousarray(beta))
+    while not use_kernel:
         it += 1
         # CONTACT (Eq. 11 / 17c)
         if nu:
