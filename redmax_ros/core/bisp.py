@@ -228,14 +228,10 @@ def _lambda_forces(mech, fm, kin, ext, fx0, lam0, LamX, cons, h, nx):
         ab, rows_ab = mech.loop_ab, mech.loop_rows_ab
         xa, xb = kin.X[rows_ab[:, 0]], kin.X[rows_ab[:, 1]]
         L = len(ab)
-        F0 = np.zeros((L, 3))
-        dF = np.zeros((L, 3, nx))
-        r = 0
-        for i, P in enumerate(mech.loop_axes):
-            k = len(P)
-            F0[i] = P.T @ lam0[r:r + k] / h
-            dF[i] = P.T @ LamX[r:r + k] / h
-            r += k
+        Sel = mech.loop_select  # (rows, 3L): phi = Sel (x_a - x_b) stacked
+        nr = Sel.shape[0]
+        F0 = (Sel.T @ lam0[:nr]).reshape(L, 3) / h
+        dF = (Sel.T @ LamX[:nr]).reshape(L, 3, nx) / h
         ext.add(fx0, mech.site_jid[ab[:, 0]], -F0, xa)
         ext.add(fx0, mech.site_jid[ab[:, 1]], F0, xb)
         wa = np.concatenate([dF, _cross(xa[:, :, None], dF, axis=1)], axis=1)  # (L,6,nx)
