@@ -29,8 +29,11 @@ import numpy as np
 import pinocchio as pin
 
 from . import recursive as rc
+from .energy import spring_energy
 from .errors import SceneError
+from .forces import joint_displacement, spring_forces
 from .recursive import njit
+from .stabilization import check_loop_rank
 
 PIN_DATA_MAX_NV = 100  # above this the direct pipeline's pin.Data is not created (>~50 MB, grows as nv^3)
 
@@ -397,27 +400,9 @@ _I3 = np.eye(3)[None]
 
 
 def spring_terms(mech, X: np.ndarray):
-    """Per spring, from the positions X of mech.jac_sites: force on end a (P,3), stiffness K
-    (P,3,3), damping D (P,3,3), length (P,). Same formula as forces.spring_terms:
-    f_a = -k (l - L0) u,  K = k [u u^T + max(0, 1 - L0/l) (I - u u^T)],  D = c u u^T."""
-    a, b = mech.spring_rows[:, 0], mech.spring_rows[:, 1]
-    d = X[a] - X[b]
-    l = np.sqrt(np.einsum("pi,pi->p", d, d))
-    tiny = l <= 1e-12
-    safe = np.where(tiny, 1.0, l)
-    u = d / safe[:, None]
-    k, c, L0 = mech.spring_k, mech.spring_d, mech.spring_rest
-    f = -(k * (l - L0))[:, None] * u
-    uu = u[:, :, None] * u[:, None, :]
-    trans = np.where(tiny, 1.0, np.maximum(1.0 - L0 / safe, 0.0))
-    K = k[:, None, None] * (uu + trans[:, None, None] * (_I3 - uu))
-    D = c[:, None, None] * uu
-    return f, K, D, l
-
-
-def joint_displacement(mech, q: np.ndarray) -> np.ndarray:
-    """q - q_rest on the configuration manifold (pin.difference), per velocity DOF."""
-    return pin.difference(mech.model, mech.q_rest, q)
+    """(f_a, K, D, lengths) of the maximal springs from the positions X of mech.jac_sites
+    (forces.spring_forces: one formula for both paths)."""
+    return spring_forces(mech, X)
 
 
 def body_damping_blocks(ctx: Context, h: float) -> np.ndarray | None:
@@ -511,15 +496,7 @@ def energies(ctx: Context, q, v_r) -> tuple:
         ek += 0.5 * float(mech.armature @ (v_r * v_r))
     com = np.einsum("jab,jb->ja", ws.R[1:], topo.com[1:]) + ws.p[1:]
     ep = -float(topo.mass[1:] @ (com @ ctx.gravity))
-    es = 0.0
-    if len(mech.spring_ab):
-        X = ctx.jac_positions()
-        d = X[mech.spring_rows[:, 0]] - X[mech.spring_rows[:, 1]]
-        l = np.sqrt(np.einsum("pi,pi->p", d, d))
-        es += 0.5 * float(mech.spring_k @ (l - mech.spring_rest) ** 2)
-    if mech.has_stiffness:
-        dq = joint_displacement(mech, q)
-        es += 0.5 * float(mech.stiffness @ (dq * dq))
+    es = spring_energy(mech, ctx.jac_positions() if len(mech.spring_ab) else None, q)
     return float(ek), float(ep), es
 
 
@@ -631,17 +608,7 @@ def assemble_loops(mech, q):
         raise SceneError(src, "loops", f"cannot close the loops from the initial configuration "
                                        f"(residual {err:.3g} m after 100 Newton steps); check q0 and the loop sites")
     _, G = _loop_rows_hyper(ctx, q)
-    r0 = 0
-    for name, P in zip(mech.loop_names, mech.loop_axes):
-        r1 = r0 + len(P)
-        sv = np.linalg.svd(G[:r1], compute_uv=False)
-        rank = int(np.sum(sv > 1e-9 * max(sv[0], 1e-300)))
-        if rank < r1:
-            raise SceneError(src, f"loops '{name}'",
-                             f"over-constrains the mechanism: its rows are redundant with the joints "
-                             f"(rank {rank} < {r1} rows); keep only the rows the mechanism needs (e.g. rows: [x, y] "
-                             f"for a planar loop)")
-        r0 = r1
+    check_loop_rank(mech, G)
     return q
 
 

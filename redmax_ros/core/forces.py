@@ -29,9 +29,9 @@ class LinearSystem:
     b: np.ndarray  # (n,) RHS of Eq. (2)
 
 
-def spring_terms(mech, X: np.ndarray, J: np.ndarray):
-    """Per spring: force on end a (P,3), 3x3 stiffness K (P,3,3), 3x3 damping D (P,3,3), Jacobian of
-    the end difference (P,3,nv), lengths (P,). X, J: Kinematics.X/J (rows in mech.spring_rows).
+def spring_forces(mech, X: np.ndarray):
+    """Per spring, from the positions X (rows in mech.spring_rows): force on end a (P,3), 3x3 stiffness
+    K (P,3,3), 3x3 damping D (P,3,3), lengths (P,). Shared by the direct and matrix-free paths.
 
     f_a = -k (l - L0) u,  K = k [u u^T + max(0, 1 - L0/l) (I - u u^T)],  D = c u u^T.
     The transverse (geometric) term is clamped at zero for compressed springs so that the LHS of
@@ -50,7 +50,14 @@ def spring_terms(mech, X: np.ndarray, J: np.ndarray):
     trans = np.where(tiny, 1.0, np.maximum(1.0 - L0 / safe, 0.0))
     K = k[:, None, None] * (uu + trans[:, None, None] * (_I3 - uu))
     D = c[:, None, None] * uu
-    return f, K, D, J[a] - J[b], l
+    return f, K, D, l
+
+
+def spring_terms(mech, X: np.ndarray, J: np.ndarray):
+    """:func:`spring_forces` plus the Jacobian of the end difference (P,3,nv) from J (K,3,nv):
+    returns (f_a, K, D, J_a - J_b, lengths)."""
+    f, K, D, l = spring_forces(mech, X)
+    return f, K, D, J[mech.spring_rows[:, 0]] - J[mech.spring_rows[:, 1]], l
 
 
 _I3 = np.eye(3)[None]

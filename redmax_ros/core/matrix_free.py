@@ -414,18 +414,6 @@ def _active_set(ops, rows, H, gH, Z, u, v, y, labels, rtol, max_iter, stats):
 # the step
 
 
-def _held_dofs(mech, prescribed_joints):
-    if not prescribed_joints:
-        return ()
-    held = set()
-    for name in prescribed_joints:
-        j = mech.joint_index[name]
-        for d in range(j.idx_v, j.idx_v + j.nv):
-            if mech.T is None:
-                held.add(d)
-            else:
-                held.update(np.flatnonzero(mech.T[d]).tolist())
-    return sorted(held)
 
 
 _DIAG_FIELDS = {f.name for f in dataclasses.fields(Diagnostics)}
@@ -530,7 +518,7 @@ def step_matrix_free(mech, ctx: Context | None, state: State, cmd, h: float, sol
         G_loop = rows.G[rows.loop_rows]
         if mech.T is not None:
             G_loop = G_loop @ mech.T
-        q_new, _ = dfm.project_chord(ctx, q_new, G_loop, _held_dofs(mech, cmd.joint_velocities))
+        q_new, _ = dfm.project_chord(ctx, q_new, G_loop, mech.held_dofs(cmd.joint_velocities))
         if not math.isfinite(q_new.sum()):
             raise StepError("non-finite configuration after loop stabilization")
 

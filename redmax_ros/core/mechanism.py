@@ -103,6 +103,18 @@ class Mechanism:
             G = self.row_cache[name] = G if self.T is None else G @ self.T
         return G
 
+    def held_dofs(self, prescribed_joints) -> list:
+        """Hyper-reduced DOFs moved by the prescribed joints (kept fixed by loop stabilization)."""
+        held = set()
+        for name in prescribed_joints:
+            j = self.joint_index[name]
+            for d in range(j.idx_v, j.idx_v + j.nv):
+                if self.T is None:
+                    held.add(d)
+                else:
+                    held.update(np.flatnonzero(self.T[d]).tolist())
+        return sorted(held)
+
     def reduced_diag(self, h: float) -> np.ndarray:
         """h D_r + h^2 K_r as a dense diagonal matrix (cached per h)."""
         D = self.diag_cache.get(h)

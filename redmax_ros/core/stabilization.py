@@ -97,16 +97,21 @@ def assemble_loops(mech, q):
         raise SceneError(src, "loops", f"cannot close the loops from the initial configuration "
                                        f"(residual {err:.3g} m after 100 Newton steps); check q0 and the loop sites")
     _, G = loop_residual(mech, data, q)
-    # rank check, loop by loop, to name the one that over-constrains the mechanism
+    check_loop_rank(mech, G)
+    return q
+
+
+def check_loop_rank(mech, G) -> None:
+    """Reject loops whose rows are redundant with the joints (SceneError naming the first such loop).
+    G: the loop rows (hyper-reduced) at the assembled configuration, loop by loop in mech order."""
     r0 = 0
     for name, P in zip(mech.loop_names, mech.loop_axes):
         r1 = r0 + len(P)
         sv = np.linalg.svd(G[:r1], compute_uv=False)
         rank = int(np.sum(sv > 1e-9 * max(sv[0], 1e-300)))
         if rank < r1:
-            raise SceneError(src, f"loops '{name}'",
+            raise SceneError(mech.spec.source, f"loops '{name}'",
                              f"over-constrains the mechanism: its rows are redundant with the joints "
                              f"(rank {rank} < {r1} rows); keep only the rows the mechanism needs (e.g. rows: [x, y] "
                              f"for a planar loop)")
         r0 = r1
-    return q

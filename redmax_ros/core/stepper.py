@@ -128,12 +128,12 @@ def step(mech, data, state: State, cmd: Commands, h: float) -> tuple:
     q_new = pin.integrate(mech.model, state.q, h * v_new)
     if len(mech.loop_ab):
         q_new, _ = stabilization.project_chord(mech, data, q_new, cons.G[cons.loop_rows],
-                                               _held_dofs(mech, cmd.joint_velocities))
+                                               mech.held_dofs(cmd.joint_velocities))
         if not math.isfinite(q_new.sum()):
             raise StepError("non-finite configuration after loop stabilization")
     v_hyper = sol.v
     if ext is not None:  # catalogue: spline/exp joint coordinates and carriers, linear joint constraints
-        q_new, v_hyper, v_new = ext.end(mech, data, q_new, sol.v, _held_dofs(mech, cmd.joint_velocities), h)
+        q_new, v_hyper, v_new = ext.end(mech, data, q_new, sol.v, mech.held_dofs(cmd.joint_velocities), h)
 
     effort = tau.copy()  # 6: *f_r = *G_r^T lam / h (Eq. 7), sign: A qdot = b - G^T lam
     for name, sl in cons.joint_rows.items():
@@ -157,15 +157,3 @@ def step(mech, data, state: State, cmd: Commands, h: float) -> tuple:
     return new, StepResult(new.t, q_new, v_new, effort, site_forces, diag)
 
 
-def _held_dofs(mech, prescribed_joints):
-    if not prescribed_joints:
-        return ()
-    held = set()
-    for name in prescribed_joints:
-        j = mech.joint_index[name]
-        for d in range(j.idx_v, j.idx_v + j.nv):
-            if mech.T is None:
-                held.add(d)
-            else:
-                held.update(np.flatnonzero(mech.T[d]).tolist())
-    return sorted(held)
