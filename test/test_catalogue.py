@@ -102,7 +102,7 @@ def test_native_joint_S_Sdot_finite_differences_and_pinocchio(name):
     Pinocchio's JointData (M, S, c = Sdot qdot) equal to the notes' formulas (1e-12)."""
     entry, ref = CASES[name]
     spec = spec_of(entry)
-    model, pk = pin_kin(jt.pin_joint_model(spec) if spec.type in jt.NATIVE_TYPES else jt._core_model(spec))
+    model, pk = pin_kin(jt.pin_joint_model(spec) if spec.type in jt.NATIVE_TYPES else jt.core_joint_model(spec))
     for _ in range(3):
         q = RNG.uniform(-1.2, 1.2, model.nq)
         qd = RNG.normal(size=model.nv)
@@ -124,7 +124,7 @@ def test_quaternion_joints_spherical_free3d():
     spherical (Eq. 2.63-2.64: S = [[R^T, 0], [0, I]], Sdot = [[-[w] R^T, 0], [0, 0]]), FD along pin.integrate."""
     for entry in ({"type": "spherical"}, {"type": "free3d"}):
         spec = spec_of(entry)
-        model, pk = pin_kin(jt.pin_joint_model(spec) if spec.type in jt.NATIVE_TYPES else jt._core_model(spec))
+        model, pk = pin_kin(jt.pin_joint_model(spec) if spec.type in jt.NATIVE_TYPES else jt.core_joint_model(spec))
         q = pin.randomConfiguration(model, -np.ones(model.nq), np.ones(model.nq))
         qd = RNG.normal(size=model.nv)
         plus = lambda q_, d: pin.integrate(model, q_, d)  # noqa: E731

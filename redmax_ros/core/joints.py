@@ -370,12 +370,14 @@ def pin_joint_model(j) -> pin.JointModel:
     if t == "free3d":
         return composite([(pin.JointModelTranslation(), I), (pin.JointModelSpherical(), I)])
     if t == "composite":
-        return composite([(pin_joint_model(sub) if sub.type in NATIVE_TYPES else _core_model(sub),
+        return composite([(pin_joint_model(sub) if sub.type in NATIVE_TYPES else core_joint_model(sub),
                            _placement(sub.placement)) for sub in ex["parts"]])
     raise AssertionError(t)
 
 
-def _core_model(j):
+def core_joint_model(j):
+    """The Pinocchio joint model of a core scene joint (revolute, prismatic, universal, spherical,
+    planar, free)."""
     if j.type in ("revolute", "prismatic"):
         return axis_joint(j.type, j.axes[0])
     if j.type == "universal":

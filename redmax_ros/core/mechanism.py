@@ -15,6 +15,7 @@ import pinocchio as pin
 
 from . import joint_maps
 from .errors import SceneError
+from .joints import core_joint_model
 from .joints import q_index as _catalogue_q_index
 from .scene import WORLD, SceneSpec
 from .spatial import placement, rpy_matrix
@@ -152,30 +153,6 @@ def _names(name, n):
 # ----------------------------------------------------------------------------------------------
 
 
-def _axis_joint(kind, axis):
-    basis = {0: "X", 1: "Y", 2: "Z"}
-    for i in range(3):
-        e = np.zeros(3)
-        e[i] = 1.0
-        if np.allclose(axis, e):
-            return getattr(pin, f"JointModel{'R' if kind == 'revolute' else 'P'}{basis[i]}")()
-    return pin.JointModelRevoluteUnaligned(axis) if kind == "revolute" else pin.JointModelPrismaticUnaligned(axis)
-
-
-def _joint_model(j):
-    if j.type in ("revolute", "prismatic"):
-        return _axis_joint(j.type, j.axes[0])
-    if j.type == "universal":
-        return pin.JointModelUniversal(j.axes[0], j.axes[1])
-    if j.type == "spherical":
-        return pin.JointModelSpherical()
-    if j.type == "planar":
-        return pin.JointModelPlanar()
-    if j.type == "free":
-        return pin.JointModelFreeFlyer()
-    raise AssertionError(j.type)
-
-
 def joint_configuration(jtype: str, vals: np.ndarray) -> np.ndarray:
     """Scene-file joint values (see scene.JOINT_TYPES) -> Pinocchio configuration of that joint."""
     if jtype in ("revolute", "prismatic", "universal"):
@@ -215,7 +192,7 @@ def _build_tree(spec: SceneSpec):
                 rest.append(r_)
                 joint_specs.append(js)
         else:
-            jid = model.addJoint(pj, _joint_model(j), jM, j.name)
+            jid = model.addJoint(pj, core_joint_model(j), jM, j.name)
             M = bM
             q0.append(joint_configuration(j.type, j.q0))
             rest.append(joint_configuration(j.type, j.rest))
