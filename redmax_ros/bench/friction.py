@@ -60,6 +60,9 @@ def _reduced_coms(sim):
 
 
 def bisp_vs_sp(scene, overrides, dt, duration):
+    warm = Simulator.load(scene, overrides=list(overrides) + [f"dt={dt}"])  # numba kernels loaded/compiled
+    warm.step(5)
+    MaximalSP(warm.mech).step(dt)
     sim = Simulator.load(scene, overrides=list(overrides) + [f"dt={dt}"])
     n = int(round(duration / dt))
     its = []

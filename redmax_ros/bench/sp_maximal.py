@@ -9,14 +9,15 @@ the KKT Schur complement. Joint friction as in BISP: the joint's reaction wrench
 multipliers) is distributed over the same implicit contact points by the same Eq. (16) operator
 (contact.compile_friction), friction rows r k . (w_child - w_parent), box QP with bound
 mu sum|alpha|, the same staggered iteration, convergence test, inner solver and acceleration as the
-reduced solver (staggered.py), so the measured ratio is that of the coordinates only.
+reduced solver (staggered.py; with ``compiled`` the same compiled loop, the joint multipliers as an
+affine map of beta), so the measured ratio is that of the coordinates only.
 """
 from __future__ import annotations
 
 import numpy as np
 import pinocchio as pin
 
-from redmax_ros.core.staggered import _Anderson, _box_qp
+from redmax_ros.core.staggered import _Anderson, _box_qp, _loop_kernel
 
 
 def _skew(a):
@@ -24,8 +25,8 @@ def _skew(a):
 
 
 class MaximalSP:
-    def __init__(self, mech, erp=0.2):
-        self.mech, self.fm, self.erp = mech, mech.friction, erp
+    def __init__(self, mech, erp=0.2, compiled=True):
+        self.mech, self.fm, self.erp, self.compiled = mech, mech.friction, erp, compiled
         model = mech.model
         self.nb = model.njoints - 1
         data = model.createData()
@@ -149,9 +150,34 @@ class MaximalSP:
         wT = np.maximum(np.diag(W), 0)
         nf = len(Tr)
         beta = np.zeros(nf) if self.beta is None else self.beta
+        kmax = fm.L.shape[1]
+        if self.compiled and fm.bound_mu is not None:
+            # the joint wrenches are linear in lambda = lambda0 + Lam beta: alpha = a0 + Mx beta, then the
+            # same compiled staggered loop as the reduced solver (staggered._loop_kernel, no contact rows)
+            lam0 = Sinv @ (Y.T @ b_ - g)
+            Lam = -Sinv @ (Y.T @ Tr.T)
+            Q = np.zeros((len(fm.fj_names), 6, len(g)))
+            for (k0, b, e1, e2), name in zip(jrows, fm.fj_names[:fm.n_tree]):
+                j = fm.fj_names.index(name)
+                Rt = self.R[b].T / h
+                Q[j, :3, k0:k0 + 3] = Rt
+                Q[j, 3:, k0 + 3] = Rt @ e1
+                Q[j, 3:, k0 + 4] = Rt @ e2
+            for q, li in enumerate(fm.loop_index):
+                k0, kk, P, _, _ = lrows[li]
+                Q[fm.n_tree + q, :3, k0:k0 + kk] = P.T / h
+            HLQ = h * np.matmul(fm.L, Q)  # (J, kmax, m)
+            a0 = (HLQ @ lam0).reshape(-1)
+            Mx = np.ascontiguousarray((HLQ @ Lam).reshape(-1, nf))
+            e0, e2_ = np.zeros(0), np.zeros((0, nf))
+            _, beta, _, _, it, _, _ = _loop_kernel(
+                np.zeros((0, 0)), e2_, np.zeros((nf, 0)), e0, e0, W, Tr @ v0, e0, a0, Mx, fm.bound_mu, kmax,
+                True, e0, wT, st.tol, st.max_iter, st.anderson, e0, np.ascontiguousarray(beta))
+            self.iterations.append(it)
+            self._finish(beta, v0, PT, h)
+            return
         acc = _Anderson(st.anderson)
         prev = None
-        kmax = fm.L.shape[1]
         for it in range(1, st.max_iter + 1):
             r_ = b_ - Tr.T @ beta
             lam = Sinv @ (Y.T @ r_ - g)
@@ -176,6 +202,10 @@ class MaximalSP:
             if st.anderson:
                 beta = acc.update(b_in, beta, bound)
         self.iterations.append(it)
+        self._finish(beta, v0, PT, h)
+
+    def _finish(self, beta, v0, PT, h):
+        nb = self.nb
         self.beta = beta
         v = v0 - PT @ beta
         self.v = v
