@@ -34,11 +34,15 @@ def test_free_run_command_velocity_torque_and_timeout(client):
     assert c.call("get_state").state.state == SimulationState.PLAYING
     c.wait_for(lambda: len(c.joint_states) > 20, what="free-run states")
     c.command_joints(["elbow"], [0.25])
-    t_cmd = _t(c.last_state())
+    with c.lock:  # the acknowledgement carries the sim time at which the command was applied
+        t_cmd = _t(c.prescribed[-1])
     ie = list(c.joint_states[-1].name).index("elbow")
     c.wait_for(lambda: any(abs(js.velocity[ie] - 0.25) < 1e-9 for js in c.joint_states), what="held elbow")
     t_hit = min(_t(js) for js in c.joint_states if abs(js.velocity[ie] - 0.25) < 1e-9)
-    assert t_hit >= t_cmd  # applied no earlier than the acknowledgement
+    # applied in the first step after the acknowledgement, not earlier. (The last joint_states the
+    # client had seen when the acknowledgement arrived is no reference: two topics are not ordered
+    # against each other at the subscriber, so states of later steps may be taken first.)
+    assert t_hit == pytest.approx(t_cmd + c.describe().dt, abs=1e-9)
     c.wait_for(lambda: _t(c.joint_states[-1]) > t_hit + 0.2, what="states after the command")
     held = [js for js in c.joint_states if t_hit <= _t(js) < t_hit + 0.2]
     assert len(held) > 100 and all(abs(js.velocity[ie] - 0.25) < 1e-9 for js in held)
