@@ -210,8 +210,7 @@ def mech_support(mech):
     """(njoints, nv) bool: DOFs supporting each Pinocchio joint (cached on the mechanism)."""
     s = getattr(mech, "_joint_support", None)
     if s is None:
-        from .contact import _support
-        s = np.array([_support(mech.model, j) for j in range(mech.model.njoints)], dtype=float)
+        s = mech.joint_support.astype(float)
         mech._joint_support = s
     return s
 

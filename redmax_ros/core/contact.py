@@ -160,7 +160,7 @@ def compile_friction(mech, fspec) -> FrictionModel | None:
             rad.append(r)
             mu.append(np.nan if c.mu is None else c.mu)
             lab.append(f"contact '{c.name}'" + (f"[{k}]" if len(cs) > 1 else ""))
-    sph_support = np.array([_support(model, j) for j in jid], dtype=bool).reshape(-1, nv)
+    sph_support = mech.joint_support[np.array(jid, dtype=int)].reshape(-1, nv)
     # frictional tree joints
     names, jids, Ls, rows, groups = [], [], [], [], []
     jmu = st.joint_mu
@@ -240,16 +240,6 @@ def _subtrees(model, jids):
     for r, j in enumerate(jids):
         Sub[r, list(model.subtrees[int(j)])] = 1.0
     return Sub
-
-
-def _support(model, jid):
-    mask = np.zeros(model.nv, dtype=bool)
-    jid = int(jid)
-    while jid > 0:
-        jm = model.joints[jid]
-        mask[jm.idx_v:jm.idx_v + jm.nv] = True
-        jid = int(model.parents[jid])
-    return mask
 
 
 @dataclass

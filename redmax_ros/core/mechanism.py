@@ -93,6 +93,7 @@ class Mechanism:
     limit_labels: list = field(default_factory=list)
     extras: object = None  # catalogue.Extras: mapped joints, linear joint constraints, force elements (or None)
     friction: object = None  # contact.FrictionModel (ground contact, joint friction) or None
+    joint_support: np.ndarray | None = None  # (njoints, nv) bool: DOFs moving each joint's body (row 0: world)
 
     def joint_rows(self, name: str) -> np.ndarray:
         """Rows *G_r of a prescribed joint (identity on its DOFs, Eq. 7), projected by J_rR (cached)."""
@@ -269,7 +270,7 @@ def compile_scene(spec: SceneSpec) -> Mechanism:
         Is = [M.rotation @ inertia_of[n].inertia @ M.rotation.T for n, M in zip(body_names, body_pl)]
     body_damping = np.array([inertia_of[n].damping if n in inertia_of else 0.0 for n in body_names])
     damped = np.flatnonzero(body_damping > 0)
-    support_of = _support_table(model)  # (njoints, nv) bool, one pass (model.joints[j] copies are slow)
+    support_of = support_table(model)  # (njoints, nv) bool, one pass (model.joints[j] copies are slow)
     body_support = support_of[body_jid].reshape(-1, nv)
 
     # sites
@@ -331,6 +332,7 @@ def compile_scene(spec: SceneSpec) -> Mechanism:
         joint_index=joint_index, site_index=site_index, site_fid=site_fid, body_com_fid=com_fid,
         jac_sites=jac_sites, jac_row=jac_row, has_stiffness=bool(stiffness.any()),
     )
+    mech.joint_support = support_of
     mech.no_rows = np.zeros((0, mech.ndof))
     nrows = sum(len(P) for P in mech.loop_axes)
     mech.loop_select = np.zeros((nrows, 3 * len(mech.loop_axes)))
@@ -388,7 +390,7 @@ def _q_index(joints, dof):
     raise AssertionError(dof)
 
 
-def _support_table(model):
+def support_table(model):
     """Row j: the velocity DOFs that move joint j's body (j and its ancestors); row 0 (world) empty."""
     nj = model.njoints
     table = np.zeros((nj, model.nv), dtype=bool)
@@ -397,16 +399,6 @@ def _support_table(model):
         table[j] = table[int(parents[j])]
         table[j, idx_v[j]:idx_v[j] + nv_j[j]] = True
     return table
-
-
-def _support_mask(model, jid):
-    mask = np.zeros(model.nv, dtype=bool)
-    jid = int(jid)
-    while jid > 0:
-        jm = model.joints[jid]
-        mask[jm.idx_v:jm.idx_v + jm.nv] = True
-        jid = int(model.parents[jid])
-    return mask
 
 
 def _coupling_matrix(spec, joint_index, nv, src):
