@@ -146,3 +146,73 @@ def test_recover_after_hard_kill(tmp_path):
     assert 0 < len(got) < 3000 and n >= len(got)
     assert all(_same(a, b) for a, b in zip(got, sent))  # a prefix, intact
     assert len(_read_mcap_ros2(fixed, "/joint_states")) == len(got)
+
+
+@pytest.mark.parametrize("writer", ["process", "thread"])
+def test_both_writers_roundtrip(tmp_path, writer):
+    lg = _logger(tmp_path, writer=writer)
+    sent = _write(lg, 300)
+    assert lg.flush()
+    assert lg.written == lg.handed_over == 330 and lg.backlog == 0
+    sent += _write(lg, 200, start=300)
+    lg.close()
+    assert lg.error is None and lg.written == lg.handed_over == 550
+    got = _read_rosbags(lg.files[0], "/joint_states")
+    assert len(got) == 500 and all(_same(a, b) for a, b in zip(got, sent))
+
+
+def test_writer_process_ignores_sigint_and_sigterm(tmp_path):
+    """Ctrl-C / a stop signal to the process group must not cut the log short while the node drains."""
+    import signal
+    import time
+
+    lg = _logger(tmp_path)
+    sent = _write(lg, 200)
+    assert lg.flush()
+    os.kill(lg._proc.pid, signal.SIGINT)
+    os.kill(lg._proc.pid, signal.SIGTERM)
+    time.sleep(0.2)
+    sent += _write(lg, 200, start=200)
+    lg.close()
+    assert lg.error is None and lg._proc.returncode == 0
+    got = _read_mcap_ros2(lg.files[0], "/joint_states")
+    assert len(got) == 400 and all(_same(a, b) for a, b in zip(got, sent))
+
+
+def test_writer_process_finishes_the_file_when_its_owner_is_killed(tmp_path):
+    """SIGKILL of the logging process: everything already handed to the writer process is in a
+    complete file (summary and footer), no recovery needed."""
+    import subprocess
+    import sys
+    import time
+
+    code = f"""
+import os, signal, sys
+sys.path.insert(0, {str(Path(__file__).parent)!r})
+from test_mcap_logger import _logger, _write
+from pathlib import Path
+lg = _logger(Path({str(tmp_path)!r}))
+_write(lg, 1000)
+assert lg.flush()
+print(lg._proc.pid, flush=True)
+os.kill(os.getpid(), signal.SIGKILL)
+"""
+    p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    assert p.returncode == -9, p.stderr
+    writer_pid = int(p.stdout.split()[0])
+    end = time.monotonic() + 20
+    while time.monotonic() < end:  # the orphaned writer sees EOF, finishes the file and exits
+        try:
+            os.kill(writer_pid, 0)
+        except ProcessLookupError:
+            break
+        time.sleep(0.05)
+    else:
+        pytest.fail("the writer process did not exit after its owner was killed")
+    path = tmp_path / "run" / "t_0.mcap"
+    from mcap.reader import make_reader
+    with open(path, "rb") as f:
+        summary = make_reader(f).get_summary()
+    assert summary is not None and summary.statistics.message_count == 1100
+    got = _read_rosbags(path, "/joint_states")
+    assert len(got) == 1000

@@ -1,0 +1,101 @@
+"""The MCAP writer process behind ``McapLogger(writer="process")`` (not for direct use).
+
+Started by the logger as ``python -m redmax_ros.logging.writer_process '<json config>'``. Reads
+frames from stdin (``[kind u8][length u32][payload]``: topic registrations, messages with their
+topic index and times, flush requests, close) and writes them with
+:class:`redmax_ros.logging.mcap_log._FileSession`. Reports JSON lines on stdout: ``opened`` (a
+new file), ``written`` (messages written so far, at most every 0.2 s), ``flushed`` (a flush
+request is done), ``error``, and finally ``closed``.
+
+It ignores SIGINT, SIGTERM and SIGHUP: a Ctrl-C in the terminal or a stop signal to the process
+group must not cut the file short while the node drains; the file is finished on the close frame
+or when stdin reaches EOF (the node exited, however it exited).
+"""
+from __future__ import annotations
+
+import json
+import os
+import select
+import signal
+import sys
+import time
+
+from redmax_ros.logging.mcap_log import (_FRAME, _MSG_FIELDS, K_CLOSE, K_FLUSH, K_MESSAGE, K_TOPIC, _FileSession,
+                                         _Topic)
+
+REPORT_EVERY = 0.2  # s between 'written' reports
+
+
+def main(argv=None) -> int:
+    argv = sys.argv[1:] if argv is None else argv
+    for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
+        signal.signal(sig, signal.SIG_IGN)
+    status_fd = os.dup(1)
+    os.dup2(2, 1)  # stray prints go to stderr, never into the status stream
+    sys.stdout = sys.stderr
+
+    def report(**kw):
+        os.write(status_fd, (json.dumps(kw) + "\n").encode())
+
+    cfg = json.loads(argv[0])
+    try:
+        sess = _FileSession(**cfg, on_open=lambda path: report(opened=str(path)))
+    except BaseException as e:
+        report(error=f"cannot open the MCAP file: {type(e).__name__}: {e}")
+        return 1
+
+    rc = 0
+    fd = sys.stdin.fileno()
+    buf = bytearray()
+    last_report, reported = time.monotonic(), -1
+    try:
+        done = False
+        while not done:
+            ready, _, _ = select.select([fd], [], [], max(0.0, sess.next_deadline() - time.monotonic()))
+            if ready:
+                data = os.read(fd, 1 << 20)
+                if not data:  # EOF: the caller is gone (or closed without a close frame)
+                    done = True
+                buf += data
+            pos, n = 0, len(buf)
+            while n - pos >= 5:
+                kind, length = _FRAME.unpack_from(buf, pos)
+                end = pos + 5 + length
+                if end > n:
+                    break
+                if kind == K_MESSAGE:
+                    index, log_time, pub_time = _MSG_FIELDS.unpack_from(buf, pos + 5)
+                    sess.add(index, log_time, bytes(buf[pos + 23:end]), pub_time)
+                elif kind == K_TOPIC:
+                    sess.register(_Topic.from_json(buf[pos + 5:end]))
+                elif kind == K_FLUSH:
+                    sess.flush()
+                    report(flushed=int.from_bytes(buf[pos + 5:end], "little"), written=sess.written)
+                elif kind == K_CLOSE:
+                    done = True
+                    break
+                else:
+                    raise ValueError(f"unknown frame kind {kind}")
+                pos = end
+            if pos:
+                del buf[:pos]
+            sess.tick()
+            now = time.monotonic()
+            if sess.written != reported and now - last_report >= REPORT_EVERY:
+                report(written=sess.written)
+                last_report, reported = now, sess.written
+    except BaseException as e:  # disk full, bad frame, ...: say why, finish what we have
+        report(error=f"{type(e).__name__}: {e}")
+        rc = 1
+    finally:
+        try:
+            sess.finish()
+        except BaseException as e:
+            report(error=f"finishing {sess.files[-1] if sess.files else 'the file'}: {type(e).__name__}: {e}")
+            rc = 1
+        report(closed=True, written=sess.written)
+    return rc
+
+
+if __name__ == "__main__":
+    sys.exit(main())
