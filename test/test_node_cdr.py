@@ -66,3 +66,15 @@ def test_solver_stats_bytes(solver):
     got = enc.encode(0.042, 123456789012, d)
     assert same_bytes(got, serialize_message(ref), enc.padding)
     assert deserialize_message(got, SolverStats) == ref
+
+
+def test_joint_state_encoder_reuses_no_output_and_checks_lengths():
+    """The encoder patches one internal buffer: earlier results must stay intact, wrong lengths fail."""
+    enc = JointStateEncoder(["a", "b", "c"])
+    first = enc.encode(0.001, np.zeros(3), np.ones(3), np.full(3, 2.0))
+    second = enc.encode(0.002, np.ones(3), np.zeros(3), np.zeros(3))
+    assert list(deserialize_message(first, JointState).effort) == [2.0, 2.0, 2.0]
+    assert deserialize_message(second, JointState).header.stamp.nanosec == 2_000_000
+    for bad in (np.zeros(2), np.zeros(4), np.zeros((3, 1))):
+        with pytest.raises(ValueError):
+            enc.encode(0.0, bad, np.zeros(3), np.zeros(3))

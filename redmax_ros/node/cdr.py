@@ -67,8 +67,18 @@ def _split_time(t: float):
     return ns // 1_000_000_000, ns % 1_000_000_000
 
 
+_STAMP = struct.Struct("<iI")
+_U32 = struct.Struct("<I")
+_U64 = struct.Struct("<Q")
+_8D = struct.Struct("<8d")
+
+
 class JointStateEncoder:
-    """sensor_msgs/JointState with fixed names and n = len(names) position/velocity/effort."""
+    """sensor_msgs/JointState with fixed names and n = len(names) position/velocity/effort.
+
+    Encoding patches a per-scene buffer in place (stamp by struct, the three arrays through
+    float64 views) and copies it out once (~4 us for the hand's 23 DOFs vs ~10 us building a
+    bytearray per message). Not thread-safe: one encoder per publishing thread."""
 
     def __init__(self, names, frame_id=""):
         self.frame_id = frame_id
@@ -84,6 +94,8 @@ class JointStateEncoder:
         self.off[2] = w.f64_seq(n)
         self.template = bytes(w.b)
         self.padding = list(w.padding)
+        self._buf = np.frombuffer(bytearray(self.template), dtype=np.uint8)
+        self._views = [self._buf[o:o + 8 * n].view("<f8") for o in self.off]
 
     def encode(self, t, position, velocity, effort) -> bytes:
         if self.n == 0:  # Fast CDR pads empty double sequences lazily: let rclpy do this rare case
@@ -93,15 +105,13 @@ class JointStateEncoder:
             m.header.stamp.sec, m.header.stamp.nanosec = _split_time(t)
             m.header.frame_id = self.frame_id
             return serialize_message(m)
-        buf = bytearray(self.template)
-        struct.pack_into("<iI", buf, 4, *_split_time(t))
-        n8 = 8 * self.n
-        for off, arr in zip(self.off, (position, velocity, effort)):
-            a = np.ascontiguousarray(arr, dtype="<f8")
-            if a.shape != (self.n,):
-                raise ValueError(f"expected {self.n} values, got shape {a.shape}")
-            buf[off:off + n8] = a.tobytes()
-        return bytes(buf)
+        n = self.n
+        for view, arr in zip(self._views, (position, velocity, effort)):
+            if len(arr) != n or np.ndim(arr) != 1:
+                raise ValueError(f"expected {n} values, got shape {np.shape(arr)}")
+            view[:] = arr
+        _STAMP.pack_into(self._buf, 4, *_split_time(t))
+        return self._buf.tobytes()
 
 
 def encode_clock(t: float) -> bytes:
@@ -140,10 +150,10 @@ class SolverStatsEncoder:
     def encode(self, t, step, diag) -> bytes:
         tpl, off_step, off_it, off_d = self._template(str(diag.solver))
         buf = bytearray(tpl)
-        struct.pack_into("<iI", buf, 4, *_split_time(t))
-        struct.pack_into("<Q", buf, off_step, int(step))
-        struct.pack_into("<I", buf, off_it, int(diag.iterations))
-        struct.pack_into("<8d", buf, off_d, float(diag.residual), float(diag.violation_pos),
-                         float(diag.violation_vel), float(diag.E_kin), float(diag.E_pot), float(diag.E_spring),
-                         float(diag.E_total), float(diag.wall_time))
+        _STAMP.pack_into(buf, 4, *_split_time(t))
+        _U64.pack_into(buf, off_step, int(step))
+        _U32.pack_into(buf, off_it, int(diag.iterations))
+        _8D.pack_into(buf, off_d, float(diag.residual), float(diag.violation_pos), float(diag.violation_vel),
+                      float(diag.E_kin), float(diag.E_pot), float(diag.E_spring), float(diag.E_total),
+                      float(diag.wall_time))
         return bytes(buf)
