@@ -88,6 +88,7 @@ class Engine:
         self._cv = threading.Condition()
         self._running = False
         self._busy = False  # a thread (simulation or caller) is using the Simulator
+        self._sim_waiting = False  # the simulation thread waits for _busy to clear
         self._thread = None
         self.pacer = Pacer(self.rtf)
         self.meter = RateMeter()
@@ -129,10 +130,17 @@ class Engine:
         try:
             self._run_job(fut, fn, args)
         finally:
-            with self._cv:
-                self._busy = False
-                self._cv.notify_all()
+            self._end_inline()
         return fut
+
+    def _end_inline(self):
+        """End of an inline request: wake the simulation thread only if it has something to do
+        (it waits for the Simulator, is playing, or jobs are queued). A paused simulation thread
+        sleeps on: waking it after every lockstep request costs a GIL hand-over each time."""
+        with self._cv:
+            self._busy = False
+            if self._sim_waiting or self._jobs or self.state == PLAYING or not self._running:
+                self._cv.notify_all()
 
     @staticmethod
     def _run_job(fut, fn, args):
@@ -143,7 +151,17 @@ class Engine:
                 fut.set_exception(e)
 
     def call(self, fn, *args, timeout=None):
-        return self.submit(fn, *args).result(timeout)
+        """``submit(fn, *args).result(timeout)``; when it can run inline, without the Future."""
+        with self._cv:
+            inline = self._running and not self._jobs and not self._busy
+            if inline:
+                self._busy = True
+        if not inline:
+            return self.submit(fn, *args).result(timeout)
+        try:
+            return fn(*args)
+        finally:
+            self._end_inline()
 
     def _loop(self):
         next_diag = time.monotonic() + self.diagnostics_period
@@ -152,7 +170,11 @@ class Engine:
             with self._cv:
                 while self._running and (self._busy or not self._jobs):
                     if self._busy:  # another thread runs a request inline
-                        self._cv.wait(0.05)
+                        self._sim_waiting = True
+                        try:
+                            self._cv.wait(0.05)
+                        finally:
+                            self._sim_waiting = False
                         continue
                     if self.state == PLAYING:
                         wait = self.pacer.wait_time(self.sim.time + self.sim.dt)
