@@ -1,0 +1,94 @@
+"""The publisher thread (node/sender.py): order kept across topics, drain, fallback, shutdown."""
+import os
+import threading
+import time
+
+import pytest
+
+from node_fixtures import rclpy  # noqa: F401  (sets ROS_DOMAIN_ID / discovery range first)
+
+from rclpy.executors import SingleThreadedExecutor  # noqa: E402
+from rclpy.node import Node  # noqa: E402
+from rclpy.qos import QoSProfile, ReliabilityPolicy  # noqa: E402
+from rclpy.serialization import serialize_message  # noqa: E402
+from rosgraph_msgs.msg import Clock  # noqa: E402
+from std_msgs.msg import String  # noqa: E402
+
+from redmax_ros.node.cdr import encode_clock  # noqa: E402
+from redmax_ros.node.sender import Sender  # noqa: E402
+
+NS = f"/sender{os.getpid()}"
+QOS = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
+
+
+@pytest.fixture(scope="module")
+def nodes():
+    rclpy.init()
+    pub_node, sub_node = Node("sender_pub", namespace=NS), Node("sender_sub", namespace=NS)
+    got, lock = [], threading.Lock()
+
+    def store(kind):
+        def cb(m):
+            with lock:
+                got.append((kind, m.data if kind == "s" else m.clock.sec))
+        return cb
+    sub_node.create_subscription(String, "a", store("s"), QOS)
+    sub_node.create_subscription(Clock, "b", store("c"), QOS)
+    pa, pb = pub_node.create_publisher(String, "a", QOS), pub_node.create_publisher(Clock, "b", QOS)
+    ex = SingleThreadedExecutor()
+    ex.add_node(sub_node)
+    stop = threading.Event()
+    th = threading.Thread(target=lambda: [ex.spin_once(timeout_sec=0.05) for _ in iter(stop.is_set, True)],
+                          daemon=True)
+    th.start()
+    end = time.monotonic() + 20
+    while pa.get_subscription_count() == 0 or pb.get_subscription_count() == 0:
+        assert time.monotonic() < end, "no match"
+        time.sleep(0.01)
+    yield pa, pb, got, lock
+    stop.set()
+    th.join(5)
+    pub_node.destroy_node()
+    sub_node.destroy_node()
+    rclpy.shutdown()
+
+
+@pytest.mark.parametrize("threaded", [True, False], ids=["thread", "caller"])
+def test_everything_published_in_order(nodes, threaded):
+    pa, pb, got, lock = nodes
+    with lock:
+        got.clear()
+    s = Sender(threaded=threaded)
+    assert s.threaded == threaded
+    for i in range(300):
+        s.send(pa, serialize_message(String(data=str(i))), wake=i % 3 == 2)
+        s.send(pb, encode_clock(float(i)), wake=False)
+    s.wake()
+    assert s.drain()
+    if threaded:
+        assert s.published == 600 and s.failed == 0
+    end = time.monotonic() + 20
+    while len(got) < 600 and time.monotonic() < end:
+        time.sleep(0.01)
+    s.close()
+    with lock:
+        strings = [int(v) for k, v in got if k == "s"]
+        clocks = [v for k, v in got if k == "c"]
+    assert strings == list(range(300)) and clocks == list(range(300))  # per topic in order, none lost
+
+
+def test_close_publishes_what_is_queued_then_falls_back(nodes):
+    pa, _, got, lock = nodes
+    with lock:
+        got.clear()
+    s = Sender()
+    for i in range(50):
+        s.send(pa, serialize_message(String(data=f"x{i}")), wake=False)
+    s.close()  # no wake before: close drains anyway
+    assert s.published == 50
+    s.send(pa, serialize_message(String(data="after")))  # after close: published in the caller
+    end = time.monotonic() + 20
+    while len(got) < 51 and time.monotonic() < end:
+        time.sleep(0.01)
+    with lock:
+        assert [v for _, v in got] == [f"x{i}" for i in range(50)] + ["after"]
