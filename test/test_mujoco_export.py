@@ -77,3 +77,27 @@ def test_core_does_not_import_mujoco():
     core = pathlib.Path(__file__).resolve().parents[1] / "redmax_ros" / "core"
     for f in core.glob("*.py"):
         assert "import mujoco" not in f.read_text(), f"{f.name} imports mujoco (benchmark-only dependency)"
+
+
+PASSIVE = [("chain", ["params.n=4", "params.springs=2", "params.joint_stiffness=2.0", "params.joint_damping=0.05",
+                      "joints.j1.rest=0.3", "joints.j2.rest=-0.2"]),
+           ("mass_springs", ["params.d=2.0", "params.attach=corners"])] + _optional("bridge", ["params.n_deck=8"])
+
+
+@pytest.mark.parametrize("scene,overrides", PASSIVE, ids=[s for s, _ in PASSIVE])
+def test_passive_forces_match(scene, overrides):
+    """Joint springs (with non-zero rest: MjSpec's default unit for springref is degrees), joint
+    dampers and spring tendons: MuJoCo's qfrc_passive equals our applied forces at a random state."""
+    from redmax_ros.bench.mujoco_export import export
+    m = Simulator.load(scene, overrides).mech
+    ex = export(m, 1e-3)
+    rng = np.random.default_rng(2)
+    q = pin.integrate(m.model, m.q0, 0.05 * rng.normal(size=m.nv))
+    v = 0.2 * rng.normal(size=m.nv)
+    d = ex.make_data()
+    d.qpos[:] = ex.qpos(q)
+    d.qvel[:] = ex.qvel(q, v)
+    mujoco.mj_forward(ex.model, d)
+    f = baselines.applied_force(m, m.model.createData(), q, v)
+    fj = ex.vel_map(q).T @ d.qfrc_passive
+    assert np.abs(f - fj).max() <= 1e-9 * max(1.0, float(np.abs(f).max()))

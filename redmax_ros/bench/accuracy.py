@@ -438,6 +438,52 @@ def _print_headline(hl):
                   f"{('x %.3g' % r) if r else ''}")
 
 
+def markdown(acc: dict | None, stab: dict | None) -> str:
+    """Tables for docs/benchmarks.md from the JSON results (``--markdown``)."""
+    out = []
+    if acc:
+        cases = acc["cases"]
+        for eps in (1e-2, ERROR_TARGET, 1e-6):
+            hl = headline(cases, eps)
+            meths = [m for m in M.METHODS if any(m in row for row in hl.values())]
+            out.append(f"\nCPU time per simulated second [ms] at error <= {eps:g} (x: ratio to ours (direct); "
+                       "-: never reached on the h grid; n/a: not applicable)\n")
+            out.append("| case | " + " | ".join(meths) + " |")
+            out.append("|---" * (len(meths) + 1) + "|")
+            for cname, row in hl.items():
+                cells = []
+                for m in meths:
+                    if m not in row:
+                        cells.append("n/a")
+                        continue
+                    c, r = row[m][TIME_KEY], row[m]["ratio_to_ours"]
+                    cells.append("-" if c is None else f"{c * 1e3:.3g}" + (f" (x{r:.2g})" if r else ""))
+                out.append(f"| {cname} | " + " | ".join(cells) + " |")
+        out.append("\nReferences\n")
+        out.append("| case | reference | h_ref [s] | halving difference | error measure |")
+        out.append("|---|---|---|---|---|")
+        for cname, rec in cases.items():
+            r = rec["reference"]
+            out.append(f"| {cname} | {r['method']} | {r['h']:g} | {r['halving_diff']:.1e} | {rec['error_measure']} |")
+    if stab:
+        for sname, res in stab["sweeps"].items():
+            out.append(f"\nLargest stable h [s] against {sname} [{res['unit']}] ({res['what']}, {res['T']:g} s)\n")
+            out.append("| method | " + " | ".join(f"{v:g}" for v in res["values"]) + " |")
+            out.append("|---" * (len(res["values"]) + 1) + "|")
+            for mname, mres in res["methods"].items():
+                cells = []
+                for row in mres["rows"]:
+                    if not row["applicable"]:
+                        cells.append("n/a")
+                        continue
+                    fails = [t for t in row["tried"] if t["status"] != "stable"]
+                    first = fails[-1]["status"] if fails else ""
+                    hm = row["h_max"]
+                    cells.append(("< 1e-5" if hm is None else f"{hm:g}") + (f" ({first} above)" if first else ""))
+                out.append(f"| {mname} | " + " | ".join(cells) + " |")
+    return "\n".join(out)
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog="redmax_bench accuracy", description=__doc__.splitlines()[0])
     ap.add_argument("--only", choices=["verify", "work", "stability"], nargs="+")
@@ -446,7 +492,10 @@ def main(argv=None) -> int:
     ap.add_argument("--sweeps", nargs="+", default=None, help=f"stability sweeps (known: {', '.join(SWEEPS)})")
     ap.add_argument("--quick", action="store_true", help="smoke run: 2 cases, 3 steps each, stability over 1 s")
     ap.add_argument("--charts-only", action="store_true")
+    ap.add_argument("--markdown", action="store_true", help="print the tables of docs/benchmarks.md from the JSON results")
     ap.add_argument("--no-chart", action="store_true")
+    ap.add_argument("--merge", action="store_true",
+                    help="update only the cases/methods run in the existing accuracy.json (and stability.json)")
     a = ap.parse_args(argv)
     what = set(a.only or ["verify", "work", "stability"])
     cases = a.cases or list(M.CASES)
@@ -458,6 +507,11 @@ def main(argv=None) -> int:
         if m not in M.METHODS:
             ap.error(f"unknown method '{m}' (known: {', '.join(M.METHODS)})")
     rd = results_dir()
+    if a.markdown:
+        load = [json.loads((rd / f"{n}.json").read_text()) if (rd / f"{n}.json").exists() else None
+                for n in ("accuracy", "stability")]
+        print(markdown(*load))
+        return 0
     if a.charts_only:
         for name, fn in (("accuracy", lambda d: chart_work(d["cases"], "accuracy")),
                          ("stability", lambda d: chart_stability(d["sweeps"]))):
@@ -476,6 +530,14 @@ def main(argv=None) -> int:
         write_json("accuracy_verify", {"mujoco_export": ver})
     if "work" in what:
         res = work_precision(cases, meths)
+        if a.merge and (rd / "accuracy.json").exists():
+            old = json.loads((rd / "accuracy.json").read_text())["cases"]
+            for cname, rec in res.items():
+                if cname in old:
+                    old[cname]["methods"].update(rec["methods"])
+                    rec = {**rec, "methods": old[cname]["methods"]}
+                old[cname] = rec
+            res = old
         hl = headline(res)
         _print_headline(hl)
         hl6 = headline(res, 1e-6)
@@ -494,6 +556,14 @@ def main(argv=None) -> int:
             sw = {k: {**v, "values": v["values"][::2]} for k, v in sw.items()}
         sm = [m for m in STAB_METHODS if m in meths]
         st = stability(sw, sm, T=1.0 if a.quick else 5.0)
+        if a.merge and (rd / "stability.json").exists():
+            old = json.loads((rd / "stability.json").read_text())["sweeps"]
+            for k, v in st.items():
+                if k in old:
+                    old[k]["methods"].update(v["methods"])
+                else:
+                    old[k] = v
+            st = old
         p = write_json("stability", {"sweeps": st, "quick": a.quick})
         print("wrote", p)
         if not a.no_chart:

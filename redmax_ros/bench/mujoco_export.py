@@ -12,8 +12,10 @@ What maps to what:
     damping and springlength = rest length (MuJoCo applies tendon stiffness explicitly);
   * loops -> ``connect`` equality constraints between the two sites (3 rows; the redundant
     out-of-plane row of a planar loop is absorbed by MuJoCo's soft-constraint regularisation),
-    with solref = (2 h, 1), the stiffest MuJoCo recommends;
-  * couplings -> ``joint`` equality constraints q_k = (r_k / r_1) q_1;
+    with solref = (2 h, 1), the stiffest MuJoCo recommends, and impedance 0.9999 (HARD_SOLIMP);
+  * couplings -> ``joint`` equality constraints q_k = (r_k / r_1) q_1 (same solref/solimp);
+  * angles in radians (``compiler.degree = False``: MjSpec's default is degrees for springref and
+    ranges);
   * constant joint torques -> qfrc_applied, constant wrenches -> xfrc_applied (at the COM).
 Velocities differ only for free joints (MuJoCo: world-frame linear velocity; Pinocchio: local)
 and planar joints; ``Export.vel_map(q)`` is the matrix T with qvel = T v_pinocchio, so that
@@ -34,6 +36,9 @@ try:  # benchmark-only dependency
 except ImportError:  # pragma: no cover - exercised when the bench extra is missing
     mujoco = None
 
+# Equality constraints as hard as MuJoCo allows: impedance 0.9999 (MuJoCo's default 0.9-0.95 lets
+# the heavy bridge deck sag ~4 cm at its loop and caps the accuracy at 4e-2).
+HARD_SOLIMP = [0.9999, 0.9999, 0.001, 0.5, 2.0]
 INTEGRATORS = {"euler": "mjINT_EULER", "implicitfast": "mjINT_IMPLICITFAST", "rk4": "mjINT_RK4"}
 
 
@@ -140,6 +145,7 @@ def export(mech, h: float = 1e-3, integrator: str = "implicitfast", loop_solref=
     model = mech.model
     spec = mujoco.MjSpec()
     spec.modelname = mech.spec.name
+    spec.compiler.degree = False  # angles (springref, ranges) in radians, as everywhere in the project
     spec.option.timestep = h
     spec.option.gravity = np.asarray(model.gravity.linear, float)
     spec.option.integrator = getattr(mujoco.mjtIntegrator, INTEGRATORS[integrator])
@@ -213,10 +219,11 @@ def export(mech, h: float = 1e-3, integrator: str = "implicitfast", loop_solref=
         t.wrap_site(site_names[a])
         t.wrap_site(site_names[b_])
     sr = [2.0 * h, 1.0] if loop_solref is None else list(loop_solref)
+    si = HARD_SOLIMP
     for name, (a, b_), P in zip(mech.loop_names, mech.loop_ab, mech.loop_axes):
         e = spec.add_equality(name=f"loop:{name}", type=mujoco.mjtEq.mjEQ_CONNECT, objtype=mujoco.mjtObj.mjOBJ_SITE,
                               name1=site_names[a], name2=site_names[b_])
-        e.solref = sr
+        e.solref, e.solimp = sr, si
         if len(P) < 3:
             notes.append(f"loop '{name}': {len(P)} rows exported as a 3-row connect (redundant row regularised)")
     for c in mech.spec.couplings:
@@ -227,7 +234,7 @@ def export(mech, h: float = 1e-3, integrator: str = "implicitfast", loop_solref=
             data = np.zeros(len(e.data))
             data[1] = float(r) / float(c.ratios[0])
             e.data = data
-            e.solref = sr
+            e.solref, e.solimp = sr, si
     mjm = spec.compile()
     joints = []
     for kind, names, iq, nq, iv, nv in jinfo:
