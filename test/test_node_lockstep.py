@@ -399,3 +399,29 @@ def test_lockstep_is_deterministic(fresh):
         fresh.wait_for(lambda: len(fresh.joint_states) >= 24, what="24 states")
         runs.append([(tuple(js.position), tuple(js.velocity), tuple(js.effort)) for js in fresh.joint_states[:24]])
     assert runs[0] == runs[1]
+
+
+def test_solver_stats_while_subscribed(client, fresh):
+    """solver_stats is built only while someone listens (or it is logged): one per step then."""
+    from rclpy.qos import QoSProfile, ReliabilityPolicy
+    from redmax_msgs.msg import SolverStats
+
+    c = client
+    assert c.step(3).result.result == Result.OK  # nobody listens: nothing to check, nothing breaks
+    got = []
+    sub = c.node.create_subscription(SolverStats, f"{NS}/solver_stats", got.append,
+                                     QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE))
+    try:
+        pub = [p for p in c.node.get_publishers_info_by_topic(f"{NS}/solver_stats")]
+        assert pub, "solver_stats has no publisher"
+        end = time.monotonic() + 20
+        while c.node.count_subscribers(f"{NS}/solver_stats") == 0 and time.monotonic() < end:
+            time.sleep(0.01)
+        time.sleep(0.2)  # the node's publisher matches us too
+        r = c.step(5)
+        assert r.result.result == Result.OK
+        c.wait_for(lambda: len(got) >= 5, what="5 solver_stats")
+        assert [m.step for m in got[-5:]] == [4, 5, 6, 7, 8]
+        assert all(m.solver and m.iterations >= 1 and math.isfinite(m.residual) for m in got[-5:])
+    finally:
+        c.node.destroy_subscription(sub)

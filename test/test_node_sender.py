@@ -92,3 +92,22 @@ def test_close_publishes_what_is_queued_then_falls_back(nodes):
         time.sleep(0.01)
     with lock:
         assert [v for _, v in got] == [f"x{i}" for i in range(50)] + ["after"]
+
+
+def test_inline_keeps_order_with_what_was_queued(nodes):
+    pa, _, got, lock = nodes
+    with lock:
+        got.clear()
+    s = Sender()
+    for i in range(100):
+        s.send(pa, serialize_message(String(data=f"q{i}")), wake=False)
+    with s.inline():  # drains the queue, then publishes in this thread
+        for i in range(20):
+            s.send(pa, serialize_message(String(data=f"i{i}")))
+    s.send(pa, serialize_message(String(data="after")))
+    s.close()
+    end = time.monotonic() + 20
+    while len(got) < 121 and time.monotonic() < end:
+        time.sleep(0.01)
+    with lock:
+        assert [v for _, v in got] == [f"q{i}" for i in range(100)] + [f"i{i}" for i in range(20)] + ["after"]

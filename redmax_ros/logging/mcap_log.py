@@ -430,6 +430,10 @@ class McapLogger:
     def topics(self):
         return dict(self._topics)
 
+    def logs(self, topic: str) -> bool:
+        """Whether messages written for ``topic`` are recorded (declared and allowed)."""
+        return topic in self._topics
+
     def _set_error(self, e: BaseException):
         if self.error is None:
             self.error = e

@@ -359,9 +359,16 @@ class RedmaxNode(Node):
         if site_forces or self._last_pf_nonempty:
             self._send_bytes(self.pub_pf, serialize_message(self.msgs.point_forces(t, site_forces)), False)
             self._last_pf_nonempty = bool(site_forces)
-        if diag is not None:
+        if diag is not None and self._stats_wanted():
             self._send_bytes(self.pub_stats, self.stats_enc.encode(t, step_index, diag), False)
         self._sender.wake()
+
+    def _stats_wanted(self):
+        """solver_stats costs ~25 us a step (the KKT residual is evaluated for it): built only while
+        someone subscribes or it is logged."""
+        lg = self.logger_mcap
+        return (lg is not None and lg.logs(self._topic_names[self.pub_stats])) or \
+            self.pub_stats.get_subscription_count() > 0
 
     def markers(self, t, poses, springs):
         self._send(self.pub_markers, markers_msg(t, poses, springs, self.frame_id))
@@ -422,8 +429,9 @@ class RedmaxNode(Node):
         return Result(result=int(out.code), error_message=out.message if out.code != eng.OK else "")
 
     def _srv_step(self, req, resp):
-        out = self._guard(lambda: self.engine.step(req.steps))
-        self._sender.drain()  # the states of these steps are out before the answer
+        with self._sender.inline():  # publish in this thread: the answer waits for the states anyway
+            out = self._guard(lambda: self.engine.step(req.steps))
+        self._sender.drain()  # steps run by the simulation thread (it was busy): their states are out too
         resp.result = self._result(out)
         resp.completed_steps = int(out.steps)
         resp.sim_time = time_msg(out.t if out.t else self.engine.sim.time)
