@@ -1,6 +1,6 @@
 """redmax_bench accuracy: work-precision charts and stability maps (issue 6).
 
-    redmax_bench accuracy                       # everything: verify, work-precision, stability (~1 h on 2 cores)
+    redmax_bench accuracy                       # everything: verify, work-precision, stability (~45 min on 2 cores)
     redmax_bench accuracy --only verify         # MuJoCo export check (M, g, a few steps at tiny h)
     redmax_bench accuracy --only work --cases pendulum fourbar
     redmax_bench accuracy --only stability --quick
@@ -108,7 +108,7 @@ _maybe_bridge()
 
 CHART_TITLES = {
     "conservative": "conservative (pendulum, chain): joint error",
-    "stiff": "stiff springs (mass_springs, k = 1e2 .. 1e6): joint error",
+    "stiff": "stiff springs (mass_springs, k = 1e2 .. 1e8, slow swing from equilibrium): joint error",
     "loop": "loop (fourbar): joint error",
     "hybrid": "hybrid dynamics (hand): required elbow torque error",
     "bridge": "bridge small (maximal springs + loop): joint error",
@@ -479,7 +479,10 @@ def markdown(acc: dict | None, stab: dict | None) -> str:
                     fails = [t for t in row["tried"] if t["status"] != "stable"]
                     first = fails[-1]["status"] if fails else ""
                     hm = row["h_max"]
-                    cells.append(("< 1e-5" if hm is None else f"{hm:g}") + (f" ({first} above)" if first else ""))
+                    if hm is None and first == "timeout":
+                        cells.append(f"< {fails[-2]['h']:g}, unresolved (run budget)" if len(fails) > 1 else "unresolved")
+                        continue
+                    cells.append((f"< {H_GRID[-1]:g}" if hm is None else f"{hm:g}") + (f" ({first} above)" if first else ""))
                 out.append(f"| {mname} | " + " | ".join(cells) + " |")
     return "\n".join(out)
 

@@ -445,9 +445,9 @@ def run_mujoco(problem, h, integrator, energy_cap=None, budget=None):
         run.wall += time.perf_counter() - t0
         run.cpu += time.process_time() - c0
         run.steps += rec.n_sub
-        bad = int(d.warning[mujoco.mjtWarning.mjWARN_BADQACC].number)
-        if bad:
-            return run.fail("blow-up", f"MuJoCo: bad qacc (mjWARN_BADQACC) at t = {d.time:.4g} s; state reset")
+        for w in ("mjWARN_BADQPOS", "mjWARN_BADQVEL", "mjWARN_BADQACC"):  # MuJoCo resets the state on these
+            if int(d.warning[getattr(mujoco.mjtWarning, w)].number):
+                return run.fail("blow-up", f"MuJoCo: {w} (state reset to qpos0) before t = {d.time:.4g} s")
         q = ex.q(d.qpos)
         v = ex.v(q, d.qvel)
         E = baselines.mechanical_energy(mech, data, q, v) if np.all(np.isfinite(v)) else float("nan")
