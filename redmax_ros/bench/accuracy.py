@@ -464,7 +464,8 @@ def markdown(acc: dict | None, stab: dict | None) -> str:
         out.append("|---|---|---|---|---|")
         for cname, rec in cases.items():
             r = rec["reference"]
-            out.append(f"| {cname} | {r['method']} | {r['h']:g} | {r['halving_diff']:.1e} | {rec['error_measure']} |")
+            measure = rec["error_measure"].replace("|", "\\|")
+            out.append(f"| {cname} | {r['method']} | {r['h']:g} | {r['halving_diff']:.1e} | {measure} |")
     if stab:
         for sname, res in stab["sweeps"].items():
             out.append(f"\nLargest stable h [s] against {sname} [{res['unit']}] ({res['what']}, {res['T']:g} s)\n")
