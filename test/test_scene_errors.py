@@ -47,3 +47,10 @@ def test_unknown_scene_name_lists_known_scenes():
 def test_bad_overrides_are_scene_errors(override, text):
     with pytest.raises(SceneError, match=text):
         Simulator.load("chain", [override])
+
+
+def test_numeric_strings_are_numbers_in_builder_params():
+    """YAML 1.1 reads 1e3 as a string; builders get numbers."""
+    from redmax_ros.core import Simulator as S
+    sim = S.load("chain", ["params.joint_stiffness=1e3", "params.n=2"])
+    assert sim.mech.stiffness.tolist() == [1000.0, 1000.0]

@@ -289,6 +289,7 @@ def _expand_builder(raw, source):
     params = raw.pop("params", {}) or {}
     if not isinstance(params, dict):
         raise SceneError(source, "params", "must be a mapping")
+    params = {k: _numeric_deep(v) for k, v in params.items()}  # '1e3' (YAML 1.1 string) -> 1000.0
     try:
         built = BUILDERS[name](dict(params))
     except SceneError:
@@ -308,6 +309,11 @@ def _expand_builder(raw, source):
 
 # ----------------------------------------------------------------------------------------------
 # validation
+
+
+def _numeric_deep(x):
+    """_numeric on a value, or on every item of a list."""
+    return [_numeric_deep(v) for v in x] if isinstance(x, list) else _numeric(x)
 
 
 def _numeric(x):
