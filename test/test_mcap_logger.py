@@ -216,3 +216,71 @@ os.kill(os.getpid(), signal.SIGKILL)
     assert summary is not None and summary.statistics.message_count == 1100
     got = _read_rosbags(path, "/joint_states")
     assert len(got) == 1000
+
+
+def test_file_layout_indexes_and_crcs(tmp_path):
+    """Our MCAP writer against the spec, record by record: every MessageIndex entry points at a
+    message of that channel and log time inside its (decompressed) chunk, every ChunkIndex at its
+    Chunk and MessageIndex records, Statistics match, the chunk and summary CRCs hold; and the
+    non-seeking reader agrees with the indexed one."""
+    import struct
+    import zlib
+
+    import zstandard
+    from mcap.reader import NonSeekingReader, SeekingReader
+    from mcap.records import Chunk, ChunkIndex, Footer, Statistics
+    from mcap.stream_reader import StreamReader
+
+    lg = _logger(tmp_path, chunk_size=8_000)
+    _write(lg, 700)
+    lg.close()
+    path = lg.files[0]
+    raw = path.read_bytes()
+    n_chunks, chunk_indexes, stats, footer = 0, [], None, None
+    with open(path, "rb") as f:
+        for rec in StreamReader(f, emit_chunks=True).records:
+            if isinstance(rec, Chunk):
+                n_chunks += 1
+            elif isinstance(rec, ChunkIndex):
+                chunk_indexes.append(rec)
+            elif isinstance(rec, Statistics):
+                stats = rec
+            elif isinstance(rec, Footer):
+                footer = rec
+    assert len(chunk_indexes) == n_chunks > 3 and stats.chunk_count == n_chunks
+    n_indexed = 0
+    for ci in chunk_indexes:
+        op, length = struct.unpack_from("<BQ", raw, ci.chunk_start_offset)
+        assert op == 0x06 and 9 + length == ci.chunk_length
+        start, end, usize, ucrc = struct.unpack_from("<QQQI", raw, ci.chunk_start_offset + 9)
+        clen = struct.unpack_from("<I", raw, ci.chunk_start_offset + 37)[0]
+        comp = raw[ci.chunk_start_offset + 41:ci.chunk_start_offset + 41 + clen].decode()
+        dlen = struct.unpack_from("<Q", raw, ci.chunk_start_offset + 41 + clen)[0]
+        body = raw[ci.chunk_start_offset + 49 + clen:ci.chunk_start_offset + 49 + clen + dlen]
+        data = zstandard.ZstdDecompressor().decompress(body, max_output_size=usize) if comp == "zstd" else body
+        assert len(data) == usize == ci.uncompressed_size and zlib.crc32(data) == ucrc
+        assert (start, end) == (ci.message_start_time, ci.message_end_time)
+        assert ci.message_index_offsets
+        total = 0
+        for cid, off in ci.message_index_offsets.items():
+            op, length = struct.unpack_from("<BQ", raw, off)
+            ch, rlen = struct.unpack_from("<HI", raw, off + 9)
+            assert op == 0x07 and ch == cid and rlen == length - 6
+            total += 9 + length
+            for k in range(rlen // 16):
+                t, o = struct.unpack_from("<QQ", raw, off + 15 + 16 * k)
+                mop, _ = struct.unpack_from("<BQ", data, o)
+                mch, _, mt = struct.unpack_from("<HIQ", data, o + 9)
+                assert mop == 0x05 and mch == cid and mt == t and start <= t <= end
+                n_indexed += 1
+        assert total == ci.message_index_length
+    assert n_indexed == stats.message_count == 770
+    # summary CRC as the spec defines it
+    summary = raw[footer.summary_start:len(raw) - 8 - 29]
+    head = struct.pack("<BQQQ", 0x02, 20, footer.summary_start, footer.summary_offset_start)
+    assert zlib.crc32(head, zlib.crc32(summary)) == footer.summary_crc
+    with open(path, "rb") as f:
+        indexed = [(c.topic, m.log_time, m.data) for _, c, m in SeekingReader(f).iter_messages(log_time_order=False)]
+    with open(path, "rb") as f:
+        streamed = [(c.topic, m.log_time, m.data) for _, c, m in NonSeekingReader(f).iter_messages()]
+    assert len(indexed) == 770 and sorted(indexed) == sorted(streamed)

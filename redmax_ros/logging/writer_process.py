@@ -1,9 +1,9 @@
 """The MCAP writer process behind ``McapLogger(writer="process")`` (not for direct use).
 
 Started by the logger as ``python -m redmax_ros.logging.writer_process '<json config>'``. Reads
-frames from stdin (``[kind u8][length u32][payload]``: topic registrations, messages with their
-topic index and times, flush requests, close) and writes them with
-:class:`redmax_ros.logging.mcap_log._FileSession`. Reports JSON lines on stdout: ``opened`` (a
+records from stdin shaped like MCAP records (``[opcode u8][length u64][content]``): Message
+records ready to be copied into chunks, and control records (topic registration, flush request,
+close), and writes them with :class:`redmax_ros.logging.mcap_log._FileSession`. Reports JSON lines on stdout: ``opened`` (a
 new file), ``written`` (messages written so far, at most every 0.2 s), ``flushed`` (a flush
 request is done), ``error``, and finally ``closed``.
 
@@ -20,8 +20,7 @@ import signal
 import sys
 import time
 
-from redmax_ros.logging.mcap_log import (_FRAME, _MSG_FIELDS, K_CLOSE, K_FLUSH, K_MESSAGE, K_TOPIC, _FileSession,
-                                         _Topic)
+from redmax_ros.logging.mcap_log import _FRAME, K_CLOSE, K_FLUSH, K_MESSAGE, K_TOPIC, _FileSession, _Topic
 
 REPORT_EVERY = 0.2  # s between 'written' reports
 
@@ -58,24 +57,27 @@ def main(argv=None) -> int:
                     done = True
                 buf += data
             pos, n = 0, len(buf)
-            while n - pos >= 5:
+            while n - pos >= 9:
+                pos = sess.add_records(buf, pos, n)  # the bulk: ready-made Message records
+                if n - pos < 9:
+                    break
                 kind, length = _FRAME.unpack_from(buf, pos)
-                end = pos + 5 + length
+                end = pos + 9 + length
                 if end > n:
                     break
-                if kind == K_MESSAGE:
-                    index, log_time, pub_time = _MSG_FIELDS.unpack_from(buf, pos + 5)
-                    sess.add(index, log_time, bytes(buf[pos + 23:end]), pub_time)
-                elif kind == K_TOPIC:
-                    sess.register(_Topic.from_json(buf[pos + 5:end]))
+                if kind == K_MESSAGE:  # complete but not taken by add_records: cannot happen
+                    raise RuntimeError("message record left unconsumed")
+                if kind == K_TOPIC:
+                    sess.register(_Topic.from_json(buf[pos + 9:end]))
                 elif kind == K_FLUSH:
                     sess.flush()
-                    report(flushed=int.from_bytes(buf[pos + 5:end], "little"), written=sess.written)
+                    report(flushed=int.from_bytes(buf[pos + 9:end], "little"), written=sess.written)
                 elif kind == K_CLOSE:
                     done = True
+                    pos = end
                     break
                 else:
-                    raise ValueError(f"unknown frame kind {kind}")
+                    raise ValueError(f"unknown record kind 0x{kind:02x}")
                 pos = end
             if pos:
                 del buf[:pos]
