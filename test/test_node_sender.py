@@ -111,3 +111,32 @@ def test_inline_keeps_order_with_what_was_queued(nodes):
         time.sleep(0.01)
     with lock:
         assert [v for _, v in got] == [f"q{i}" for i in range(100)] + [f"i{i}" for i in range(20)] + ["after"]
+
+
+def test_back_pressure_bounds_the_queue():
+    """A DDS write that blocks (slow reliable reader) must not let the queue grow without bound:
+    the producer waits (GIL released) until it is half empty; nothing is lost, order is kept."""
+    import ctypes
+
+    out, longest = [], [0]
+
+    class _Pub:  # stands in for an rclpy publisher: only handle.pointer is used
+        class handle:
+            pointer = 1234
+
+    s = None
+
+    def slow_publish(ptr, msg_ref, _):
+        m = msg_ref._obj
+        out.append(ctypes.string_at(m.buffer, m.buffer_length))
+        longest[0] = max(longest[0], len(s._q))
+        time.sleep(0.002)
+        return 0
+
+    s = Sender(max_queue=20, rcl=(slow_publish, None, None))
+    for i in range(200):
+        s.send(_Pub, f"m{i}".encode())
+    assert s.drain(timeout=10)
+    s.close()
+    assert out == [f"m{i}".encode() for i in range(200)]
+    assert longest[0] <= 21 and s.waits > 0

@@ -81,15 +81,19 @@ class Sender:
     ``on_error(text)`` is called (from the publisher thread) for a failed publish while
     ``context_ok()`` is true; during shutdown failures are dropped silently."""
 
-    def __init__(self, context_ok=lambda: True, on_error=None, threaded=None):
+    def __init__(self, context_ok=lambda: True, on_error=None, threaded=None, max_queue=256, rcl=None):
         if threaded is None:
             threaded = os.environ.get("REDMAX_PUBLISH_THREAD", "1") != "0"
         self._context_ok = context_ok
         self._on_error = on_error
-        self._rcl = _rcl_publish() if threaded else None
+        # rcl: (publish, get_error_string, reset_error) as from _rcl_publish(); injectable for tests
+        self._rcl = (rcl or _rcl_publish()) if threaded else None
         self.threaded = self._rcl is not None
+        self.max_queue = int(max_queue)
         self.published = 0
         self.failed = 0
+        self.waits = 0  # times a sender waited for room in the queue (DDS slower than the producer)
+        self._producers_waiting = 0
         self._handles = {}
         self._q = collections.deque()
         self._lock = threading.Lock()
@@ -117,8 +121,27 @@ class Sender:
         with self._lock:
             self._q.append((ptr, data))
             self._queued += 1
-        if wake and not self._wake.is_set():  # appended before the check: the consumer clears, then drains
+            full = len(self._q) > self.max_queue
+        if full:
+            self._wait_for_room()
+        elif wake and not self._wake.is_set():  # appended before the check: the consumer clears, then drains
             self._wake.set()
+
+    def _wait_for_room(self):
+        """Back-pressure: a DDS write can block (a reliable writer whose history is full of
+        unacknowledged samples waits for a slow reader). The queue must not grow without bound
+        meanwhile (memory, and every later message, diagnostics included, would be late): the
+        producer waits, without the GIL, until the queue is half empty, as it waited inside a
+        synchronous publish before. Other Python threads (services) keep running."""
+        self.waits += 1
+        self._wake.set()
+        with self._idle:
+            self._producers_waiting += 1
+            try:
+                while len(self._q) > self.max_queue // 2 and self._thread is not None and self._thread.is_alive():
+                    self._idle.wait(1.0)
+            finally:
+                self._producers_waiting -= 1
 
     def inline(self):
         """Context manager: this thread's messages are published right away in this thread, with
@@ -189,6 +212,11 @@ class Sender:
                     self._failure(ret, get_err, reset_err)
                 else:
                     done += 1
+                if self._producers_waiting and len(q) <= self.max_queue // 2:
+                    self.published += done
+                    done = 0
+                    with idle:
+                        idle.notify_all()
             if done:
                 self.published += done
             with idle:
