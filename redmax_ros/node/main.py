@@ -375,6 +375,8 @@ class RedmaxNode(Node):
 
     def diagnostics(self, values, ok, message):
         level = DiagnosticStatus.OK if ok else DiagnosticStatus.WARN
+        values["publish_backlog"] = self._sender.backlog
+        values["publish_waits"] = self._sender.waits
         if self.logger_mcap is not None:
             values["log_backlog"] = self.logger_mcap.backlog
             values["log_messages_written"] = self.logger_mcap.written

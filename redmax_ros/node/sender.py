@@ -143,6 +143,11 @@ class Sender:
             finally:
                 self._producers_waiting -= 1
 
+    @property
+    def backlog(self) -> int:
+        """Messages waiting for the publisher thread."""
+        return len(self._q)
+
     def inline(self):
         """Context manager: this thread's messages are published right away in this thread, with
         rclpy as before the publisher thread existed. For a caller that waits for them anyway (the
