@@ -1,15 +1,30 @@
-"""redmax_bench node: the ROS node's latency, per-step service overhead and real-time factor.
+"""redmax_bench node: the ROS node's latency, per-step service overhead, real-time factor and the
+cost of MCAP logging.
 
-The node runs as a subprocess (``python -m redmax_ros.node.main``), the client is this process
-(rclpy over Fast DDS, private domain unless ROS_DOMAIN_ID is set, localhost discovery).
+The machine is shared (2 cores here), so every section interleaves what it compares, repeats it
+and reports medians with the 1-minute load average at the time. Clients are this process (rclpy
+over Fast DDS, private domain unless ROS_DOMAIN_ID is set, localhost discovery), spun by rclpy's
+EventsExecutor when available; joint_states are taken raw (no Python deserialization per
+message) so the client measures the node rather than its own decoding.
 
-(a) command-to-state latency: free-run at h = 1 ms, real-time factor 1, joint_states every step;
-    publish an elbow velocity command with a fresh value and time until the first joint_states
-    carrying that velocity arrives.
-(b) lockstep step-service round trip for one step vs the core stepping in-process (same scene):
-    overhead per step = round trip - core step.
-(c) real-time factor reached in free-run as fast as possible (real_time_factor 0), joint_states
-    every step with a subscriber attached, with and without MCAP logging, for each scene.
+(a) command-to-state latency: node subprocess in free-run at h = 1 ms, real-time factor 1,
+    joint_states every step; publish an elbow velocity command with a fresh value and time until
+    the first joint_states carrying that velocity arrives.
+(b) lockstep step_simulation(steps=1) round trip, in blocks interleaved with the same number of
+    in-process core steps (same scene) and of calls to do-nothing servers of the same service type
+    (the rclpy floor: one spun by a MultiThreadedExecutor, one by the EventsExecutor, the
+    executor that serves our step_simulation): overhead per step = round trip - core step.
+(c) real-time factor in free-run as fast as possible (real_time_factor 0), joint_states every
+    step with a subscriber attached, node subprocess per run, logging off/on alternated, for each
+    scene; RTF from the node's /diagnostics (median over 1 s windows, start-up window dropped).
+(d) logging cost in one process: one in-process node (hand, free-run as fast as possible,
+    joint_states every step, a raw subscriber in another process), switched per window between:
+    off; logging with the writer process (the default); logging with the same MCAP writer on a
+    thread of this interpreter (writer='thread'); off but solver_stats built every step as if
+    subscribed (logging records solver_stats, whose KKT residual costs ~20 us a step, so this
+    separates the writer's cost from the cost of producing what it records). Order rotated each
+    round; medians of steps/s, of per-round ratios, of process CPU per step and of the writer
+    process's CPU per step.
 
 Writes bench/results/node.json.
 """
@@ -17,7 +32,10 @@ from __future__ import annotations
 
 import argparse
 import os
+import resource
+import signal
 import statistics
+import struct
 import subprocess
 import sys
 import tempfile
@@ -28,53 +46,92 @@ os.environ.setdefault("ROS_DOMAIN_ID", str(101 - os.getpid() % 20))
 os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
 
 
+def _load():
+    return round(os.getloadavg()[0], 2)
+
+
+def _median(xs):
+    xs = [x for x in xs if x is not None]
+    return statistics.median(xs) if xs else None
+
+
+def _f(x, digits=2):
+    return "n/a" if x is None else f"{x:.{digits}f}"
+
+
 def _start_node(ns, params: dict):
     cmd = [sys.executable, "-m", "redmax_ros.node.main", "--ros-args", "-r", f"__ns:={ns}"]
     for k, v in params.items():
         cmd += ["-p", f"{k}:={v}"]
-    return subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    err = tempfile.TemporaryFile(mode="w+")  # a pipe nobody reads could fill up and stall the node
+    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=err, text=True)
+    proc.err_file = err
+    return proc
 
 
-def _stop_node(proc):
-    import signal
+def _stderr_tail(proc, n=2000):
+    try:
+        proc.err_file.seek(0)
+        return proc.err_file.read()[-n:]
+    except (AttributeError, OSError, ValueError):
+        return ""
+
+
+def _stop(proc):
     if proc.poll() is None:
         proc.send_signal(signal.SIGINT)
         try:
             proc.wait(30)
         except subprocess.TimeoutExpired:
             proc.kill()
+            proc.wait()
 
 
-class _Client:
-    def __init__(self, ns, want_states=True):
-        import rclpy
+def _executor():
+    try:
+        from rclpy.experimental import EventsExecutor
+        return EventsExecutor()
+    except ImportError:
         from rclpy.executors import SingleThreadedExecutor
-        from rclpy.node import Node
-        from rclpy.qos import QoSProfile, ReliabilityPolicy
-        from diagnostic_msgs.msg import DiagnosticArray
-        from sensor_msgs.msg import JointState
-        from redmax_msgs.srv import SetSimulationState, StepSimulation
+        return SingleThreadedExecutor()
 
-        self.node = Node("redmax_bench_client", namespace=ns)
-        self.cond = threading.Condition()
-        self.last_js = None
-        self.js_count = 0
-        self.diag = []
-        self.waiting_for = None
-        self.hit_time = None
-        if want_states:
-            self.node.create_subscription(JointState, "joint_states", self._on_js,
-                                          QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE))
-        self.node.create_subscription(DiagnosticArray, "/diagnostics", self._on_diag, 10)
-        self.pub = self.node.create_publisher(JointState, "joint_commands", 10)
-        self.step_cli = self.node.create_client(StepSimulation, "step_simulation")
-        self.state_cli = self.node.create_client(SetSimulationState, "set_simulation_state")
-        self.ex = SingleThreadedExecutor()
-        self.ex.add_node(self.node)
+
+class _JointStates:
+    """Raw joint_states subscription: counts messages and reads one velocity straight from the CDR
+    bytes (offsets from our encoder's layout for the names of the first message)."""
+
+    def __init__(self, node, topic, joint=None, on_message=None):
+        from rclpy.qos import QoSProfile, ReliabilityPolicy
+        from sensor_msgs.msg import JointState
+
+        self.count = 0
+        self.joint = joint
+        self.offset = None
+        self.on_message = on_message
+        self._JointState = JointState
+        node.create_subscription(JointState, topic, self._cb,
+                                 QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE), raw=True)
+
+    def _cb(self, data):
+        now = time.perf_counter()
+        self.count += 1
+        if self.joint is None or self.on_message is None:
+            return
+        if self.offset is None:
+            from rclpy.serialization import deserialize_message
+            from redmax_ros.node.cdr import JointStateEncoder
+            names = list(deserialize_message(data, self._JointState).name)
+            self.offset = JointStateEncoder(names).off[1] + 8 * names.index(self.joint)
+        self.on_message(now, struct.unpack_from("<d", data, self.offset)[0])
+
+
+class _Spinner:
+    def __init__(self, node):
+        self.ex = _executor()
+        self.ex.add_node(node)
         self._stop = False
         self.th = threading.Thread(target=self._spin, daemon=True)
         self.th.start()
-        self._rclpy = rclpy
 
     def _spin(self):
         while not self._stop:
@@ -83,182 +140,474 @@ class _Client:
             except Exception:
                 break
 
-    def _on_js(self, m):
-        now = time.perf_counter()
-        self.js_count += 1
-        w = self.waiting_for
-        if w is not None and self.hit_time is None and len(m.velocity) and abs(m.velocity[0] - w) < 1e-9:
-            self.hit_time = now
-            with self.cond:
-                self.cond.notify_all()
-
-    def _on_diag(self, m):
-        if not m.status or not m.status[0].name.startswith(self.node.get_namespace() + "/"):
-            return  # another simulation node on this ROS graph
-        vals = {kv.key: kv.value for kv in m.status[0].values}
-        self.diag.append((time.monotonic(), vals))
-
-    def wait_ready(self, timeout=30):
-        assert self.step_cli.wait_for_service(timeout_sec=timeout), "node did not come up"
-        end = time.monotonic() + timeout
-        while self.pub.get_subscription_count() == 0:
-            assert time.monotonic() < end
-            time.sleep(0.01)
-
-    def call(self, cli, req, timeout=30):
-        fut = cli.call_async(req)
-        ev = threading.Event()
-        fut.add_done_callback(lambda f: ev.set())
-        if not ev.wait(timeout):
-            raise TimeoutError("service call timed out")
-        return fut.result()
-
     def close(self):
         self._stop = True
         self.th.join(5)
-        self.node.destroy_node()
+        try:
+            self.ex.shutdown()
+        except Exception:
+            pass
 
+
+def _wait_for(pred, timeout, what):
+    end = time.monotonic() + timeout
+    while not pred():
+        if time.monotonic() > end:
+            raise TimeoutError(f"timed out waiting for {what}")
+        time.sleep(0.01)
+
+
+# ------------------------------------------------------------------------------------------------
+# (a) latency
 
 def bench_latency(scene, n, dt):
+    from rclpy.node import Node
     from sensor_msgs.msg import JointState
 
-    ns = "/bench_lat"
+    ns = f"/bench_lat{os.getpid()}"
     proc = _start_node(ns, {"scene": scene, "mode": "free_run", "real_time_factor": 1.0, "dt": dt,
                             "publish_rate": 0.0, "marker_rate": 0.0, "command_timeout": 100.0})
-    c = _Client(ns)
-    lat = []
+    node = Node("redmax_bench_latency", namespace=ns)
+    state = {"want": None, "hit": None}
+    cond = threading.Condition()
+
+    def on_velocity(now, v):
+        w = state["want"]
+        if w is not None and state["hit"] is None and abs(v - w) < 1e-12:
+            with cond:
+                state["hit"] = now
+                cond.notify_all()
+
+    js = _JointStates(node, "joint_states", joint="elbow", on_message=on_velocity)
+    pub = node.create_publisher(JointState, "joint_commands", 10)
+    spin = _Spinner(node)
+    lat, load = [], []
     try:
-        c.wait_ready()
+        _wait_for(lambda: pub.get_subscription_count() > 0 and js.count > 0, 30, "the node")
         time.sleep(1.0)
         for i in range(n):
             v = 0.001 * (i + 1) * (1 if i % 2 else -1)
-            c.hit_time = None
-            c.waiting_for = v
+            state["hit"], state["want"] = None, v
             t0 = time.perf_counter()
-            c.pub.publish(JointState(name=["elbow"] if scene == "hand" else [], velocity=[v]))
-            with c.cond:
-                c.cond.wait_for(lambda: c.hit_time is not None, timeout=2.0)
-            if c.hit_time is not None:
-                lat.append(c.hit_time - t0)
+            pub.publish(JointState(name=["elbow"], velocity=[v]))
+            with cond:
+                cond.wait_for(lambda: state["hit"] is not None, timeout=2.0)
+            if state["hit"] is not None:
+                lat.append(state["hit"] - t0)
+            if i % 20 == 0:
+                load.append(_load())
             time.sleep(0.02)
     finally:
-        c.close()
-        _stop_node(proc)
+        spin.close()
+        node.destroy_node()
+        _stop(proc)
     lat.sort()
     return {"scene": scene, "dt": dt, "samples": len(lat), "requested": n,
             "median_ms": 1e3 * statistics.median(lat) if lat else None,
             "p95_ms": 1e3 * lat[int(0.95 * (len(lat) - 1))] if lat else None,
-            "max_ms": 1e3 * lat[-1] if lat else None}
+            "max_ms": 1e3 * lat[-1] if lat else None, "load": _median(load)}
 
 
-def bench_step_service(scene, n, dt):
+# ------------------------------------------------------------------------------------------------
+# (b) step service vs the core and the rclpy floor
+
+def _floor_server(kind, ns):
+    """A do-nothing step_simulation server (run as a subprocess)."""
+    import rclpy
+    from rclpy.node import Node
     from redmax_msgs.srv import StepSimulation
+
+    rclpy.init()
+    node = Node("redmax_bench_floor", namespace=ns)
+
+    def cb(req, resp):
+        resp.result.result = 1
+        resp.completed_steps = req.steps
+        return resp
+
+    if kind == "mte":
+        from rclpy.callback_groups import ReentrantCallbackGroup
+        from rclpy.executors import MultiThreadedExecutor
+        node.create_service(StepSimulation, "step_simulation", cb, callback_group=ReentrantCallbackGroup())
+        ex = MultiThreadedExecutor(num_threads=4)
+    else:
+        ex = _executor()
+        node.create_service(StepSimulation, "step_simulation", cb)
+    ex.add_node(node)
+    try:
+        while rclpy.ok():
+            ex.spin_once(timeout_sec=0.2)
+    except BaseException:
+        pass
+    return 0
+
+
+class _StepClient:
+    """Calls step_simulation and spins its own executor until the answer (no thread hop)."""
+
+    def __init__(self, ns, name):
+        from rclpy.node import Node
+        from redmax_msgs.srv import StepSimulation
+
+        self.node = Node(name, namespace=ns)
+        self.cli = self.node.create_client(StepSimulation, "step_simulation")
+        self.ex = _executor()
+        self.ex.add_node(self.node)
+        self.req = StepSimulation.Request(steps=1)
+
+    def call(self, timeout=5.0):
+        fut = self.cli.call_async(self.req)
+        self.ex.spin_until_future_complete(fut, timeout_sec=timeout)
+        if not fut.done():
+            raise TimeoutError("step_simulation did not answer")
+        return fut.result()
+
+    def ready(self, warmup=30):
+        assert self.cli.wait_for_service(timeout_sec=30), "server did not come up"
+        done = 0
+        end = time.monotonic() + 60
+        while done < warmup:
+            try:
+                r = self.call(timeout=2.0)
+                assert r.result.result == 1, r.result.error_message
+                done += 1
+            except TimeoutError:  # a request sent before the server matched us is lost: resend
+                assert time.monotonic() < end, "server does not answer"
+
+    def time_calls(self, n):
+        t0 = time.perf_counter()
+        for _ in range(n):
+            self.call()
+        return (time.perf_counter() - t0) / n
+
+    def close(self):
+        try:
+            self.ex.remove_node(self.node)
+            self.ex.shutdown()
+        except Exception:
+            pass
+        self.node.destroy_node()
+
+
+def bench_step_service(scene, n, dt, rounds):
     from redmax_ros.core import Simulator
 
     sim = Simulator.load(scene, overrides=[f"dt={dt}"])
     sim.step(20)
-    t0 = time.perf_counter()
-    for _ in range(n):
-        sim.step(1)
-    core = (time.perf_counter() - t0) / n
-
-    ns = "/bench_step"
-    proc = _start_node(ns, {"scene": scene, "mode": "lockstep", "dt": dt, "publish_rate": 0.0,
-                            "marker_rate": 0.0, "command_timeout": 0.0})
-    c = _Client(ns, want_states=True)
+    pid = os.getpid()
+    ns_node, ns_mte, ns_ev = f"/bench_step{pid}", f"/bench_floor_mte{pid}", f"/bench_floor_ev{pid}"
+    procs = [_start_node(ns_node, {"scene": scene, "mode": "lockstep", "dt": dt, "publish_rate": 0.0,
+                                   "marker_rate": 0.0, "command_timeout": 0.0})]
+    floor = [("floor_mte", ns_mte, "mte"), ("floor_events", ns_ev, "events")]
+    for _, ns, kind in floor:
+        procs.append(subprocess.Popen([sys.executable, "-m", "redmax_ros.bench.node", "_floor_server", kind, ns],
+                                      stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL))
+    clients = {"node": _StepClient(ns_node, "redmax_bench_step")}
+    for key, ns, _ in floor:
+        clients[key] = _StepClient(ns, f"redmax_bench_{key}")
+    rows = {k: [] for k in ("core", "node", "floor_mte", "floor_events", "load")}
     try:
-        c.wait_ready()
-        req = StepSimulation.Request(steps=1)
-        for _ in range(20):
-            c.call(c.step_cli, req)
-        t0 = time.perf_counter()
-        for _ in range(n):
-            r = c.call(c.step_cli, req)
-            assert r.result.result == 1, r.result.error_message
-        rt = (time.perf_counter() - t0) / n
+        for c in clients.values():
+            c.ready()
+        for r in range(rounds):
+            t0 = time.perf_counter()
+            for _ in range(n):
+                sim.step(1)
+            rows["core"].append((time.perf_counter() - t0) / n)
+            for key in ("node", "floor_mte", "floor_events") if r % 2 == 0 else ("floor_events", "floor_mte", "node"):
+                rows[key].append(clients[key].time_calls(n))
+            rows["load"].append(_load())
     finally:
-        c.close()
-        _stop_node(proc)
-    return {"scene": scene, "dt": dt, "steps": n, "core_step_ms": core * 1e3, "service_round_trip_ms": rt * 1e3,
-            "overhead_ms": (rt - core) * 1e3, "overhead_ratio": rt / core}
+        for c in clients.values():
+            c.close()
+        for p in procs:
+            _stop(p)
+    core, rt = _median(rows["core"]), _median(rows["node"])
+    overhead = _median([b - a for a, b in zip(rows["core"], rows["node"])])
+    return {"scene": scene, "dt": dt, "calls_per_block": n, "rounds": rounds,
+            "core_step_ms": 1e3 * core, "service_round_trip_ms": 1e3 * rt, "overhead_ms": 1e3 * overhead,
+            "overhead_ratio": rt / core,
+            "floor_round_trip_ms": {"multi_threaded_executor": 1e3 * _median(rows["floor_mte"]),
+                                    "events_executor": 1e3 * _median(rows["floor_events"])},
+            "blocks_ms": {k: [round(1e3 * x, 4) for x in v] for k, v in rows.items() if k != "load"},
+            "load": _median(rows["load"])}
 
 
-def bench_rtf(scene, seconds, dt, logging):
-    ns = "/bench_rtf"
+# ------------------------------------------------------------------------------------------------
+# (c) free-run real-time factor, node subprocess, logging off/on alternated
+
+def _diag_listener(node, ns):
+    from diagnostic_msgs.msg import DiagnosticArray
+
+    out = []
+
+    def cb(m):
+        if m.status and m.status[0].name.startswith(ns + "/"):  # not another simulation on this graph
+            out.append({kv.key: kv.value for kv in m.status[0].values})
+    node.create_subscription(DiagnosticArray, "/diagnostics", cb, 10)
+    return out
+
+
+def bench_rtf_once(scene, seconds, dt, logging):
+    from rclpy.node import Node
+
+    ns = f"/bench_rtf{os.getpid()}"
     params = {"scene": scene, "mode": "free_run", "real_time_factor": 0.0, "dt": dt, "publish_rate": 0.0,
               "marker_rate": 0.0, "command_timeout": 0.0, "diagnostics_period": 1.0}
     tmp = None
     if logging:
         tmp = tempfile.mkdtemp(prefix="redmax_bench_logs_")
         params["log_path"] = tmp
+    ru0 = resource.getrusage(resource.RUSAGE_CHILDREN)
     proc = _start_node(ns, params)
-    c = _Client(ns, want_states=True)
+    node = Node("redmax_bench_rtf", namespace=ns)
+    js = _JointStates(node, "joint_states")
+    diags = _diag_listener(node, ns)
+    spin = _Spinner(node)
     try:
-        c.wait_ready()
-        end = time.monotonic() + seconds + 1.5
-        while time.monotonic() < end:
-            time.sleep(0.1)
-        diags = [v for _, v in c.diag][1:]  # the first window includes start-up
+        _wait_for(lambda: len(diags) > 0, 60, "the node's diagnostics")
+        n0 = len(diags)
+        want = n0 + 1 + max(1, int(round(seconds)))  # the window that includes start-up is dropped
+        try:
+            _wait_for(lambda: len(diags) >= want, seconds + 30, "diagnostics windows")
+        except TimeoutError:
+            pass  # report what came (a window may be lost on a loaded machine)
+        d = diags[n0 + 1:]
+        load = _load()
+        if proc.poll() is not None:
+            raise RuntimeError(f"the node exited early: {_stderr_tail(proc)}")
     finally:
-        c.close()
-        _stop_node(proc)
-    rtf = [float(v["real_time_factor"]) for v in diags if "real_time_factor" in v]
-    sps = [float(v["steps_per_second"]) for v in diags if "steps_per_second" in v]
-    backlog = [int(float(v.get("log_backlog", 0))) for v in diags]
+        spin.close()
+        node.destroy_node()
+        _stop(proc)
+    ru1 = resource.getrusage(resource.RUSAGE_CHILDREN)
+    steps = int(float(diags[-1]["steps"])) if diags else 0
     size = 0
     if tmp:
         for root, _, files in os.walk(tmp):
             size += sum(os.path.getsize(os.path.join(root, f)) for f in files)
-    return {"scene": scene, "dt": dt, "logging": logging, "windows": len(rtf),
-            "real_time_factor": statistics.median(rtf) if rtf else None,
-            "steps_per_second": statistics.median(sps) if sps else None,
-            "max_log_backlog": max(backlog) if backlog else 0, "log_bytes": size}
+    return {"real_time_factor": _median([float(v["real_time_factor"]) for v in d]),
+            "steps_per_second": _median([float(v["steps_per_second"]) for v in d]), "windows": len(d),
+            "max_log_backlog": max([int(float(v.get("log_backlog", 0))) for v in d] or [0]),
+            "cpu_ms_per_step_incl_startup": 1e3 * ((ru1.ru_utime + ru1.ru_stime) - (ru0.ru_utime + ru0.ru_stime))
+            / max(steps, 1),
+            "joint_states_received": js.count, "log_bytes": size, "load": load}
 
+
+def bench_rtf(scene, seconds, dt, rounds):
+    runs = {False: [], True: []}
+    for r in range(rounds):
+        for logging in (False, True) if r % 2 == 0 else (True, False):
+            runs[logging].append(bench_rtf_once(scene, seconds, dt, logging))
+    out = []
+    for logging, rs in runs.items():
+        out.append({"scene": scene, "dt": dt, "logging": logging, "runs": len(rs),
+                    "real_time_factor": _median([x["real_time_factor"] for x in rs]),
+                    "steps_per_second": _median([x["steps_per_second"] for x in rs]),
+                    "max_log_backlog": max(x["max_log_backlog"] for x in rs),
+                    "cpu_ms_per_step_incl_startup": _median([x["cpu_ms_per_step_incl_startup"] for x in rs]),
+                    "load": _median([x["load"] for x in rs]),
+                    "per_run_rtf": [x["real_time_factor"] for x in rs], "per_run_load": [x["load"] for x in rs]})
+    ratios = [b["real_time_factor"] / a["real_time_factor"] for a, b in zip(runs[False], runs[True])
+              if a["real_time_factor"] and b["real_time_factor"]]
+    slowdown = 1 - _median(ratios) if ratios else None
+    return out, slowdown
+
+
+# ------------------------------------------------------------------------------------------------
+# (d) logging cost inside one node process
+
+def _raw_subscriber(ns):
+    """A raw joint_states subscriber (run as a subprocess for section (d))."""
+    import rclpy
+    from rclpy.node import Node
+
+    rclpy.init()
+    node = Node("redmax_bench_sub", namespace=ns)
+    _JointStates(node, "joint_states")
+    ex = _executor()
+    ex.add_node(node)
+    try:
+        while rclpy.ok():
+            ex.spin_once(timeout_sec=0.2)
+    except BaseException:
+        pass
+    return 0
+
+
+def _cpu_seconds(path):
+    with open(path) as f:
+        s = f.read()
+    fields = s[s.rindex(")") + 2:].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def bench_logging_inprocess(scene, dt, rounds, window, writers=("process", "thread")):
+    from rclpy.executors import MultiThreadedExecutor
+    from rclpy.parameter import Parameter
+
+    from redmax_ros.logging.mcap_log import McapLogger
+    from redmax_ros.node.main import RedmaxNode, _qos_dict, _type_name
+
+    ns = f"/bench_log{os.getpid()}"
+    params = {"scene": scene, "mode": "free_run", "real_time_factor": 0.0, "dt": dt, "publish_rate": 0.0,
+              "marker_rate": 0.0, "command_timeout": 0.0, "diagnostics_period": 1.0}
+    switch = sys.getswitchinterval()
+    sys.setswitchinterval(float(os.environ.get("REDMAX_SWITCH_INTERVAL", "0.0005")))  # as redmax_node does
+    node = RedmaxNode("redmax", namespace=ns,
+                      parameter_overrides=[Parameter(k, value=v) for k, v in params.items()])
+    tmp = tempfile.mkdtemp(prefix="redmax_bench_logab_")
+    loggers = {"off": None}
+    for w in writers:
+        lg = McapLogger(os.path.join(tmp, w), scene, writer=w)
+        for topic, (cls, qos, *_) in list(node._pubs.items()) + list(node._subs.items()):
+            lg.add_topic(topic, _type_name(cls), [_qos_dict(qos)])
+        loggers[w] = lg
+    ex = MultiThreadedExecutor(num_threads=4)
+    ex.add_node(node)
+    stop = threading.Event()
+
+    def spin():
+        while not stop.is_set():
+            ex.spin_once(timeout_sec=0.2)
+    th = threading.Thread(target=spin, daemon=True)
+    th.start()
+    sub = subprocess.Popen([sys.executable, "-m", "redmax_ros.bench.node", "_raw_subscriber", ns],
+                           stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    # "off+stats": not logging, but solver_stats built and published every step as if someone
+    # subscribed. Logging records solver_stats, whose KKT residual costs ~20 us a step; against
+    # this condition the writer's own cost shows, against "off" the whole price of logging.
+    loggers["off+stats"] = None
+    conds = list(loggers)
+    stats_wanted = node._stats_wanted
+    rows = {c: [] for c in conds}
+    try:
+        _wait_for(lambda: node.pub_js.get_subscription_count() > 0, 30, "the subscriber")
+        time.sleep(1.0)
+        e = node.engine
+        child = loggers["process"]._proc.pid if "process" in loggers else None
+        for r in range(rounds):
+            order = conds[r % len(conds):] + conds[:r % len(conds)]
+            for c in order:
+                node.logger_mcap = loggers[c]
+                node._stats_wanted = (lambda: True) if c == "off+stats" else stats_wanted
+                time.sleep(0.3)
+                k0, t0, p0 = e.step_index, time.perf_counter(), time.process_time()
+                w0 = _cpu_seconds(f"/proc/{child}/stat") if child else 0.0
+                time.sleep(window)
+                k1, t1, p1 = e.step_index, time.perf_counter(), time.process_time()
+                w1 = _cpu_seconds(f"/proc/{child}/stat") if child else 0.0
+                n = max(k1 - k0, 1)
+                rows[c].append({"steps_per_second": n / (t1 - t0), "process_cpu_us_per_step": 1e6 * (p1 - p0) / n,
+                                "writer_process_cpu_us_per_step": 1e6 * (w1 - w0) / n if c == "process" else 0.0,
+                                "load": _load()})
+    finally:
+        node.logger_mcap = None
+        node._stats_wanted = stats_wanted
+        stop.set()
+        th.join(5)
+        node.close()
+        for lg in loggers.values():
+            if lg is not None:
+                lg.close()
+        _stop(sub)
+        node.destroy_node()
+        sys.setswitchinterval(switch)
+    out = {"scene": scene, "dt": dt, "rounds": rounds, "window_s": window, "conditions": {}}
+    for c in conds:
+        o = {k: _median([x[k] for x in rows[c]]) for k in rows[c][0]}
+        if c != "off":
+            ratios = [x["steps_per_second"] / y["steps_per_second"] for x, y in zip(rows[c], rows["off"])]
+            o["slowdown"] = 1 - _median(ratios)
+            o["slowdown_per_round"] = [round(1 - q, 4) for q in ratios]
+            o["extra_process_cpu"] = o["process_cpu_us_per_step"] / out["conditions"]["off"]["process_cpu_us_per_step"] - 1
+        if loggers[c] is not None:
+            ratios = [x["steps_per_second"] / y["steps_per_second"] for x, y in zip(rows[c], rows["off+stats"])]
+            o["slowdown_vs_off_with_stats"] = 1 - _median(ratios)
+            o["messages_written"] = loggers[c].written
+            o["messages_handed_over"] = loggers[c].handed_over
+        o["steps_per_second_per_round"] = [round(x["steps_per_second"]) for x in rows[c]]
+        out["conditions"][c] = o
+    return out
+
+
+# ------------------------------------------------------------------------------------------------
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog="redmax_bench node", description=__doc__.split("\n\n")[0])
     ap.add_argument("--scenes", nargs="+", default=["hand", "klann_leg"])
     ap.add_argument("--dt", type=float, default=0.001)
     ap.add_argument("--latency-samples", type=int, default=200)
-    ap.add_argument("--service-steps", type=int, default=500)
-    ap.add_argument("--seconds", type=float, default=6.0, help="free-run duration per RTF measurement")
+    ap.add_argument("--service-steps", type=int, default=100, help="calls per block in (b)")
+    ap.add_argument("--service-rounds", type=int, default=7, help="interleaved blocks in (b)")
+    ap.add_argument("--seconds", type=float, default=5.0, help="free-run duration per RTF run in (c)")
+    ap.add_argument("--rtf-rounds", type=int, default=3, help="runs per scene and logging setting in (c)")
+    ap.add_argument("--log-rounds", type=int, default=12, help="rounds of windows in (d)")
+    ap.add_argument("--log-window", type=float, default=1.5, help="window length [s] in (d)")
+    ap.add_argument("--only", nargs="+", choices=["latency", "service", "rtf", "logging"],
+                    help="run only these sections")
     ap.add_argument("--quick", action="store_true", help="small sample counts (smoke run)")
     ap.add_argument("--no-write", action="store_true", help="do not write bench/results/node.json")
     a = ap.parse_args(argv)
     if a.quick:
-        a.latency_samples, a.service_steps, a.seconds = 30, 100, 3.0
+        a.latency_samples, a.service_steps, a.service_rounds = 30, 50, 2
+        a.seconds, a.rtf_rounds, a.log_rounds, a.log_window = 3.0, 1, 2, 1.0
+    want = set(a.only or ["latency", "service", "rtf", "logging"])
 
     import rclpy
     rclpy.init()
-    out = {"latency": [], "step_service": [], "free_run": []}
+    out = {"load_at_start": list(os.getloadavg()), "cpus": os.cpu_count()}
     try:
-        print(f"(a) command-to-state latency, free-run 1 kHz, {a.latency_samples} commands")
-        r = bench_latency("hand", a.latency_samples, a.dt)
-        out["latency"].append(r)
-        print(f"    hand: median {r['median_ms']:.2f} ms, p95 {r['p95_ms']:.2f} ms, max {r['max_ms']:.2f} ms "
-              f"({r['samples']}/{r['requested']})")
-        print(f"(b) lockstep step_simulation(steps=1) round trip vs in-process core step, {a.service_steps} calls")
-        for sc in a.scenes:
-            r = bench_step_service(sc, a.service_steps, a.dt)
-            out["step_service"].append(r)
-            print(f"    {sc}: core {r['core_step_ms']:.3f} ms, service {r['service_round_trip_ms']:.3f} ms, "
-                  f"overhead {r['overhead_ms']:.3f} ms/step (x{r['overhead_ratio']:.2f})")
-        print(f"(c) free-run real-time factor (as fast as possible), h = {a.dt:g} s, joint_states every step")
-        for sc in a.scenes:
-            for logging in (False, True):
-                r = bench_rtf(sc, a.seconds, a.dt, logging)
-                out["free_run"].append(r)
-                print(f"    {sc:10s} logging {'on ' if logging else 'off'}: RTF {r['real_time_factor']:.2f} "
-                      f"({r['steps_per_second']:.0f} steps/s), max log backlog {r['max_log_backlog']}")
-        for sc in a.scenes:
-            off = [r for r in out["free_run"] if r["scene"] == sc and not r["logging"]][0]
-            on = [r for r in out["free_run"] if r["scene"] == sc and r["logging"]][0]
-            if off["real_time_factor"] and on["real_time_factor"]:
-                slow = 1 - on["real_time_factor"] / off["real_time_factor"]
-                out.setdefault("logging_slowdown", {})[sc] = slow
-                print(f"    {sc}: logging slows free-run by {100 * slow:.1f} %")
+        if "latency" in want:
+            print(f"(a) command-to-state latency, free-run 1 kHz, {a.latency_samples} commands")
+            r = bench_latency("hand", a.latency_samples, a.dt)
+            out["latency"] = [r]
+            print(f"    hand: median {r['median_ms']:.2f} ms, p95 {r['p95_ms']:.2f} ms, max {r['max_ms']:.2f} ms "
+                  f"({r['samples']}/{r['requested']}), load {r['load']}")
+        if "service" in want:
+            print(f"(b) lockstep step_simulation(steps=1) round trip vs in-process core step and the rclpy floor, "
+                  f"{a.service_rounds} x {a.service_steps} calls")
+            out["step_service"] = []
+            for sc in a.scenes:
+                r = bench_step_service(sc, a.service_steps, a.dt, a.service_rounds)
+                out["step_service"].append(r)
+                f = r["floor_round_trip_ms"]
+                print(f"    {sc}: core {r['core_step_ms']:.3f} ms, service {r['service_round_trip_ms']:.3f} ms, "
+                      f"overhead {r['overhead_ms']:.3f} ms/step (x{r['overhead_ratio']:.2f}); do-nothing service "
+                      f"{f['events_executor']:.3f} ms (EventsExecutor), {f['multi_threaded_executor']:.3f} ms "
+                      f"(MultiThreadedExecutor); load {r['load']}")
+        if "rtf" in want:
+            print(f"(c) free-run real-time factor (as fast as possible), h = {a.dt:g} s, joint_states every step, "
+                  f"{a.rtf_rounds} runs each, logging off/on alternated")
+            out["free_run"], out["logging_slowdown"] = [], {}
+            for sc in a.scenes:
+                rs, slow = bench_rtf(sc, a.seconds, a.dt, a.rtf_rounds)
+                out["free_run"] += rs
+                out["logging_slowdown"][sc] = slow
+                for r in rs:
+                    print(f"    {sc:10s} logging {'on ' if r['logging'] else 'off'}: RTF {_f(r['real_time_factor'])} "
+                          f"({_f(r['steps_per_second'], 0)} steps/s; runs {', '.join(_f(x) for x in r['per_run_rtf'])}), "
+                          f"max log backlog {r['max_log_backlog']}, load {r['load']}")
+                if slow is not None:
+                    print(f"    {sc}: logging slows free-run by {100 * slow:.1f} % (median of paired runs)")
+        if "logging" in want:
+            print(f"(d) logging cost in one process (hand), {a.log_rounds} rounds of {a.log_window:g} s windows: "
+                  "off / writer process / writer thread / off with solver_stats built")
+            print("    (the MCAP writer is the same in both logging conditions; writer CPU = the writer process's)")
+            r = bench_logging_inprocess("hand", a.dt, a.log_rounds, a.log_window)
+            out["logging_inprocess"] = r
+            off = r["conditions"]["off"]
+            for c, o in r["conditions"].items():
+                extra = "" if c == "off" else (f", slowdown {100 * o['slowdown']:.1f} %, process CPU "
+                                               f"{100 * o['extra_process_cpu']:+.1f} %")
+                if "slowdown_vs_off_with_stats" in o:
+                    extra += f" (vs off+stats: slowdown {100 * o['slowdown_vs_off_with_stats']:.1f} %)"
+                print(f"    {c:8s}: {o['steps_per_second']:.0f} steps/s, process CPU {o['process_cpu_us_per_step']:.0f} "
+                      f"us/step (writer process {o['writer_process_cpu_us_per_step']:.0f}){extra}, load {o['load']}")
+            del off
     finally:
         rclpy.shutdown()
+    out["load_at_end"] = list(os.getloadavg())
     if not a.no_write:
         from .common import write_json
         p = write_json("node", {"args": vars(a), **out})
@@ -267,4 +616,8 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
+    if len(sys.argv) > 1 and sys.argv[1] == "_floor_server":
+        sys.exit(_floor_server(sys.argv[2], sys.argv[3]))
+    if len(sys.argv) > 1 and sys.argv[1] == "_raw_subscriber":
+        sys.exit(_raw_subscriber(sys.argv[2]))
     sys.exit(main())
