@@ -81,7 +81,7 @@ def test_close_publishes_what_is_queued_then_falls_back(nodes):
     pa, _, got, lock = nodes
     with lock:
         got.clear()
-    s = Sender()
+    s = Sender(threaded=True)
     for i in range(50):
         s.send(pa, serialize_message(String(data=f"x{i}")), wake=False)
     s.close()  # no wake before: close drains anyway
@@ -98,7 +98,7 @@ def test_inline_keeps_order_with_what_was_queued(nodes):
     pa, _, got, lock = nodes
     with lock:
         got.clear()
-    s = Sender()
+    s = Sender(threaded=True)
     for i in range(100):
         s.send(pa, serialize_message(String(data=f"q{i}")), wake=False)
     with s.inline():  # drains the queue, then publishes in this thread
@@ -133,7 +133,7 @@ def test_back_pressure_bounds_the_queue():
         time.sleep(0.002)
         return 0
 
-    s = Sender(max_queue=20, rcl=(slow_publish, None, None))
+    s = Sender(threaded=True, max_queue=20, rcl=(slow_publish, None, None))
     for i in range(200):
         s.send(_Pub, f"m{i}".encode())
     assert s.drain(timeout=10)
