@@ -54,11 +54,16 @@ def client(node):
 def fresh(client):
     """Paused, reset, no commanded prescriptions, collected messages cleared."""
     client.set_state(SimulationState.PAUSED)
+    with client.lock:
+        n0 = len(client.prescribed)
     r = client.call("release")
     assert r.result.result == Result.OK
     assert client.reset().result.result == Result.OK
     client.wait_for(lambda: client.joint_states and client.joint_states[-1].header.stamp.sec == 0
                     and client.joint_states[-1].header.stamp.nanosec == 0, what="reset state")
+    # and the acknowledgements of both on prescribed_joints (one each; another topic than the
+    # states, so they may arrive after them)
+    client.wait_for(lambda: len(client.prescribed) >= n0 + 2, what="release and reset acknowledgements")
     client.clear()
     return client
 

@@ -450,8 +450,7 @@ class RedmaxNode(Node):
 
     def _srv_step(self, req, resp):
         with self._sender.inline():  # publish in this thread: the answer waits for the states anyway
-            out = self._guard(lambda: self.engine.step(req.steps))
-        self._sender.drain()  # steps run by the simulation thread (it was busy): their states are out too
+            out = self._guard(lambda: self.engine.step(req.steps))  # drains what other threads queued
         resp.result = self._result(out)
         resp.completed_steps = int(out.steps)
         resp.sim_time = time_msg(out.t if out.t else self.engine.sim.time)
@@ -496,12 +495,16 @@ class RedmaxNode(Node):
         return self._desc_cache[1]
 
     def _guard(self, fn):
-        """Run a request; any unexpected exception becomes OPERATION_FAILED, the node keeps serving."""
+        """Run a request; any unexpected exception becomes OPERATION_FAILED, the node keeps serving.
+        What the request published (states after reset/load/steps, acknowledgements) is handed to
+        DDS before the answer goes out, as when publishing was synchronous."""
         try:
             return fn()
         except Exception as e:
             self.get_logger().error(f"request failed: {type(e).__name__}: {e}")
             return eng.Outcome(eng.OPERATION_FAILED, f"{type(e).__name__}: {e}", t=self.engine.sim.time)
+        finally:
+            self._sender.drain()
 
     def _act_execute(self, goal_handle):
         n = int(goal_handle.request.steps)
@@ -512,7 +515,6 @@ class RedmaxNode(Node):
             goal_handle.publish_feedback(fb)
 
         out = self._guard(lambda: self.engine.step(n, feedback, lambda: goal_handle.is_cancel_requested))
-        self._sender.drain()
         res = SimulateSteps.Result()
         res.result = self._result(out)
         res.completed_steps = int(out.steps)
