@@ -133,7 +133,7 @@ def test_back_pressure_bounds_the_queue():
         time.sleep(0.002)
         return 0
 
-    s = Sender(threaded=True, max_queue=20, rcl=(slow_publish, None, None))
+    s = Sender(threaded=True, max_queue=20, rcl=(slow_publish, slow_publish, None, None))
     for i in range(200):
         s.send(_Pub, f"m{i}".encode())
     assert s.drain(timeout=10)
