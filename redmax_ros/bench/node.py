@@ -541,7 +541,7 @@ def main(argv=None) -> int:
     ap.add_argument("--service-steps", type=int, default=100, help="calls per block in (b)")
     ap.add_argument("--service-rounds", type=int, default=7, help="interleaved blocks in (b)")
     ap.add_argument("--seconds", type=float, default=5.0, help="free-run duration per RTF run in (c)")
-    ap.add_argument("--rtf-rounds", type=int, default=3, help="runs per scene and logging setting in (c)")
+    ap.add_argument("--rtf-rounds", type=int, default=5, help="runs per scene and logging setting in (c)")
     ap.add_argument("--log-rounds", type=int, default=12, help="rounds of windows in (d)")
     ap.add_argument("--log-window", type=float, default=1.5, help="window length [s] in (d)")
     ap.add_argument("--only", nargs="+", choices=["latency", "service", "rtf", "logging"],

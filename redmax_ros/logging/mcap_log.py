@@ -6,11 +6,12 @@ full definition with its dependencies (``====`` + ``MSG: pkg/Type`` blocks), cha
 ``offered_qos_profiles`` (YAML as rosbag2 writes it), and a summary with a Statistics record.
 
 The caller hands over *already serialized* CDR bytes (the node serializes once and publishes the
-same bytes), so this module needs no rclpy. By default the MCAP work (records, chunks, zstd,
-file I/O: ~25 us of Python per message) runs in a separate writer process
-(``writer_process.py``) fed through a pipe: ``write`` appends the bytes with a small frame header
-to a buffer (~1 us), a sender thread hands the buffer over every ``batch_interval``. The
-interpreter that steps the simulation pays almost nothing (measured in docs/node.md). Files roll
+same bytes), so this module needs no rclpy. By default the MCAP work (chunks, indexes, zstd,
+file I/O) runs in a separate writer process (``writer_process.py``) fed through a pipe: ``write``
+appends the bytes as a finished MCAP Message record to a buffer (~1 us), a sender thread hands
+the buffer over every ``batch_interval``, and the process copies the records into chunks
+(:class:`_McapFile`, ~2-3 us a message). The interpreter that steps the simulation pays almost
+nothing (measured in docs/node.md). Files roll
 over by size or by duration; ``close`` drains everything, so nothing handed to ``write`` before
 ``close`` is lost; if the calling process dies without ``close``, the writer still finishes the
 file (only the last ``batch_interval`` of messages, not yet handed over, is lost).
