@@ -1,4 +1,4 @@
-"""The publisher thread (node/sender.py): order kept across topics, drain, fallback, shutdown."""
+"""node/sender.py: every publish mode keeps order; the publisher thread: drain, inline, back-pressure, shutdown."""
 import os
 import threading
 import time
@@ -53,19 +53,19 @@ def nodes():
     rclpy.shutdown()
 
 
-@pytest.mark.parametrize("threaded", [True, False], ids=["thread", "caller"])
-def test_everything_published_in_order(nodes, threaded):
+@pytest.mark.parametrize("mode", Sender.MODES)
+def test_everything_published_in_order(nodes, mode):
     pa, pb, got, lock = nodes
     with lock:
         got.clear()
-    s = Sender(threaded=threaded)
-    assert s.threaded == threaded
+    s = Sender(mode=mode)
+    assert s.mode == mode and s.threaded == (mode == "thread")
     for i in range(300):
         s.send(pa, serialize_message(String(data=str(i))), wake=i % 3 == 2)
         s.send(pb, encode_clock(float(i)), wake=False)
     s.wake()
     assert s.drain()
-    if threaded:
+    if mode == "thread":
         assert s.published == 600 and s.failed == 0
     end = time.monotonic() + 20
     while len(got) < 600 and time.monotonic() < end:

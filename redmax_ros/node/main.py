@@ -6,8 +6,10 @@ Topics, services, the action, parameters and QoS are documented in docs/node.md.
 
 Threads: an rclpy MultiThreadedExecutor runs subscriptions, services and the action; they hand
 work to the simulation thread (engine.py) in arrival order. The simulation thread publishes: each
-outgoing message is serialized once, published as bytes and the same bytes go to the MCAP logger
-(redmax_ros/logging/mcap_log.py), whose own thread writes the file.
+outgoing message is serialized once, the bytes go to the MCAP logger (redmax_ros/logging/
+mcap_log.py; a separate writer process writes the file), then to DDS (sender.py: by default in the
+calling thread with the GIL released for the write). Commands and step_simulation are served by
+EventsExecutor helper nodes (see _start_inputs).
 """
 from __future__ import annotations
 
@@ -337,8 +339,8 @@ class RedmaxNode(Node):
         self._send_bytes(pub, serialize_message(msg))
 
     def _send_bytes(self, pub, data: bytes, wake=True):
-        """Log first (a message is never lost from the log), then publish the same bytes (on the
-        publisher thread, see sender.py)."""
+        """Log first (a message is never lost from the log), then publish the same bytes (see
+        sender.py for how)."""
         lg = self.logger_mcap
         if lg is not None:
             lg.write(self._topic_names[pub], data)
@@ -529,7 +531,7 @@ class RedmaxNode(Node):
 
     # ------------------------------------------------------------------ shutdown
     def destroy_node(self):
-        self.close()  # the publisher thread must stop before the publishers go
+        self.close()  # the publisher thread (publish mode 'thread') must stop before the publishers go
         super().destroy_node()
 
     def close(self):

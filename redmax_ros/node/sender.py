@@ -1,22 +1,32 @@
-"""Publishing serialized messages off the simulation thread, without the GIL.
+"""How the node hands serialized messages to DDS.
 
-rclpy's ``Publisher.publish(bytes)`` (``publish_raw``) keeps the GIL for the whole DDS write. With
-a subscriber attached, a 1 kB joint_states write through Fast DDS took ~40-60 us of the
-simulation thread per step here, and every other Python thread waited meanwhile. ``Sender``
-hands each message to one publisher thread instead (a deque append, ~1 us for the caller), which
-calls ``rcl_publish_serialized_message`` through ctypes; ctypes releases the GIL for the call, so
-the DDS write overlaps the next step on the other core. Measured in one process, free-run hand,
-joint_states every step, logging on, windows interleaved: +39 % steps/s (median of 8 pairs) and
-simulation-thread CPU 371 -> 293 us/step.
+rclpy's ``Publisher.publish(bytes)`` (``publish_raw``) keeps the GIL for the whole DDS write. A
+write to a subscribed topic costs tens of us, and a write can block for a long time when a
+reliable reader falls behind (seen: ~0.5 s in free-run); with the GIL held, every other Python
+thread of the node (services, commands, diagnostics) freezes meanwhile.
 
-Guarantees kept: one FIFO for all topics, so messages go out in the order they were handed over
-(an acknowledgement on ``prescribed_joints`` before the next step's joint_states); ``drain``
-waits until everything handed over so far is published (the step service and the action call it
-before answering, so "returns when done" still means the states are out); ``close`` drains and
-stops the thread before the publishers may be destroyed.
+``Sender`` calls ``rcl_publish_serialized_message`` through ctypes instead, in one of three modes
+(``REDMAX_PUBLISH_MODE``):
 
-If ctypes cannot find ``librcl`` (or ``REDMAX_PUBLISH_THREAD=0``), ``send`` publishes in the
-caller's thread with rclpy as before.
+* ``direct`` (default): in the calling thread, with the GIL released for a write to a topic with
+  subscribers (held for one without: a few us, and releasing would invite a GIL hand-over);
+* ``thread``: handed to one FIFO publisher thread (a deque append, ~1 us for the caller), so the
+  DDS write overlaps the next step on the other core; the queue is bounded (back-pressure);
+* ``rclpy``: ``Publisher.publish`` in the calling thread, GIL held, as before.
+
+Measured (same process, modes switched per 1.5 s window, hand in free-run as fast as possible,
+joint_states every step to a raw subscriber in another process, medians of 9-10 rounds): at load
+1.1-1.5 the three modes are within +-5 % of each other in steps/s (thread: 0.95-0.98 x rclpy,
+direct: 0.95-0.99 x), with a slower Python subscriber at load ~1.8 the thread mode was 0.86-0.91
+x; an earlier variant of the thread mode measured 1.39 x at load ~3.5. The thread costs a GIL
+hand-over per message with the simulation thread, which eats what the overlap gains unless the
+machine is busy; hence ``direct`` by default: rclpy's throughput, without freezing the node on a
+blocked write.
+
+Guarantees in every mode: messages go out in the order they were handed over (one FIFO in the
+thread mode); ``drain`` waits until everything handed over is published (services and the action
+call it before answering); ``close`` drains and stops the thread before the publishers may be
+destroyed. If ctypes cannot find ``librcl``, the mode falls back to ``rclpy``.
 """
 from __future__ import annotations
 
@@ -80,19 +90,30 @@ def _rcl_publish():
 
 
 class Sender:
-    """``send(publisher, data)`` from any thread; a publisher thread does the DDS writes.
+    """``send(publisher, data)`` from any thread, in one of three modes (``REDMAX_PUBLISH_MODE``):
 
-    ``on_error(text)`` is called (from the publisher thread) for a failed publish while
-    ``context_ok()`` is true; during shutdown failures are dropped silently."""
+    ``direct`` (default): published in the calling thread through ctypes, the GIL released for
+    a write to a topic with subscribers. ``thread``: handed to the publisher thread. ``rclpy``:
+    ``Publisher.publish`` in the calling thread, the GIL held (the node before this module).
 
-    def __init__(self, context_ok=lambda: True, on_error=None, threaded=None, max_queue=256, rcl=None):
-        if threaded is None:
-            threaded = os.environ.get("REDMAX_PUBLISH_THREAD", "1") != "0"
+    ``on_error(text)`` is called for a failed ctypes publish while ``context_ok()`` is true;
+    during shutdown failures are dropped silently."""
+
+    MODES = ("direct", "thread", "rclpy")
+
+    def __init__(self, context_ok=lambda: True, on_error=None, mode=None, max_queue=256, rcl=None, threaded=None):
+        if threaded is not None:  # older spelling: threaded=True/False
+            mode = "thread" if threaded else "rclpy"
+        if mode is None:
+            mode = os.environ.get("REDMAX_PUBLISH_MODE", "direct")
+        if mode not in self.MODES:
+            raise ValueError(f"publish mode must be one of {', '.join(self.MODES)}, got {mode!r}")
         self._context_ok = context_ok
         self._on_error = on_error
-        # rcl: (publish, get_error_string, reset_error) as from _rcl_publish(); injectable for tests
-        self._rcl = (rcl or _rcl_publish()) if threaded else None
-        self.threaded = self._rcl is not None
+        # rcl: (publish releasing the GIL, publish holding it, get_error_string, reset_error) as
+        # from _rcl_publish(); injectable for tests
+        self._rcl = (rcl or _rcl_publish()) if mode != "rclpy" else None
+        self.mode = mode if self._rcl is not None else "rclpy"
         self.max_queue = int(max_queue)
         self.published = 0
         self.failed = 0
@@ -109,15 +130,21 @@ class Sender:
         self._queued = 0  # messages handed to the thread
         self._stop = False
         self._thread = None
-        if self.threaded:
+        if self.mode == "thread":
             self._thread = threading.Thread(target=self._run, name="redmax-publisher", daemon=True)
             self._thread.start()
+
+    @property
+    def threaded(self) -> bool:
+        return self._thread is not None
 
     def send(self, pub, data: bytes, wake=True):
         """Hand over one serialized message. ``wake=False`` leaves the publisher thread asleep
         (the caller sends more right away and wakes it with the last one: one GIL hand-over per
         step instead of one per message)."""
-        if not self.threaded or self._stop or getattr(self._local, "inline", False):
+        if self.mode == "direct" and not self._q:
+            return self._publish_direct(pub, data)
+        if self.mode != "thread" or self._stop or getattr(self._local, "inline", False):
             return self._publish_here(pub, data)
         ptr = self._handles.get(pub)
         if ptr is None:
@@ -132,6 +159,26 @@ class Sender:
             self._wait_for_room()
         elif wake and not self._wake.is_set():  # appended before the check: the consumer clears, then drains
             self._wake.set()
+
+    def _publish_direct(self, pub, data):
+        """Publish in the calling thread through ctypes: the GIL is released for a write to a
+        topic with subscribers (other Python threads run meanwhile; a write that blocks on a
+        slow reader does not freeze them), kept for one without."""
+        fn, held, get_err, reset_err = self._rcl
+        ptr = self._handles.get(pub)
+        if ptr is None:
+            ptr = self._handles[pub] = pub.handle.pointer
+        if not isinstance(data, bytes):
+            data = bytes(data)
+        msg = getattr(self._local, "msg", None)
+        if msg is None:
+            msg = self._local.msg = _SerializedMessage()
+        msg.buffer = ctypes.cast(ctypes.c_char_p(data), ctypes.c_void_p)
+        msg.buffer_length = msg.buffer_capacity = len(data)
+        call = fn if self._subscribed(pub, time.monotonic()) else held
+        ret = call(ptr, ctypes.byref(msg), None)
+        if ret != 0:
+            self._failure(ret, get_err, reset_err)
 
     def _wait_for_room(self):
         """Back-pressure: a DDS write can block (a reliable writer whose history is full of
