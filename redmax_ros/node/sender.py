@@ -9,7 +9,8 @@ thread of the node (services, commands, diagnostics) freezes meanwhile.
 (``REDMAX_PUBLISH_MODE``):
 
 * ``direct`` (default): in the calling thread, with the GIL released for a write to a topic with
-  subscribers (held for one without: a few us, and releasing would invite a GIL hand-over);
+  subscribers; a message on a volatile topic without subscribers is not written at all (it
+  could reach nobody; the log has it anyway);
 * ``thread``: handed to one FIFO publisher thread (a deque append, ~1 us for the caller), so the
   DDS write overlaps the next step on the other core; the queue is bounded (back-pressure);
 * ``rclpy``: ``Publisher.publish`` in the calling thread, GIL held, as before.
@@ -120,6 +121,7 @@ class Sender:
         self.waits = 0  # times a sender waited for room in the queue (DDS slower than the producer)
         self._producers_waiting = 0
         self._handles = {}
+        self._info = {}  # publisher -> (handle, rcl_publisher_t address, volatile)
         self._sub_cache = {}
         self.hold_unsubscribed = True
         self._q = collections.deque()
@@ -144,6 +146,8 @@ class Sender:
         step instead of one per message)."""
         if self.mode == "direct" and not self._q:
             return self._publish_direct(pub, data)
+        if self.mode == "thread" and self._nobody_listens(pub):
+            return None
         if self.mode != "thread" or self._stop or getattr(self._local, "inline", False):
             return self._publish_here(pub, data)
         ptr = self._handles.get(pub)
@@ -165,9 +169,13 @@ class Sender:
         topic with subscribers (other Python threads run meanwhile; a write that blocks on a
         slow reader does not freeze them), kept for one without."""
         fn, held, get_err, reset_err = self._rcl
-        ptr = self._handles.get(pub)
-        if ptr is None:
-            ptr = self._handles[pub] = pub.handle.pointer
+        info = self._info.get(pub)
+        if info is None:
+            info = self._describe(pub)
+        handle, ptr, volatile = info
+        n = handle.get_subscription_count()
+        if n == 0 and volatile:
+            return None  # nobody could ever receive it (see _nobody_listens)
         if not isinstance(data, bytes):
             data = bytes(data)
         msg = getattr(self._local, "msg", None)
@@ -175,8 +183,7 @@ class Sender:
             msg = self._local.msg = _SerializedMessage()
         msg.buffer = ctypes.cast(ctypes.c_char_p(data), ctypes.c_void_p)
         msg.buffer_length = msg.buffer_capacity = len(data)
-        call = fn if self._subscribed(pub, time.monotonic()) else held
-        ret = call(ptr, ctypes.byref(msg), None)
+        ret = (fn if n else held)(ptr, ctypes.byref(msg), None)
         if ret != 0:
             self._failure(ret, get_err, reset_err)
 
@@ -251,6 +258,26 @@ class Sender:
         self._wake.set()
         self._thread.join(timeout)
         self._thread = None
+
+    def _describe(self, pub):
+        from rclpy.qos import DurabilityPolicy
+
+        handle = pub.handle
+        volatile = getattr(pub, "qos_profile", None) is not None and \
+            pub.qos_profile.durability == DurabilityPolicy.VOLATILE
+        info = self._info[pub] = (handle, handle.pointer, volatile)
+        return info
+
+    def _nobody_listens(self, pub) -> bool:
+        """A message on a volatile topic without a matched subscriber reaches nobody, ever (a
+        volatile writer gives late joiners nothing): skip the DDS write (~4 us). Checked on every
+        message (~0.7 us), so a subscriber that has matched gets everything from then on, as
+        DDS would deliver it. Transient-local topics are always written (their last message
+        is kept for late joiners). The MCAP log is written before and independently."""
+        info = self._info.get(pub)
+        if info is None:
+            info = self._describe(pub)
+        return info[2] and info[0].get_subscription_count() == 0
 
     def _subscribed(self, pub, now) -> bool:
         """Whether ``pub`` has subscribers (refreshed every 0.1 s)."""
