@@ -142,6 +142,17 @@ class Extras:
                              "remove the dependent ones")
 
     # ------------------------------------------------------------------------------------------
+    # state hooks
+    def at_state(self, mech, q, t=0.0):
+        """Make the configuration-dependent parts of ``mech`` those of configuration q at time t (called by
+        Simulator.reset/set_state): J_rR = mech.T of the mapped joints (Eq. 2.88) is refreshed in place at q,
+        so that mech.to_reduced and everything else reading T between steps sees the state's J_rR, not
+        that of the last stepped configuration."""
+        self.t = t
+        if self.maps is not None:
+            self.maps.refresh(mech.T, q)
+
+    # ------------------------------------------------------------------------------------------
     # step hooks
     def begin(self, mech, state):
         """Start of a step: time of the explicit loads; J_rR at the current coordinates."""

@@ -94,6 +94,8 @@ class Simulator:
         """Initial state, t = 0, the scene's default prescriptions, no applied torques or forces."""
         m = self.mech
         self.state = State(0.0, m.q0.copy(), m.v0.copy())
+        if m.extras is not None:  # J_rR of spline/exp joints back at q0 (it is refreshed in place by steps)
+            m.extras.at_state(m, self.state.q, 0.0)
         self.commands = Commands(
             joint_velocities={k: np.array(v, float) for k, v in self.spec.prescribed_joints.items()},
             site_velocities={k: np.array(v, float) for k, v in self.spec.prescribed_sites.items()},
@@ -104,6 +106,8 @@ class Simulator:
 
     def set_state(self, state: State) -> None:
         self.state = state
+        if self.mech.extras is not None:  # configuration-dependent J_rR at the new configuration
+            self.mech.extras.at_state(self.mech, state.q, state.t)
 
     def joint_positions(self) -> np.ndarray:
         return self.state.q.copy()
