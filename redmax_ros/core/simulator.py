@@ -13,6 +13,7 @@ import numpy as np
 from .errors import CommandError, StepError
 from .mechanism import Mechanism, compile_scene
 from .scene import SceneSpec, load_scene
+from .dof_positions import DofPositions
 from .data_free import PIN_DATA_MAX_NV, all_site_positions, body_poses
 from .matrix_free import make_backend
 from .stepper import Commands, State, StepResult
@@ -64,6 +65,7 @@ class SceneDescription:
     loops: list
     springs: list
     dt: float
+    dof_positions: object = None  # dof_positions.DofPositions: one position per velocity DOF (joint_states)
 
 
 class Simulator:
@@ -232,6 +234,7 @@ class Simulator:
             prescribable_joints=list(m.prescribable_joints), prescribable_sites=list(m.prescribable_sites),
             couplings=[Coupling(c.name, list(c.joints), c.ratios.tolist()) for c in self.spec.couplings],
             loops=list(m.loop_names), springs=list(m.spring_names), dt=self.dt,
+            dof_positions=DofPositions.from_model(m.model),
         )
 
     def body_poses(self) -> dict:
