@@ -158,31 +158,10 @@ class SceneInfo:
             else:
                 for k in range(nv):
                     self.dof_index[f"{j}[{k}]"] = (j, k)
-        # joint_states positions: per velocity DOF, q itself when the joint's nq == nv; a planar
-        # joint (q = x, y, cos, sin) reports x, y, angle; other joints with nq != nv report NaN
-        self.position_map = []  # for each velocity DOF: index into q or -1
-        self.planar = []  # (first velocity DOF, first q index) of planar joints
-        iq = 0
-        for jt, nq, nv in zip(d.joint_types, d.joint_nq, d.joint_nv):
-            first = len(self.position_map)
-            for k in range(nv):
-                self.position_map.append(iq + k if nq == nv else -1)
-            if jt == "planar" and nq == 4 and nv == 3:
-                self.planar.append((first, iq))
-            iq += nq
-        self.position_map = np.array(self.position_map, dtype=int)
-        self.has_nan_positions = bool((self.position_map < 0).any())
-
-    def positions(self, q):
-        q = np.asarray(q)
-        if not self.has_nan_positions:
-            return q if len(self.position_map) == len(q) else q[self.position_map]
-        out = np.full(len(self.position_map), np.nan)
-        ok = self.position_map >= 0
-        out[ok] = q[self.position_map[ok]]
-        for i, j in self.planar:
-            out[i], out[i + 1], out[i + 2] = q[j], q[j + 1], np.arctan2(q[j + 3], q[j + 2])
-        return out
+        # joint_states positions, one per velocity DOF (core/dof_positions.py): q itself when nq == nv;
+        # quaternion rotations (spherical, free, free3d) as roll, pitch, yaw; planar as x, y, angle
+        from redmax_ros.core.dof_positions import DofPositions
+        self.positions = DofPositions.from_description(d)
 
 
 def description_msg(info: SceneInfo) -> SceneDescription:
