@@ -17,14 +17,18 @@ def _desc(types, nq, nv):
                            prescribable_sites=[], nq=sum(nq), nv=sum(nv), ndof=sum(nv))
 
 
-def test_positions_planar_angle_and_nan_for_spherical():
-    info = SceneInfo(_desc(["planar", "revolute", "spherical", "universal"], [4, 1, 4, 2], [3, 1, 3, 2]))
-    a = 0.3
-    q = np.array([1.0, 2.0, np.cos(a), np.sin(a), 0.7, 0, 0, 0, 1, 0.1, 0.2])
+def test_positions_planar_angle_and_rpy_for_spherical():
+    """Planar joints report x, y, angle; quaternion joints roll, pitch, yaw (R = Rz Ry Rx), never NaN."""
+    import pinocchio as pin
+    info = SceneInfo(_desc(["planar", "revolute", "spherical", "universal", "free"], [4, 1, 4, 2, 7], [3, 1, 3, 2, 6]))
+    a, rpy = 0.3, np.array([0.2, -0.4, 1.1])
+    quat = pin.Quaternion(pin.rpy.rpyToMatrix(rpy)).coeffs()
+    q = np.concatenate([[1.0, 2.0, np.cos(a), np.sin(a), 0.7], quat, [0.1, 0.2, 3.0, 4.0, 5.0], quat])
     p = info.positions(q)
-    assert len(p) == 9
+    assert len(p) == 15
     assert np.allclose(p[:3], [1.0, 2.0, a]) and p[3] == 0.7
-    assert np.isnan(p[4:7]).all() and np.array_equal(p[7:], [0.1, 0.2])
+    assert np.abs(p[4:7] - rpy).max() < 1e-12 and np.array_equal(p[7:9], [0.1, 0.2])
+    assert np.array_equal(p[9:12], [3.0, 4.0, 5.0]) and np.abs(p[12:] - rpy).max() < 1e-12
     assert info.dof_index["j2[1]"] == ("j2", 1) and info.dof_index["j1"] == ("j1", 0)
 
 
