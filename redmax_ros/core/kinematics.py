@@ -13,6 +13,8 @@ from dataclasses import dataclass
 import numpy as np
 import pinocchio as pin
 
+from .recursive import njit
+
 LWA = pin.ReferenceFrame.LOCAL_WORLD_ALIGNED
 
 
@@ -37,40 +39,33 @@ def site_positions(mech, data, idx=None) -> np.ndarray:
     return out
 
 
-VECTORISE_ABOVE = 6  # sites; measured crossover of per-frame Jacobians vs one vectorised pass
-
-
 def point_jacobians(J6: np.ndarray, X: np.ndarray, support: np.ndarray) -> np.ndarray:
     """(K,3,nv) Jacobians of world points X (K,3) from the WORLD-frame joint Jacobian J6 (6,nv) of
     computeJointJacobians: J_x = J_lin - [x]x J_ang on the DOFs that support each point (Eq. S2.4)."""
-    Jl, Ja = J6[:3], J6[3:]
-    out = np.empty((len(X), 3, J6.shape[1]))
-    x0, x1, x2 = X[:, 0, None], X[:, 1, None], X[:, 2, None]
-    out[:, 0] = Jl[0] - (x1 * Ja[2] - x2 * Ja[1])
-    out[:, 1] = Jl[1] - (x2 * Ja[0] - x0 * Ja[2])
-    out[:, 2] = Jl[2] - (x0 * Ja[1] - x1 * Ja[0])
-    out *= support[:, None, :]
+    return _point_jacobians(np.ascontiguousarray(J6), np.ascontiguousarray(X, dtype=float), support)
+
+
+@njit
+def _point_jacobians(J6, X, support):
+    K, nv = X.shape[0], J6.shape[1]
+    out = np.zeros((K, 3, nv))
+    for k in range(K):
+        x0, x1, x2 = X[k, 0], X[k, 1], X[k, 2]
+        for i in range(nv):
+            if support[k, i]:
+                a0, a1, a2 = J6[3, i], J6[4, i], J6[5, i]
+                out[k, 0, i] = J6[0, i] - (x1 * a2 - x2 * a1)
+                out[k, 1, i] = J6[1, i] - (x2 * a0 - x0 * a2)
+                out[k, 2, i] = J6[2, i] - (x0 * a1 - x1 * a0)
     return out
 
 
 def site_jacobians(mech, data, sites):
     """(X (K,3), J (K,3,nv)) for the listed sites. Needs joint Jacobians in data (computeJointJacobians)."""
-    model, nv = mech.model, mech.nv
-    if len(sites) > VECTORISE_ABOVE:
-        pin.updateFramePlacements(model, data)
-        oMf, fids, local = data.oMf, mech.site_fid, mech.site_local
-        X = np.array([local[s] if fids[s] < 0 else oMf[fids[s]].translation for s in sites])
-        return X, point_jacobians(data.J.reshape(6, nv), X, mech.site_support[sites])
-    X = np.empty((len(sites), 3))
-    J = np.zeros((len(sites), 3, nv))
-    for k, s in enumerate(sites):
-        fid = mech.site_fid[s]
-        if fid < 0:
-            X[k] = mech.site_local[s]
-        else:
-            J[k] = pin.getFrameJacobian(model, data, fid, LWA).reshape(6, nv)[:3]
-            X[k] = data.oMf[fid].translation
-    return X, J
+    pin.updateFramePlacements(mech.model, data)
+    oMf, fids, local = data.oMf, mech.site_fid, mech.site_local
+    X = np.array([local[s] if fids[s] < 0 else oMf[fids[s]].translation for s in sites]).reshape(len(sites), 3)
+    return X, _point_jacobians(data.J.reshape(6, mech.nv), X, mech.site_support[sites])
 
 
 def compute(mech, data, q, v, extra_sites=()) -> Kinematics:

@@ -15,6 +15,7 @@ import proxsuite
 from .constraints import Constraints
 from .errors import StepError
 from .forces import LinearSystem
+from .kkt import SMALL_N, kkt_solve
 
 _SUCCESS = eigenpy.ComputationInfo.Success
 
@@ -28,6 +29,7 @@ class Solution:
     solver: str
     system: LinearSystem | None = None
     cons: Constraints | None = None
+    violation: float = 0.0  # max |G qdot+ - g| of the bilateral rows [m/s, rad/s]
 
     @property
     def residual(self) -> float:
@@ -50,28 +52,50 @@ def _cholesky(A, what):
 
 
 def solve_direct(sys: LinearSystem, cons: Constraints, qp_eps: float = 1e-10) -> Solution:
+    """Eq. (2) with the bilateral rows of Eq. (6)/(7) (Schur complement) and, when the unconstrained
+    solution crosses a joint limit, the QP of Eq. (5). Small systems (n <= kkt.SMALL_N) in one
+    compiled call (kkt.py), larger ones with Eigen's LLT."""
     A, b = sys.A, sys.b
-    llt = _cholesky(A, "the LHS matrix of Eq. (2)")
     n = len(b)
-    v = np.asarray(llt.solve(b)).reshape(n)  # eigenpy may return (1,1) / 1-D shapes for n == 1
-    lam = np.zeros(cons.m)
-    if cons.m:
-        Y = np.asarray(llt.solve(np.ascontiguousarray(cons.G.T))).reshape(n, cons.m)
-        S = cons.G @ Y
-        lls = eigenpy.LLT(S)
-        Ld = lls.matrixL().diagonal() if lls.info() == _SUCCESS else np.zeros(1)
-        if Ld.min() <= 1e-6 * Ld.max():  # singular or nearly so: name the rows
+    if n <= SMALL_N:
+        C = _NO_ROWS if cons.C is None else cons.C
+        status, v, lam, S, ratio, viol, limits_ok = kkt_solve(
+            A, b, cons.G, cons.g, C, _EMPTY if cons.C is None else cons.lo, _EMPTY if cons.C is None else cons.hi)
+        if status == 1:
+            raise StepError("the LHS matrix of Eq. (2) is not positive definite (Cholesky failed)")
+        if status == 2 or ratio <= 1e-6:  # singular or nearly so: name the rows
             _check_rank(S, cons.labels)
-        lam = np.asarray(lls.solve(cons.G @ v - cons.g)).reshape(cons.m)
-        v = v - Y @ lam
-    mu = np.zeros(0 if cons.C is None else len(cons.lo))
+            if status == 2:
+                raise StepError("constraints are redundant or conflicting (Schur complement not positive definite)")
+    else:
+        llt = _cholesky(A, "the LHS matrix of Eq. (2)")
+        v = np.asarray(llt.solve(b)).reshape(n)  # eigenpy may return (1,1) / 1-D shapes for n == 1
+        lam = np.zeros(cons.m)
+        if cons.m:
+            Y = np.asarray(llt.solve(np.ascontiguousarray(cons.G.T))).reshape(n, cons.m)
+            S = cons.G @ Y
+            lls = eigenpy.LLT(S)
+            Ld = lls.matrixL().diagonal() if lls.info() == _SUCCESS else np.zeros(1)
+            if Ld.min() <= 1e-6 * Ld.max():  # singular or nearly so: name the rows
+                _check_rank(S, cons.labels)
+            lam = np.asarray(lls.solve(cons.G @ v - cons.g)).reshape(cons.m)
+            v = v - Y @ lam
+        viol = float(np.abs(cons.G @ v - cons.g).max()) if cons.m else 0.0
+        limits_ok = True
+        if cons.C is not None:
+            Cv = cons.C @ v
+            limits_ok = not ((Cv < cons.lo - 1e-12).any() or (Cv > cons.hi + 1e-12).any())
+    mu = _EMPTY if cons.C is None else np.zeros(len(cons.lo))
     solver, iters = "direct", 1
-    if cons.C is not None:
-        Cv = cons.C @ v
-        if (Cv < cons.lo - 1e-12).any() or (Cv > cons.hi + 1e-12).any():
-            v, lam, mu, iters = _solve_qp(A, b, cons, qp_eps)
-            solver = "qp"
-    return Solution(v, lam, mu, iters, solver, sys, cons)
+    if not limits_ok:
+        v, lam, mu, iters = _solve_qp(A, b, cons, qp_eps)
+        solver = "qp"
+        viol = float(np.abs(cons.G @ v - cons.g).max()) if cons.m else 0.0
+    return Solution(v, lam, mu, iters, solver, sys, cons, viol)
+
+
+_EMPTY = np.zeros(0)
+_NO_ROWS = np.zeros((0, 0))
 
 
 def _check_rank(S, labels):

@@ -148,7 +148,7 @@ def step(mech, data, state: State, cmd: Commands, h: float) -> tuple:
                 site_forces[name] = P.T @ site_forces[name]  # world-frame force of the prescribed rows
     ek, ep, es = energies(mech, data, q_new, v_new)
     viol_pos = stabilization.loop_violation(mech, data)
-    viol_vel = float(np.abs(cons.G @ sol.v - cons.g).max()) if cons.m else 0.0
+    viol_vel = sol.violation if fric is None else (float(np.abs(cons.G @ sol.v - cons.g).max()) if cons.m else 0.0)
     if not math.isfinite(ek + ep + es):
         raise StepError("non-finite energy after the step")
     diag = Diagnostics(ek, ep, es, ek + ep + es, viol_pos, viol_vel, sol.iterations, sol.solver,

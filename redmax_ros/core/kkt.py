@@ -1,0 +1,125 @@
+"""Small dense KKT solve of Eq. (6)/(7) in one compiled call (numba).
+
+    [A  G^T] [qdot+]   [b]
+    [G   0 ] [ lam ] = [g]        A symmetric positive definite (LHS of Eq. 2), G full row rank
+
+by the Schur complement: A = L L^T, Y = A^-1 G^T, S = G Y = L_S L_S^T,
+lam = S^-1 (G A^-1 b - g), qdot+ = A^-1 b - Y lam (sign convention of solve.py: A qdot = b - G^T lam).
+
+For the small systems of hands, legs and short chains (n <= SMALL_N) the NumPy/Eigen route costs
+a dozen interpreter round trips of 1-5 us each while the arithmetic is a few thousand flops; this
+kernel does the factorisations, the triangular solves, the joint-limit feasibility test of Eq. (5)
+and the velocity-level residual max|G qdot+ - g| in one call. Larger systems keep Eigen's blocked
+LLT (solve.py), which is faster from a few dozen DOFs on (measured in docs/architecture.md).
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from .recursive import njit
+
+SMALL_N = 64  # DOFs at or below which solve.solve_direct uses this kernel
+
+
+@njit
+def _cholesky(A, L):
+    """L (n,n) lower-triangular with A = L L^T; returns False when a pivot is not positive."""
+    n = A.shape[0]
+    for j in range(n):
+        s = A[j, j]
+        for k in range(j):
+            s -= L[j, k] * L[j, k]
+        if not s > 0.0:
+            return False
+        d = np.sqrt(s)
+        L[j, j] = d
+        for i in range(j + 1, n):
+            t = A[i, j]
+            for k in range(j):
+                t -= L[i, k] * L[j, k]
+            L[i, j] = t / d
+        for i in range(j):
+            L[i, j] = 0.0
+    return True
+
+
+@njit
+def _chol_solve(L, x):
+    """x <- (L L^T)^-1 x in place."""
+    n = L.shape[0]
+    for i in range(n):
+        s = x[i]
+        for k in range(i):
+            s -= L[i, k] * x[k]
+        x[i] = s / L[i, i]
+    for i in range(n - 1, -1, -1):
+        s = x[i]
+        for k in range(i + 1, n):
+            s -= L[k, i] * x[k]
+        x[i] = s / L[i, i]
+
+
+@njit
+def kkt_solve(A, b, G, g, C, lo, hi):
+    """Returns (status, qdot+ (n,), lam (m,), S (m,m), pivot ratio, max|G qdot+ - g|, limits_ok).
+
+    status: 0 solved, 1 A not positive definite, 2 Schur complement S not positive definite.
+    pivot ratio = min/max diagonal of L_S (small: redundant or conflicting rows, see solve._check_rank).
+    limits_ok: lo - 1e-12 <= C qdot+ <= hi + 1e-12 (no QP needed for the unilateral rows of Eq. 5).
+    """
+    n, m = A.shape[0], G.shape[0]
+    L = np.empty((n, n))
+    v = b.copy()
+    lam = np.zeros(m)
+    S = np.zeros((m, m))
+    if not _cholesky(A, L):
+        return 1, v, lam, S, 0.0, 0.0, False
+    _chol_solve(L, v)
+    ratio, viol = 1.0, 0.0
+    if m:
+        Y = np.empty((n, m))
+        for r in range(m):
+            y = G[r].copy()
+            _chol_solve(L, y)
+            Y[:, r] = y
+        for r in range(m):
+            for c in range(r + 1):
+                s = 0.0
+                for k in range(n):
+                    s += G[r, k] * Y[k, c]
+                S[r, c] = s
+                S[c, r] = s
+        LS = np.empty((m, m))
+        if not _cholesky(S, LS):
+            return 2, v, lam, S, 0.0, 0.0, False
+        dmin, dmax = LS[0, 0], LS[0, 0]
+        for r in range(1, m):
+            d = LS[r, r]
+            dmin = min(dmin, d)
+            dmax = max(dmax, d)
+        ratio = dmin / dmax
+        for r in range(m):
+            s = -g[r]
+            for k in range(n):
+                s += G[r, k] * v[k]
+            lam[r] = s
+        _chol_solve(LS, lam)
+        for k in range(n):
+            s = 0.0
+            for r in range(m):
+                s += Y[k, r] * lam[r]
+            v[k] -= s
+        for r in range(m):
+            s = -g[r]
+            for k in range(n):
+                s += G[r, k] * v[k]
+            viol = max(viol, abs(s))
+    ok = True
+    for r in range(C.shape[0]):
+        s = 0.0
+        for k in range(n):
+            s += C[r, k] * v[k]
+        if s < lo[r] - 1e-12 or s > hi[r] + 1e-12:
+            ok = False
+            break
+    return 0, v, lam, S, ratio, viol, ok
