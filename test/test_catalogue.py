@@ -254,9 +254,9 @@ def test_reset_restores_configuration_dependent_J_rR(scene):
 def test_dof_positions_report_file_values_and_rotations():
     """joint_states positions (dof_positions.py): one finite number per velocity DOF for every catalogue
     scene and the shipped scenes; at load, quaternion joints (spherical, free3d, free, a composite with a
-    spherical part) report exactly the file's q0 (roll, pitch, yaw; 1e-12) and after stepping the
-    reported roll-pitch-yaw reproduces the body rotation (1e-12)."""
-    names = sorted(s for s in list_scenes() if s.startswith("catalogue/")) + ["mass_springs", "klann", "hand"]
+    spherical part) report exactly the file's q0 (roll, pitch, yaw; 1e-12), a planar joint x, y, angle,
+    and after stepping the reported roll-pitch-yaw reproduces the body rotation (1e-12)."""
+    names = sorted(s for s in list_scenes() if s.startswith("catalogue/")) + ["mass_springs", "pendulum", "hand"]
     for name in names:
         sim = Simulator.load(name)
         pos = sim.describe().dof_positions
@@ -266,8 +266,7 @@ def test_dof_positions_report_file_values_and_rotations():
             sim.step(50)
     cases = {"spherical": ("ball", [0.6, 0.3, 0.0]), "free3d": ("free", [0, 0, 1, 0.1, 0.2, 0.3])}
     for scene, (joint, q0) in cases.items():
-        for over in ([], [f"joints.{joint}.type=free"] if scene == "free3d" else []):
-            sim = load(scene, *over)
+        for sim in [load(scene)] + ([pinocchio_free_body()] if scene == "free3d" else []):
             pos, ji = sim.describe().dof_positions, sim.mech.joint_index[joint]
             sl = slice(ji.idx_v, ji.idx_v + ji.nv)
             assert np.abs(pos(sim.state.q)[sl] - q0).max() < 1e-12, scene
@@ -280,6 +279,8 @@ def test_dof_positions_report_file_values_and_rotations():
     d["joints"][0]["q0"], d["joints"][0]["v0"] = [0.5, 0.1, -0.2, 0.3], [0.0, 1.0, 0.5, 0.0]
     sim = sim_from(d, "composite")
     assert np.abs(sim.describe().dof_positions(sim.state.q) - [0.5, 0.1, -0.2, 0.3]).max() < 1e-12
+    sim = load("free2d", "joints.free.type=planar")  # Pinocchio's planar joint: q = (x, y, cos, sin)
+    assert np.abs(sim.describe().dof_positions(sim.state.q) - [0.0, 0.0, 0.3]).max() < 1e-15
 
 
 # ----------------------------------------------------------------------------------------------
@@ -355,25 +356,38 @@ def momentum_drift(sim, n):
 
 
 def test_free3d_momentum_zero_gravity():
-    """Free body in zero gravity: with conserve_momentum the world linear and angular momentum change by
-    < 1e-10 per step (measured ~1e-14). Without it the free3d joint still keeps linear momentum exactly
-    (its linear velocity is the world COM velocity), while the explicit gyroscopic term makes angular
-    momentum drift by O(h^2) per step (ratio ~4 when h halves); Pinocchio's FreeFlyer (body-frame linear
-    velocity) drifts in both."""
-    d = momentum_drift(load("free3d", "joints.free.conserve_momentum=true"), 500)
+    """Free body in zero gravity (issue 7): the shipped scene (conserve_momentum: true) keeps the world
+    linear and angular momentum to < 1e-10 per step (measured ~1e-14) over 2000 steps (2 s). Without
+    the projection (conserve_momentum=false) the free3d joint still keeps linear momentum exactly (its
+    linear velocity is the world COM velocity), while the explicit gyroscopic term makes angular momentum
+    drift by O(h^2) per step (ratio ~4 when h halves; ~1e-7 per step at h = 1e-3); Pinocchio's
+    FreeFlyer (body-frame linear velocity) drifts in both."""
+    sim = load("free3d")
+    assert sim.spec.joints[0].extra.get("conserve_momentum") is True
+    d = momentum_drift(sim, 2000)
     assert d.max() < 1e-10, d
-    d1 = momentum_drift(load("free3d", "dt=0.002"), 100)
-    d2 = momentum_drift(load("free3d", "dt=0.001"), 200)
+    off = "joints.free.conserve_momentum=false"
+    d1 = momentum_drift(load("free3d", off, "dt=0.002"), 100)
+    d2 = momentum_drift(load("free3d", off, "dt=0.001"), 200)
     assert d1[:3].max() < 1e-10 and d2[:3].max() < 1e-10
+    assert d2[3:].max() > 1e-9, d2  # the drift the projection removes
     assert 3.0 < d1[3:].max() / d2[3:].max() < 5.0, (d1, d2)
-    assert momentum_drift(load("free3d", "joints.free.type=free"), 200)[:3].max() > 1e-7
+    assert momentum_drift(pinocchio_free_body(), 200)[:3].max() > 1e-7
+
+
+def pinocchio_free_body():
+    """catalogue/free3d with Pinocchio's FreeFlyer (`free`, body twist; no momentum projection)."""
+    d = raw("free3d")
+    del d["joints"][0]["conserve_momentum"]
+    d["joints"][0]["type"] = "free"
+    return sim_from(d, "free3d")
 
 
 def test_free3d_momentum_projection_with_gravity_and_wrench():
     """With gravity the projected step keeps P_k = P_0 + k h m g exactly, and the timed wrench scene gets
     exactly the impulse of its (explicit, left-rectangle) time functions: P_x = h sum F(t_i),
     L_z = h sum tau(t_i)."""
-    sim = load("free3d", "joints.free.conserve_momentum=true", "gravity=[0,0,-9.81]")
+    sim = load("free3d", "gravity=[0,0,-9.81]")
     m = sum(b.mass for b in sim.spec.bodies)
     P0 = centroidal(sim)[:3]
     sim.step(300)
