@@ -41,74 +41,127 @@ class Constraints:
 
 def loop_rows(mech, X, J):
     """(G_r, phi): loop-closure rows in reduced coordinates and their position residual [m].
-    X, J: Kinematics.X/J (rows in mech.loop_rows_ab)."""
+    X, J: Kinematics.X/J (rows in mech.loop_rows_ab); phi = S (x_a - x_b) with S = mech.loop_select."""
     if not len(mech.loop_ab):
         return np.zeros((0, mech.nv)), np.zeros(0)
-    Gs, phis = [], []
-    for (a, b), P in zip(mech.loop_rows_ab, mech.loop_axes):
-        Gs.append(P @ (J[a] - J[b]))
-        phis.append(P @ (X[a] - X[b]))
-    return np.vstack(Gs), np.concatenate(phis)
+    A, B = mech.loop_rows_ab[:, 0], mech.loop_rows_ab[:, 1]
+    S = mech.loop_select
+    return S @ (J[A] - J[B]).reshape(-1, J.shape[2]), S @ (X[A] - X[B]).reshape(-1)
+
+
+@dataclass
+class RowLayout:
+    """Where each bilateral row of a step goes, for one set of prescribed joints and sites (the rows
+    change only when the set of prescriptions does; cached per set in Mechanism.layout_cache)."""
+    m: int  # rows (without the catalogue's linear joint constraints)
+    spans: list  # (label, rows) in row order
+    loop_rows: slice
+    joint_block: slice  # prescribed joints, contiguous, in command order
+    G_joints: np.ndarray  # their constant rows of J_rR (Eq. 7), stacked
+    joint_rows: dict  # joint -> slice
+    site_block: slice  # prescribed sites
+    site_rows: dict  # site -> slice
+    site_k: tuple  # rows per prescribed site (3, or the number of its axes)
+    site_J_rows: np.ndarray | None = None  # rows of Kinematics.J (flattened (3K,nv)) of the sites, set on first use
+
+
+def row_layout(mech, prescribed_joints, prescribed_sites, axes) -> RowLayout:
+    """The RowLayout for prescribed joints and sites (names, in order); ``axes`` {site: (k,3)}."""
+    key = (tuple(prescribed_joints), tuple(prescribed_sites),
+           tuple(3 if axes.get(n) is None else len(axes[n]) for n in prescribed_sites) if axes else None)
+    lay = mech.layout_cache.get(key)
+    if lay is not None:
+        return lay
+    site_counts = [(n, 3 if axes.get(n) is None else len(axes[n])) for n in prescribed_sites]
+    spans, joint_rows, site_rows = [], {}, {}
+    nl = sum(len(ax) for ax in mech.loop_axes) if len(mech.loop_ab) else 0
+    spans += [(f"loop '{name}'", len(ax)) for name, ax in zip(mech.loop_names, mech.loop_axes)] if nl else []
+    r = nl
+    Gj = [np.zeros((0, mech.ndof))]
+    for name in prescribed_joints:
+        G = mech.joint_rows(name)  # constant rows of J_rR (already projected)
+        Gj.append(G)
+        spans.append((f"prescribed joint '{name}'", len(G)))
+        joint_rows[name] = slice(r, r + len(G))
+        r += len(G)
+    r_sites = r
+    for name, k in site_counts:
+        spans.append((f"prescribed site '{name}'", k))
+        site_rows[name] = slice(r, r + k)
+        r += k
+    lay = RowLayout(r, spans, slice(0, nl), slice(nl, r_sites), np.vstack(Gj), joint_rows,
+                    slice(r_sites, r), site_rows, tuple(k for _, k in site_counts))
+    mech.layout_cache[key] = lay
+    return lay
+
+
+def _stack(vals):
+    """Concatenate the velocity vectors of a dict's values (scalars allowed)."""
+    vals = list(vals)
+    if len(vals) == 1:
+        return vals[0]
+    try:
+        return np.concatenate(vals)
+    except ValueError:  # scalars among them
+        return np.concatenate([np.atleast_1d(np.asarray(x, float)) for x in vals])
 
 
 def build(mech, kin, q, prescribed_joints: dict, prescribed_sites: dict, h: float, site_axes=None) -> Constraints:
     """All constraint rows of this step, in hyper-reduced coordinates. ``site_axes``: {site: (k,3)}
     world directions along which a prescribed site's velocity is imposed (default all three)."""
     T = mech.T
-    rows, rhs, spans = [], [], []
-    r = 0
-    out = Constraints(G=None, g=None, label_spans=spans)
-    if len(mech.loop_ab):
+    axes = site_axes or {}
+    lay = row_layout(mech, prescribed_joints, prescribed_sites, axes)
+    G = np.empty((lay.m, mech.ndof))
+    g = np.empty(lay.m)
+    if lay.loop_rows.stop:
         G_loop, _ = loop_rows(mech, kin.X, kin.J)
-        spans += [(f"loop '{name}'", len(ax)) for name, ax in zip(mech.loop_names, mech.loop_axes)]
-        rows.append(G_loop if T is None else G_loop @ T)
-        rhs.append(np.zeros(len(G_loop)))
-        r = len(G_loop)
-        out.loop_rows = slice(0, r)
-    for name, vel in prescribed_joints.items():
-        Gj = mech.joint_rows(name)  # constant rows of J_rR (already projected)
-        rows.append(Gj)
-        rhs.append(vel)
-        spans.append((f"prescribed joint '{name}'", len(Gj)))
-        out.joint_rows[name] = slice(r, r + len(Gj))
-        r += len(Gj)
-    if prescribed_sites and not site_axes:
-        Js = kin.J[[kin.row[mech.site_index[n]] for n in prescribed_sites]].reshape(-1, mech.nv)
-        rows.append(Js if T is None else Js @ T)
-        for name, vel in prescribed_sites.items():
-            rhs.append(vel)
-            spans.append((f"prescribed site '{name}'", 3))
-            out.site_rows[name] = slice(r, r + 3)
-            r += 3
-    elif prescribed_sites:
-        for name, vel in prescribed_sites.items():
-            Js = kin.J[kin.row[mech.site_index[name]]]
-            P = site_axes.get(name)
-            if P is not None:
-                Js, vel = P @ Js, P @ vel
-            rows.append(Js if T is None else Js @ T)
-            rhs.append(vel)
-            spans.append((f"prescribed site '{name}'", len(Js)))
-            out.site_rows[name] = slice(r, r + len(Js))
-            r += len(Js)
+        G[lay.loop_rows] = G_loop if T is None else G_loop @ T
+        g[lay.loop_rows] = 0.0
+    if prescribed_joints:
+        G[lay.joint_block] = lay.G_joints
+        g[lay.joint_block] = _stack(prescribed_joints.values())
+    if prescribed_sites:
+        if axes:
+            Js = kin.J[[kin.row[mech.site_index[n]] for n in prescribed_sites]]  # (s,3,nv)
+            for k, (name, vel) in enumerate(prescribed_sites.items()):
+                P = axes.get(name)
+                sl = lay.site_rows[name]
+                rows = Js[k] if P is None else P @ Js[k]
+                G[sl] = rows if T is None else rows @ T
+                g[sl] = vel if P is None else P @ vel
+        else:  # all three directions: the sites' rows of J (their order in kin is fixed per site set)
+            if lay.site_J_rows is None:
+                rows = np.array([kin.row[mech.site_index[n]] for n in prescribed_sites])
+                lay.site_J_rows = (3 * rows[:, None] + np.arange(3)).reshape(-1)
+            Js = kin.J.reshape(-1, mech.nv)[lay.site_J_rows]
+            if T is None:
+                G[lay.site_block] = Js
+            else:
+                np.matmul(Js, T, out=G[lay.site_block])
+            g[lay.site_block] = _stack(prescribed_sites.values())
+    spans = lay.spans
     if mech.extras is not None and mech.extras.has_rows:  # linear joint constraints, G_r (catalogue.py)
         G_l, g_l, sp = mech.extras.rows(mech)
-        rows.append(G_l)
-        rhs.append(g_l)
-        spans += sp
-        r += len(G_l)
-    if r:
-        out.G = np.vstack(rows) if len(rows) > 1 else rows[0]
-        out.g = np.concatenate(rhs) if len(rhs) > 1 else np.asarray(rhs[0], float)
-    else:
-        out.G, out.g = mech.no_rows, _EMPTY
+        G, g, spans = np.vstack([G, G_l]), np.concatenate([g, g_l]), spans + sp
+    out = Constraints(G=G, g=g, label_spans=spans, joint_rows=lay.joint_rows, site_rows=lay.site_rows,
+                      loop_rows=lay.loop_rows)
     if len(mech.limited):
         out.C = mech.limit_rows
+        lower, upper = _limit_bounds(mech)
         ql = q[mech.limited_q]
-        out.lo = (mech.lower[mech.limited] - ql) / h
-        out.hi = (mech.upper[mech.limited] - ql) / h
+        out.lo = (lower - ql) / h
+        out.hi = (upper - ql) / h
         out.C_labels = mech.limit_labels
     return out
+
+
+def _limit_bounds(mech):
+    """(lower, upper) of the limited DOFs [rad, m] (constant; cached)."""
+    b = mech.layout_cache.get("limit bounds")
+    if b is None:
+        b = mech.layout_cache["limit bounds"] = (mech.lower[mech.limited], mech.upper[mech.limited])
+    return b
 
 
 _EMPTY = np.zeros(0)

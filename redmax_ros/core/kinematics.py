@@ -60,23 +60,38 @@ def _point_jacobians(J6, X, support):
     return out
 
 
+def _site_set(mech, sites):
+    """(frame ids, DOF support (K,nv)) of a list of sites, cached per list in mech.site_cache."""
+    key = ("sites", *sites)
+    hit = mech.site_cache.get(key)
+    if hit is None:
+        hit = mech.site_cache[key] = ([int(mech.site_fid[s]) for s in sites],
+                                      np.ascontiguousarray(mech.site_support[list(sites)]))
+    return hit
+
+
 def site_jacobians(mech, data, sites):
     """(X (K,3), J (K,3,nv)) for the listed sites. Needs joint Jacobians in data (computeJointJacobians)."""
     pin.updateFramePlacements(mech.model, data)
-    oMf, fids, local = data.oMf, mech.site_fid, mech.site_local
-    X = np.array([local[s] if fids[s] < 0 else oMf[fids[s]].translation for s in sites]).reshape(len(sites), 3)
-    return X, _point_jacobians(data.J.reshape(6, mech.nv), X, mech.site_support[sites])
+    fids, support = _site_set(mech, sites)
+    oMf, local = data.oMf, mech.site_local
+    X = np.array([oMf[f].translation if f >= 0 else local[s] for f, s in zip(fids, sites)]).reshape(len(sites), 3)
+    return X, _point_jacobians(data.J.reshape(6, mech.nv), X, support)
 
 
 def compute(mech, data, q, v, extra_sites=()) -> Kinematics:
     """All quantities of the current configuration the step needs (one Pinocchio pass + frames)."""
     nv = mech.nv
     pin.computeAllTerms(mech.model, data, q, v)
-    sites = mech.jac_sites
+    sites, row = mech.jac_sites, mech.jac_row
     if extra_sites:
-        sites = sites + [s for s in extra_sites if s not in mech.jac_row]
+        key = ("extra", *extra_sites)
+        hit = mech.site_cache.get(key)
+        if hit is None:
+            s2 = sites + [s for s in dict.fromkeys(extra_sites) if s not in mech.jac_row]
+            hit = mech.site_cache[key] = (s2, {s: k for k, s in enumerate(s2)})
+        sites, row = hit
     X, J = site_jacobians(mech, data, sites)
-    row = mech.jac_row if len(sites) == len(mech.jac_sites) else {s: k for k, s in enumerate(sites)}
     return Kinematics(M=data.M.reshape(nv, nv), nle=data.nle.reshape(nv), sites=sites, row=row, X=X, J=J)
 
 

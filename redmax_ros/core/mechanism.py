@@ -85,6 +85,8 @@ class Mechanism:
     diag_cache: dict = field(default_factory=dict)  # h -> diag(h D_r + h^2 K_r)
     has_stiffness: bool = False
     row_cache: dict = field(default_factory=dict)  # prescribed joint -> constant constraint rows
+    layout_cache: dict = field(default_factory=dict)  # prescription set -> constraints.RowLayout
+    site_cache: dict = field(default_factory=dict)  # site lists -> kinematics frame ids, support, rows
     loop_select: np.ndarray | None = None  # (rows, 3L) block-diagonal loop axes: phi = S (x_a - x_b)
     has_armature: bool = False
     no_rows: np.ndarray | None = None  # (0, ndof): G when there are no bilateral rows
