@@ -219,17 +219,17 @@ def test_bisp_affine_map_matches_newton_euler_pass():
     Sinv = np.linalg.inv(cons.G @ Y)
     P = Ainv - Y @ Sinv @ Y.T
     v0 = P @ b + Y @ (Sinv @ cons.g)
-    cs = detect(m, fm, data, h)
+    ws, _ = bisp.body_frames(fm, st.q, v_r)
+    cs = detect(m, fm, ws, h)
     assert cs is not None and len(cs.keys) >= 2
     U = cs.N
-    Tr = np.vstack([cs.T, fm.rows_fixed, loop_friction_rows(m, fm, data)])
+    Tr = np.vstack([cs.T, fm.rows_fixed, loop_friction_rows(m, fm, ws)])
     nu, nf, nc = len(U), len(Tr), len(cs.keys)
     RX = np.vstack([U, -Tr])
     lam0, LamX = Sinv @ (Y.T @ b - cons.g), Sinv @ (Y.T @ RX.T)
+    a0, Mx = bisp.linear_alphas(m, fm, kin, st.q, v_r, h, v0, P @ RX.T, lam0, LamX, cs, nu, nf, cons)
     ext = bisp.ExternalForces(m, data)
     fx_static = bisp.static_external(m, kin, ext, data).copy()
-    a0, Mx = bisp.linear_alphas(m, fm, data, kin, st.q, v_r, h, v0, P @ RX.T, lam0, LamX, fx_static, cs, nu, nf,
-                                cons, None, ext)
     rng = np.random.default_rng(1)
     alpha, beta = rng.uniform(0, 0.05, nu), rng.uniform(-0.01, 0.01, nf)
     x = np.concatenate([alpha, beta])

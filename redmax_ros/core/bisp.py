@@ -15,6 +15,13 @@ data.f[j] the wrench joint j transmits to its subtree (joint frame). Its constra
 distributed over the implicit contact points by the constant local operator of Eq. (16) built in
 contact.compile_friction; the loop-closing pins get their reaction straight from lambda.
 
+In the step the whole map is compiled (numba) and affine in the staggered unknowns x = [alpha_U; beta]
+(linear_wrenches): the same Newton-Euler pass in the world frame at the origin (recursive.py's
+convention) on the FrictionModel's own kinematics workspace (body_frames), giving W = W0 + Wx x per
+frictional joint; each staggered iteration then needs only W and alpha_j = h L_j W_j. ExternalForces,
+static_external and joint_alphas are the direct Pinocchio evaluation (one RNEA with fext per iterate)
+kept as the test reference.
+
 Deviation (stated): the implicit (h D_m, h^2 K_m) corrections of maximal springs and body damping
 are not in f_ext (their explicit values at q are); they change the joint normal forces by O(h).
 """
@@ -22,6 +29,9 @@ from __future__ import annotations
 
 import numpy as np
 import pinocchio as pin
+from numba import njit
+
+from . import recursive as rc
 
 
 class ExternalForces:
@@ -85,15 +95,6 @@ def joint_alphas(mech, fm, data, q, v_prev_r, v_con_r, h, fx_local, loop_force):
     return h * np.einsum("jkl,jl->jk", fm.L, W)
 
 
-def subtree_matrix(mech, jids):
-    """(len(jids), njoints) 0/1: Pinocchio joint i is in the subtree of joint j (body i hangs below j)."""
-    model = mech.model
-    Sub = np.zeros((len(jids), model.njoints))
-    for r, j in enumerate(jids):
-        Sub[r, list(model.subtrees[int(j)])] = 1.0
-    return Sub
-
-
 def _cross(a, b, axis=-1):
     """a x b along ``axis`` (np.cross without its per-call overhead; broadcasting)."""
     a0, a1, a2 = np.take(a, 0, axis), np.take(a, 1, axis), np.take(a, 2, axis)
@@ -101,149 +102,242 @@ def _cross(a, b, axis=-1):
     return np.stack([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0], axis=axis)
 
 
-def _wrench_cols(x, F):
-    """World wrenches (force, moment about the origin) of forces F (...,3) at points x (...,3)."""
-    return np.concatenate([F, _cross(x, F)], axis=-1)
+# ------------------------------------------------------------------------------------------------
+# The affine map x = [alpha_U; beta] -> joint wrenches (compiled; world frame at the origin as in
+# recursive.py, Pinocchio's (linear, angular) order)
+# ------------------------------------------------------------------------------------------------
+def body_frames(fm, q, v_prev_r):
+    """Forward kinematics of the step for the BISP map and contact detection (recursive.py kernels on
+    the FrictionModel's own workspace: no per-joint Pinocchio calls): world placements R, p, motion
+    subspaces St (= data.J^T), spatial inertias I at the origin, twists ov = J qdot^prev and the bias
+    accelerations Z = Jdot qdot^prev (the quadratic velocity term of Eq. 2). Returns (ws, Z)."""
+    ws = rc.update_kinematics(fm.topo, fm.ws, q, v_prev_r)
+    return ws, rc.bias_acceleration(fm.topo, ws, fm.Z)
 
 
-def _skew_batch(v):
-    z = np.zeros(len(v))
-    return np.stack([np.stack([z, -v[:, 2], v[:, 1]], 1), np.stack([v[:, 2], z, -v[:, 0]], 1),
-                     np.stack([-v[:, 1], v[:, 0], z], 1)], 1)
+@njit(cache=True, nogil=True)
+def _add_wrench(E, j, col, x, f, s):
+    """E[j, :, col] += s [f; x x f] (world wrench about the origin of force f at point x)."""
+    E[j, 0, col] += s * f[0]
+    E[j, 1, col] += s * f[1]
+    E[j, 2, col] += s * f[2]
+    E[j, 3, col] += s * (x[1] * f[2] - x[2] * f[1])
+    E[j, 4, col] += s * (x[2] * f[0] - x[0] * f[2])
+    E[j, 5, col] += s * (x[0] * f[1] - x[1] * f[0])
 
 
-def _world_inertias(mech, R, p):
-    """(nj-1,6,6) spatial inertias of the joint bodies about the world origin, world axes (Pinocchio
-    order: linear, angular), from the joint placements R (nj,3,3), p (nj,3)."""
-    cache = getattr(mech, "_inertia_cache", None)
-    if cache is None:
-        model = mech.model
-        ins = [model.inertias[i] for i in range(1, model.njoints)]
-        cache = (np.array([y.mass for y in ins]), np.array([y.lever for y in ins]),
-                 np.array([y.inertia for y in ins]))
-        mech._inertia_cache = cache
-    m, c, Ic = cache
-    R, p = R[1:], p[1:]
-    cw = p + np.einsum("bij,bj->bi", R, c)
-    Icw = np.matmul(np.matmul(R, Ic), R.transpose(0, 2, 1))
-    C = _skew_batch(cw)
-    out = np.zeros((len(m), 6, 6))
-    out[:, :3, :3] = m[:, None, None] * np.eye(3)
-    out[:, :3, 3:] = -m[:, None, None] * C
-    out[:, 3:, :3] = m[:, None, None] * C
-    out[:, 3:, 3:] = Icw - m[:, None, None] * np.matmul(C, C)
+@njit(cache=True, nogil=True)
+def _external_kernel(nu, h, c_jid, c_X, c_n, c_t, pin_ja, pin_jb, pin_col0, pin_m, lp_ja, lp_jb, xa, xb, F0, dF,
+                     E0, E):
+    """External forces of the tree (§5.3, Eq. 17-18) as world wrenches per body: E0 (nj,6) at x = 0 and
+    E (nj,6,nx) per unit x = [alpha_U; beta]:
+      * ground contact c (Eq. 11-12): +n/h per unit alpha_c, -t_k/h per unit beta_(2c+k), at X_c;
+      * loop-pin friction moments r axis/h per unit beta (site b +, site a -);
+      * loop closures f_lambda = -J^T G^T lambda / h: F = Sel^T lambda / h on site b, -F on site a,
+        F0 (at lambda_0) into E0, dF (L,3,nx) per unit x into E."""
+    s = 1.0 / h
+    for c in range(len(c_jid)):
+        j = c_jid[c]
+        _add_wrench(E, j, c, c_X[c], c_n[c], s)
+        _add_wrench(E, j, nu + 2 * c, c_X[c], c_t[c, 0], -s)
+        _add_wrench(E, j, nu + 2 * c + 1, c_X[c], c_t[c, 1], -s)
+    for q in range(len(pin_ja)):
+        col = pin_col0 + q
+        for a in range(3):
+            E[pin_jb[q], 3 + a, col] += pin_m[q, a]
+            E[pin_ja[q], 3 + a, col] -= pin_m[q, a]
+    nx = E.shape[2]
+    f = np.empty(3)
+    for lp in range(len(lp_ja)):
+        ja, jb = lp_ja[lp], lp_jb[lp]
+        for a in range(3):
+            f[a] = F0[lp, a]
+        x, y = xa[lp], xb[lp]
+        E0[ja, 0] -= f[0]
+        E0[ja, 1] -= f[1]
+        E0[ja, 2] -= f[2]
+        E0[ja, 3] -= x[1] * f[2] - x[2] * f[1]
+        E0[ja, 4] -= x[2] * f[0] - x[0] * f[2]
+        E0[ja, 5] -= x[0] * f[1] - x[1] * f[0]
+        E0[jb, 0] += f[0]
+        E0[jb, 1] += f[1]
+        E0[jb, 2] += f[2]
+        E0[jb, 3] += y[1] * f[2] - y[2] * f[1]
+        E0[jb, 4] += y[2] * f[0] - y[0] * f[2]
+        E0[jb, 5] += y[0] * f[1] - y[1] * f[0]
+        for col in range(nx):
+            for a in range(3):
+                f[a] = dF[lp, a, col]
+            _add_wrench(E, ja, col, x, f, -1.0)
+            _add_wrench(E, jb, col, y, f, 1.0)
+
+
+@njit(cache=True, nogil=True)
+def _reaction_kernel(parents, idx_v, nv_j, St, I, ov, Z, g, acc0, Ax, E0, E, R, p, jids, W0, Wx):
+    """Eq. (15)/(17) and the leaf-to-root distribution of §5.2.2 as one Newton-Euler pass, affine in x:
+    body accelerations a_i = J_i (acc0 + Ax x) + Z_i - (g, 0) (forward, tree prefix sums), body wrenches
+    F_i = I_i a_i + ov_i x* (I_i ov_i) - f_ext,i (E0 + E x), backward subtree sums (the backward pass of
+    the RNEA), and each frictional joint's wrench in its joint frame (f = R^T F, tau = R^T (tau_o - p x F)):
+    W0 (J,6) constant part, Wx (J,6,nx) per unit x. Equals Pinocchio's rnea(q, qdot^prev, acc, fext).f."""
+    nj = parents.shape[0]
+    nx = Ax.shape[1]
+    A0 = np.zeros((nj, 6))
+    AX = np.zeros((nj, 6, nx))
+    F0 = np.zeros((nj, 6))
+    FX = np.zeros((nj, 6, nx))
+    A0[0, 0], A0[0, 1], A0[0, 2] = -g[0], -g[1], -g[2]
+    a = np.empty(6)
+    hm = np.empty(6)
+    for j in range(1, nj):
+        par = parents[j]
+        for r in range(6):
+            A0[j, r] = A0[par, r]
+            for col in range(nx):
+                AX[j, r, col] = AX[par, r, col]
+        for c in range(idx_v[j], idx_v[j] + nv_j[j]):
+            for r in range(6):
+                sc = St[c, r]
+                A0[j, r] += sc * acc0[c]
+                for col in range(nx):
+                    AX[j, r, col] += sc * Ax[c, col]
+        for r in range(6):
+            a[r] = A0[j, r] + Z[j, r]
+        for r in range(6):
+            s = 0.0
+            t = 0.0
+            for k in range(6):
+                s += I[j, r, k] * a[k]
+                t += I[j, r, k] * ov[j, k]
+            F0[j, r] = s - E0[j, r]
+            hm[r] = t
+        v0, v1, v2, w0, w1, w2 = ov[j, 0], ov[j, 1], ov[j, 2], ov[j, 3], ov[j, 4], ov[j, 5]
+        f0, f1, f2, n0, n1, n2 = hm[0], hm[1], hm[2], hm[3], hm[4], hm[5]
+        F0[j, 0] += w1 * f2 - w2 * f1
+        F0[j, 1] += w2 * f0 - w0 * f2
+        F0[j, 2] += w0 * f1 - w1 * f0
+        F0[j, 3] += v1 * f2 - v2 * f1 + w1 * n2 - w2 * n1
+        F0[j, 4] += v2 * f0 - v0 * f2 + w2 * n0 - w0 * n2
+        F0[j, 5] += v0 * f1 - v1 * f0 + w0 * n1 - w1 * n0
+        for r in range(6):
+            for col in range(nx):
+                FX[j, r, col] = -E[j, r, col]
+            for k in range(6):
+                ik = I[j, r, k]
+                if ik != 0.0:
+                    for col in range(nx):
+                        FX[j, r, col] += ik * AX[j, k, col]
+    for j in range(nj - 1, 0, -1):
+        par = parents[j]
+        for r in range(6):
+            F0[par, r] += F0[j, r]
+            for col in range(nx):
+                FX[par, r, col] += FX[j, r, col]
+    for q in range(len(jids)):
+        j = jids[q]
+        px, py, pz = p[j, 0], p[j, 1], p[j, 2]
+        for col in range(-1, nx):
+            if col < 0:
+                fx, fy, fz, tx, ty, tz = F0[j, 0], F0[j, 1], F0[j, 2], F0[j, 3], F0[j, 4], F0[j, 5]
+            else:
+                fx, fy, fz = FX[j, 0, col], FX[j, 1, col], FX[j, 2, col]
+                tx, ty, tz = FX[j, 3, col], FX[j, 4, col], FX[j, 5, col]
+            tx -= py * fz - pz * fy
+            ty -= pz * fx - px * fz
+            tz -= px * fy - py * fx
+            for r in range(3):
+                lf = R[j, 0, r] * fx + R[j, 1, r] * fy + R[j, 2, r] * fz
+                lt = R[j, 0, r] * tx + R[j, 1, r] * ty + R[j, 2, r] * tz
+                if col < 0:
+                    W0[q, r], W0[q, 3 + r] = lf, lt
+                else:
+                    Wx[q, r, col], Wx[q, 3 + r, col] = lf, lt
+
+
+def static_external_world(mech, kin, ws, site_forces=None):
+    """(njoints,6) world wrenches (about the origin) of the explicit maximal forces of the step: springs
+    at q, constant body wrenches, commanded site forces."""
+    out = np.zeros((mech.model.njoints, 6))
+    if len(mech.spring_ab):
+        from .forces import spring_terms
+        fs, *_ = spring_terms(mech, kin.X, kin.J)
+        a, b = mech.spring_ab[:, 0], mech.spring_ab[:, 1]
+        xa, xb = kin.X[mech.spring_rows[:, 0]], kin.X[mech.spring_rows[:, 1]]
+        np.add.at(out, mech.site_jid[a], np.hstack([fs, _cross(xa, fs)]))
+        np.add.at(out, mech.site_jid[b], -np.hstack([fs, _cross(xb, fs)]))
+    if len(mech.wrench_body):
+        jid = mech.body_jid[mech.wrench_body]
+        com = ws.p[jid] + np.einsum("cij,cj->ci", ws.R[jid], mech.body_com[mech.wrench_body])
+        F, Mw = mech.wrench_fw[:, :3], mech.wrench_fw[:, 3:]
+        np.add.at(out, jid, np.hstack([F, Mw + _cross(com, F)]))
+    if site_forces:
+        idx = np.array(list(site_forces), dtype=int)
+        F = np.array(list(site_forces.values()), dtype=float).reshape(-1, 3)
+        x = kin.X[[kin.row[s] for s in idx]]
+        np.add.at(out, mech.site_jid[idx], np.hstack([F, _cross(x, F)]))
     return out
 
 
-def _dual_inverse(R, p):
-    """(k,6,6) maps of world wrenches (about the origin) to local joint-frame wrenches."""
-    Rt = R.transpose(0, 2, 1)
-    D = np.zeros((len(R), 6, 6))
-    D[:, :3, :3] = Rt
-    D[:, 3:, 3:] = Rt
-    D[:, 3:, :3] = -np.matmul(Rt, _skew_batch(p))
-    return D
+def linear_wrenches(mech, fm, kin, ws, Z, h, acc0, Ax, lam0, LamX, cs, nu, nf, cons, site_forces=None):
+    """The joint wrenches of Eq. (15)-(17) as an affine function of the staggered unknowns
+    x = [alpha_U; beta]: W = W0 + Wx x, W0 (J+Lf, 6), Wx (J+Lf, 6, nx); the multipliers of Eq. (16) are
+    then alpha_j = h L_j W_j (L_j the constant local least-squares operator, contact.ls_operator).
 
-
-def linear_alphas(mech, fm, data, kin, q, v_prev_r, h, v0, PX, lam0, LamX, fx_static_local, cs, nu, nf,
-                  cons, site_forces=None, ext=None):
-    """The joint multipliers as an affine function of the staggered unknowns x = [alpha_U; beta]:
-    alpha_joints = a0 + M x  (shapes ((J+Lf)*kmax,), ((J+Lf)*kmax, nu+nf)).
-
-    Everything in Eq. (15)-(17) is linear in x once q and qdot^prev are fixed: the constrained velocity
-    qdot^con = qdot_0 + P X^T x (PX = P [U^T, -T^T]), the bilateral multipliers lambda = lambda_0 +
-    LamX x, the ground impulses and the loop-pin friction moments. The constant part is one RNEA
-    (backward pass = the leaf-to-root distribution of §5.2.2); the linear part is the same backward
-    sum written with world-frame composite terms: the wrench through joint j is
-    sum_{i in subtree(j)} (I_i^w J_i^w a - f_ext,i^w), taken to the joint frame. This makes each
-    staggered iteration a matrix-vector product instead of a Newton-Euler pass (same numbers)."""
-    model = mech.model
-    nv, nx = mech.nv, nu + nf
-    T = mech.T
-    to_r = (lambda X: X) if T is None else (lambda X: T @ X)
-    nj = model.njoints
-    ext = ExternalForces(mech, data) if ext is None else ext
-    # constant part: a0 = (qdot_0 - qdot_prev)/h, external forces at x = 0 (static + lambda_0 terms)
-    fx0 = fx_static_local.copy()
-    loopF0, loopdF, E = _lambda_forces(mech, fm, kin, ext, fx0, lam0, LamX, cons, h, nx)
-    fext = fm.fext
-    for i in range(1, nj):
-        fext[i] = pin.Force(fx0[i])
-    pin.rnea(model, data, q, v_prev_r, (to_r(v0) - v_prev_r) / h, fext)
-    ntree = fm.n_tree
-    W0 = np.zeros((len(fm.fj_names), 6))
-    for k, j in enumerate(fm.fj_jid):
-        W0[k] = data.f[int(j)].vector
-    W0[ntree:, :3] = loopF0
-    # linear part, world frame
-    if nc := (0 if cs is None else len(cs.keys)):
-        Fn = _wrench_cols(cs.X, cs.n) / h  # (c,6) per unit alpha
-        np.add.at(E, (cs.jid, slice(None), np.arange(nc)), Fn)
-        for k in range(2):
-            Ft = -_wrench_cols(cs.X, cs.t[:, k]) / h
-            np.add.at(E, (cs.jid, slice(None), nu + 2 * np.arange(nc) + k), Ft)
+    Everything is linear in x once q and qdot^prev are fixed: the constrained acceleration
+    (qdot^con - qdot^prev)/h = acc0 + Ax x (acc0 = (qdot_0 - qdot^prev)/h, Ax = P [U^T, -T^T] / h, both
+    in reduced coordinates), the bilateral multipliers lambda = lambda_0 + LamX x (§5.3: loop closures
+    and prescribed sites act as external forces), the ground impulses (Eq. 11-12) and the loop-pin
+    friction moments. One compiled Newton-Euler pass over the tree (bisp._reaction_kernel) gives both
+    parts; the loop pins' rows are the loop forces F = Sel^T lambda / h (world). Same numbers as
+    Pinocchio's RNEA with the external forces (bisp.joint_alphas, the test reference)."""
+    topo = fm.topo
+    nx = nu + nf
+    E0 = static_external_world(mech, kin, ws, site_forces)
+    E = np.zeros((topo.njoints, 6, nx))
     nl = len(fm.loop_index)
-    if nl:
-        ab = mech.loop_ab[fm.loop_index]
-        Mw = np.concatenate([np.zeros((nl, 3)), (fm.loop_radius / h)[:, None] * fm.loop_axis], axis=1)
-        cols = nu + nf - nl + np.arange(nl)
-        np.add.at(E, (mech.site_jid[ab[:, 1]], slice(None), cols), Mw)
-        np.add.at(E, (mech.site_jid[ab[:, 0]], slice(None), cols), -Mw)
-    A_x = to_r(PX) / h  # (nv, nx) acceleration per unit x
-    Jw = data.J.reshape(6, nv)
-    Iw = _world_inertias(mech, ext.R, ext.p)  # (nj-1,6,6)
-    IJ = np.matmul(Iw, Jw[None] * mech_support(mech)[1:, None, :])  # (nj-1,6,nv)
-    Sub = fm.sub[:, 1:]
-    Kw = np.tensordot(Sub, IJ, axes=(1, 0))  # (J,6,nv)
-    Ew = np.tensordot(Sub, E[1:], axes=(1, 0))  # (J,6,nx)
-    Wx_w = np.matmul(Kw, A_x) - Ew  # (J,6,nx) world
-    D = _dual_inverse(ext.R[fm.fj_jid], ext.p[fm.fj_jid])
-    Wx = np.zeros((len(fm.fj_names), 6, nx))
-    Wx[:ntree] = np.matmul(D, Wx_w)
-    Wx[ntree:, :3] = loopdF
-    a0 = h * np.einsum("jkl,jl->jk", fm.L, W0)
-    Mx = h * np.matmul(fm.L, Wx)  # (J+Lf, kmax, nx)
-    return a0.reshape(-1), Mx.reshape(-1, nx)
-
-
-def mech_support(mech):
-    """(njoints, nv) bool: DOFs supporting each Pinocchio joint (cached on the mechanism)."""
-    s = getattr(mech, "_joint_support", None)
-    if s is None:
-        s = mech.joint_support.astype(float)
-        mech._joint_support = s
-    return s
-
-
-def _lambda_forces(mech, fm, kin, ext, fx0, lam0, LamX, cons, h, nx):
-    """External-constraint forces of the tree (§5.3): loops (both sites) and prescribed sites, at
-    lambda_0 (added to fx0, local frames) and per unit x (world wrenches E (njoints,6,nx)).
-    Returns (loopF0 (Lf,3), loopdF (Lf,3,nx), E)."""
-    nj = mech.model.njoints
-    E = np.zeros((nj, 6, nx))
-    nl = len(fm.loop_index)
-    loopF0, loopdF = np.zeros((nl, 3)), np.zeros((nl, 3, nx))
+    J = len(fm.fj_names)
+    W0, Wx = np.zeros((J, 6)), np.zeros((J, 6, nx))
     if cons.loop_rows.stop:
-        ab, rows_ab = mech.loop_ab, mech.loop_rows_ab
-        xa, xb = kin.X[rows_ab[:, 0]], kin.X[rows_ab[:, 1]]
-        L = len(ab)
         Sel = mech.loop_select  # (rows, 3L): phi = Sel (x_a - x_b) stacked
-        nr = Sel.shape[0]
-        F0 = (Sel.T @ lam0[:nr]).reshape(L, 3) / h
-        dF = (Sel.T @ LamX[:nr]).reshape(L, 3, nx) / h
-        ext.add(fx0, mech.site_jid[ab[:, 0]], -F0, xa)
-        ext.add(fx0, mech.site_jid[ab[:, 1]], F0, xb)
-        wa = np.concatenate([dF, _cross(xa[:, :, None], dF, axis=1)], axis=1)  # (L,6,nx)
-        wb = np.concatenate([dF, _cross(xb[:, :, None], dF, axis=1)], axis=1)
-        np.add.at(E, mech.site_jid[ab[:, 0]], -wa)
-        np.add.at(E, mech.site_jid[ab[:, 1]], wb)
+        nr, L = Sel.shape[0], len(mech.loop_ab)
+        F0 = (Sel.T @ lam0[:nr]).reshape(L, 3) * (1.0 / h)
+        dF = (Sel.T @ LamX[:nr]).reshape(L, 3, nx) * (1.0 / h)
+        xa, xb = kin.X[mech.loop_rows_ab[:, 0]], kin.X[mech.loop_rows_ab[:, 1]]
         if nl:
-            loopF0[:] = F0[fm.loop_index]
-            loopdF[:] = dF[fm.loop_index]
-    for name, sl in cons.site_rows.items():
+            W0[fm.n_tree:, :3] = F0[fm.loop_index]
+            Wx[fm.n_tree:, :3] = dF[fm.loop_index]
+    else:
+        F0, dF, xa, xb = np.zeros((0, 3)), np.zeros((0, 3, nx)), np.zeros((0, 3)), np.zeros((0, 3))
+    for name, sl in cons.site_rows.items():  # prescribed sites (§5.3), rare: numpy
         s = mech.site_index[name]
         x = kin.X[kin.row[s]]
-        ext.add(fx0, [mech.site_jid[s]], (-lam0[sl] / h)[None], x[None])
-        dF = -LamX[sl] / h  # (3,nx)
-        E[mech.site_jid[s]] += np.concatenate([dF, _cross(x[:, None], dF, axis=0)], axis=0)
-    return loopF0, loopdF, E
+        j = mech.site_jid[s]
+        f0, dFs = -lam0[sl] / h, -LamX[sl] / h
+        E0[j] += np.concatenate([f0, _cross(x, f0)])
+        E[j] += np.concatenate([dFs, _cross(x[:, None], dFs, axis=0)], axis=0)
+    if cs is None:
+        c_jid, c_X, c_n, c_t = np.zeros(0, dtype=np.int64), np.zeros((0, 3)), np.zeros((0, 3)), np.zeros((0, 2, 3))
+    else:
+        c_jid, c_X, c_n, c_t = cs.jid, cs.X, cs.n, cs.t
+    _external_kernel(nu, h, c_jid, c_X, c_n, c_t, fm.pin_ja, fm.pin_jb, nx - nl, fm.pin_moment / h,
+                     fm.loop_ja, fm.loop_jb, xa, xb, F0, dF, E0, E)
+    _reaction_kernel(topo.parents, topo.idx_v, topo.nv_j, ws.St, ws.I, ws.ov, Z, fm.gravity, acc0,
+                     np.ascontiguousarray(Ax), E0, E, ws.R, ws.p, fm.fj_jid, W0, Wx)
+    return W0, Wx
+
+
+def affine_alphas(fm, h, W0, Wx):
+    """(a0 ((J+Lf) kmax,), Mx ((J+Lf) kmax, nx)): alpha_joints = a0 + Mx x (Eq. 16 applied to W0 + Wx x)."""
+    a0 = h * np.einsum("jkl,jl->jk", fm.L, W0)
+    Mx = h * np.matmul(fm.L, Wx)
+    return a0.reshape(-1), Mx.reshape(-1, Wx.shape[2])
+
+
+def linear_alphas(mech, fm, kin, q, v_prev_r, h, v0, PX, lam0, LamX, cs, nu, nf, cons, site_forces=None):
+    """alpha_joints = a0 + Mx x from the condensed velocity qdot_0 + PX x (hyper-reduced) and
+    lambda_0 + LamX x: body_frames + linear_wrenches + affine_alphas in one call (tests, reference)."""
+    ws, Z = body_frames(fm, q, v_prev_r)
+    T = mech.T
+    to_r = (lambda X: X) if T is None else (lambda X: T @ X)
+    W0, Wx = linear_wrenches(mech, fm, kin, ws, Z, h, (to_r(v0) - v_prev_r) / h, to_r(PX) / h, lam0, LamX, cs,
+                             nu, nf, cons, site_forces)
+    return affine_alphas(fm, h, W0, Wx)

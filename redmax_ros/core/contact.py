@@ -37,9 +37,9 @@ from dataclasses import dataclass
 
 import numpy as np
 import pinocchio as pin
+from numba import njit
 
 from .errors import SceneError
-from .kinematics import point_jacobians
 from .spatial import rpy_matrix
 
 
@@ -69,9 +69,25 @@ class FrictionModel:
     loop_radius: np.ndarray  # (Lf,)
     loop_rowslices: list  # rows of each frictional loop in the loop block of G
     loop_sites: np.ndarray  # (Lf,2) site indices (a, b)
-    fext: object = None  # pin.StdVec_Force workspace
-    sub: np.ndarray | None = None  # (J, njoints) subtree membership of the frictional tree joints
+    fext: object = None  # pin.StdVec_Force workspace (bisp.joint_alphas, the test reference)
     bound_mu: np.ndarray | None = None  # (J+Lf,) when every row is a whole joint (no spherical): bound = mu |alpha|_1
+    # constant index maps of the compiled per-step set-up (bisp.linear_wrenches, detect, warm start)
+    topo: object = None  # recursive.Topology of the model
+    ws: object = None  # recursive.Workspace (per-step kinematics of the BISP map; a workspace like fext)
+    Z: np.ndarray | None = None  # (njoints,6) bias accelerations (workspace)
+    gravity: np.ndarray | None = None  # (3,)
+    loop_ja: np.ndarray | None = None  # (L,) Pinocchio joint of site a / b of every loop
+    loop_jb: np.ndarray | None = None
+    pin_ja: np.ndarray | None = None  # (Lf,) the same for the frictional loops
+    pin_jb: np.ndarray | None = None
+    pin_moment: np.ndarray | None = None  # (Lf,3) r axis: pin friction moment per unit beta (times 1/h)
+    loop_sdiff: np.ndarray | None = None  # (Lf,nv) support(a) - support(b) (loop friction rows)
+    sph_support_f: np.ndarray | None = None  # (K,nv) float support of the contact spheres
+    n_slots: int = 0  # warm-start cache: 2 K P ground tangents, then the joint and loop rows
+
+    @property
+    def joint_slot0(self) -> int:
+        return 2 * len(self.sph_jid) * len(self.plane_n)
 
     @property
     def has_joint_friction(self) -> bool:
@@ -230,21 +246,34 @@ def compile_friction(mech, fspec) -> FrictionModel | None:
         rows_fixed=np.array(rows).reshape(-1, mech.ndof), bound_B=B,
         loop_index=np.array(lidx, dtype=int), loop_axis=np.array(laxis).reshape(-1, 3), loop_radius=np.array(lrad),
         loop_rowslices=lslices, loop_sites=np.array(lsites, dtype=int).reshape(-1, 2), fext=fext,
-        sub=_subtrees(model, jids),
         bound_mu=(np.array([mu_ for _, _, mu_ in groups]) if all(j == r and len(grp) == len(Ls[j])
-                  for r, (j, grp, _) in enumerate(groups)) else None))
+                  for r, (j, grp, _) in enumerate(groups)) else None),
+        **_index_maps(mech, len(jid) * len(pn) * 2 + len(rows) + len(lidx), np.array(lsites, dtype=int).reshape(-1, 2),
+                      np.array(laxis).reshape(-1, 3), np.array(lrad), sph_support))
 
 
-def _subtrees(model, jids):
-    Sub = np.zeros((len(jids), model.njoints))
-    for r, j in enumerate(jids):
-        Sub[r, list(model.subtrees[int(j)])] = 1.0
-    return Sub
+def _index_maps(mech, n_slots, lsites, laxis, lrad, sph_support):
+    """Constant structure of the per-step set-up, computed once per mechanism."""
+    from . import recursive as rc
+    topo = rc.build_topology(mech.model)
+    ab = np.asarray(mech.loop_ab, dtype=int).reshape(-1, 2)
+    sup = mech.site_support.astype(float).reshape(-1, mech.nv)
+    return dict(
+        topo=topo, ws=rc.make_workspace(topo), Z=np.zeros((topo.njoints, 6)),
+        gravity=np.array(mech.model.gravity.linear, dtype=float),
+        loop_ja=np.ascontiguousarray(mech.site_jid[ab[:, 0]], dtype=np.int64),
+        loop_jb=np.ascontiguousarray(mech.site_jid[ab[:, 1]], dtype=np.int64),
+        pin_ja=np.ascontiguousarray(mech.site_jid[lsites[:, 0]], dtype=np.int64),
+        pin_jb=np.ascontiguousarray(mech.site_jid[lsites[:, 1]], dtype=np.int64),
+        pin_moment=lrad[:, None] * laxis,
+        loop_sdiff=(sup[lsites[:, 0]] - sup[lsites[:, 1]]) if len(lsites) else np.zeros((0, mech.nv)),
+        sph_support_f=np.ascontiguousarray(sph_support, dtype=float), n_slots=int(n_slots))
 
 
 @dataclass
 class ContactSet:
-    keys: list  # (sphere, plane) per contact
+    sphere: np.ndarray  # (c,) contact sphere of each contact
+    plane: np.ndarray  # (c,) plane of each contact
     X: np.ndarray  # (c,3) contact points, world
     n: np.ndarray  # (c,3) normals
     t: np.ndarray  # (c,2,3) tangents
@@ -255,40 +284,92 @@ class ContactSet:
     T: np.ndarray  # (2c,n) tangent rows, contact-major
     lo: np.ndarray  # (c,) N qdot >= lo
 
+    @property
+    def keys(self) -> list:
+        """(sphere, plane) per contact."""
+        return list(zip(self.sphere.tolist(), self.plane.tolist()))
 
-def detect(mech, fm: FrictionModel, data, h) -> ContactSet:
-    """Sphere/plane pairs closer than the margin, with their rows. Needs forward kinematics and joint
-    Jacobians in ``data`` (kinematics.compute does both)."""
-    K = len(fm.sph_jid)
-    if K == 0 or len(fm.plane_n) == 0:
+
+@njit(cache=True, nogil=True)
+def _detect_kernel(R, p, St, sph_jid, sph_local, sph_radius, sph_support, sph_mu, plane_n, plane_off, plane_t,
+                   plane_mu, margin, erp, h, T):
+    """Sphere/plane pairs with gap d = n . c - offset - r < margin (sphere-major, as np.nonzero) and their
+    rows: N = n^T J_x, T_k = t_k^T J_x with J_x = J_lin + J_ang x x on the supporting DOFs (Eq. 1.90-1.91,
+    J_mr written through the world motion subspaces St), times the coupling matrix T (Eq. 9) if given;
+    lo = -d/h (d >= 0, speculative) or -erp d/h (d < 0, stabilisation)."""
+    K, P, nv = len(sph_jid), len(plane_off), St.shape[0]
+    C = np.empty((K, 3))
+    gap = np.empty((K, P))
+    cnt = 0
+    for k in range(K):
+        j = sph_jid[k]
+        for a in range(3):
+            C[k, a] = p[j, a] + R[j, a, 0] * sph_local[k, 0] + R[j, a, 1] * sph_local[k, 1] \
+                + R[j, a, 2] * sph_local[k, 2]
+        for q in range(P):
+            gap[k, q] = (C[k, 0] * plane_n[q, 0] + C[k, 1] * plane_n[q, 1] + C[k, 2] * plane_n[q, 2]
+                         - plane_off[q] - sph_radius[k])
+            if gap[k, q] < margin:
+                cnt += 1
+    ks, ps = np.empty(cnt, np.int64), np.empty(cnt, np.int64)
+    X, n, t = np.empty((cnt, 3)), np.empty((cnt, 3)), np.empty((cnt, 2, 3))
+    d, lo, mu, jid = np.empty(cnt), np.empty(cnt), np.empty(cnt), np.empty(cnt, np.int64)
+    Nv, Tv = np.zeros((cnt, nv)), np.zeros((2 * cnt, nv))
+    i = 0
+    for k in range(K):
+        for q in range(P):
+            if not gap[k, q] < margin:
+                continue
+            ks[i], ps[i], jid[i] = k, q, sph_jid[k]
+            r = sph_radius[k]
+            for a in range(3):
+                n[i, a] = plane_n[q, a]
+                X[i, a] = C[k, a] - r * plane_n[q, a]
+                t[i, 0, a] = plane_t[q, 0, a]
+                t[i, 1, a] = plane_t[q, 1, a]
+            dd = gap[k, q]
+            d[i] = dd
+            lo[i] = -dd / h if dd >= 0 else -erp * dd / h
+            mu[i] = plane_mu[q] if np.isnan(sph_mu[k]) else sph_mu[k]
+            x0, x1, x2 = X[i, 0], X[i, 1], X[i, 2]
+            for c in range(nv):
+                if sph_support[k, c] == 0.0:
+                    continue
+                w0, w1, w2 = St[c, 3], St[c, 4], St[c, 5]
+                j0 = St[c, 0] + w1 * x2 - w2 * x1
+                j1 = St[c, 1] + w2 * x0 - w0 * x2
+                j2 = St[c, 2] + w0 * x1 - w1 * x0
+                Nv[i, c] = n[i, 0] * j0 + n[i, 1] * j1 + n[i, 2] * j2
+                Tv[2 * i, c] = t[i, 0, 0] * j0 + t[i, 0, 1] * j1 + t[i, 0, 2] * j2
+                Tv[2 * i + 1, c] = t[i, 1, 0] * j0 + t[i, 1, 1] * j1 + t[i, 1, 2] * j2
+            i += 1
+    if T.shape[0]:
+        Nv, Tv = Nv @ T, Tv @ T
+    return ks, ps, X, n, t, d, mu, jid, Nv, Tv, lo
+
+
+def detect(mech, fm: FrictionModel, ws, h) -> ContactSet:
+    """Sphere/plane pairs closer than the margin, with their rows (compiled, _detect_kernel). ``ws``: the
+    step's recursive.Workspace (bisp.body_frames): world joint placements and motion subspaces."""
+    if len(fm.sph_jid) == 0 or len(fm.plane_n) == 0:
         return None
-    oMi = data.oMi
-    C = np.array([oMi[int(j)].act(p) for j, p in zip(fm.sph_jid, fm.sph_local)])
-    gap = C @ fm.plane_n.T - fm.plane_off[None, :] - fm.sph_radius[:, None]  # (K,P)
-    ks, ps = np.nonzero(gap < fm.settings.margin)
-    if len(ks) == 0:
+    st = fm.settings
+    out = _detect_kernel(ws.R, ws.p, ws.St, fm.sph_jid, fm.sph_local, fm.sph_radius, fm.sph_support_f, fm.sph_mu,
+                         fm.plane_n, fm.plane_off, fm.plane_t, fm.plane_mu, st.margin, st.erp, h,
+                         _EMPTY if mech.T is None else mech.T)
+    if len(out[0]) == 0:
         return None
-    n = fm.plane_n[ps]
-    X = C[ks] - fm.sph_radius[ks, None] * n
-    J = point_jacobians(data.J.reshape(6, mech.nv), X, fm.sph_support[ks])  # (c,3,nv)
-    if mech.T is not None:
-        J = J @ mech.T
-    t = fm.plane_t[ps]
-    N = np.einsum("ci,cin->cn", n, J)
-    Tr = np.einsum("cki,cin->ckn", t, J).reshape(2 * len(ks), -1)
-    d = gap[ks, ps]
-    lo = np.where(d >= 0, -d / h, -fm.settings.erp * d / h)
-    mu = np.where(np.isnan(fm.sph_mu[ks]), fm.plane_mu[ps], fm.sph_mu[ks])
-    return ContactSet(list(zip(ks.tolist(), ps.tolist())), X, n, t, d, mu, fm.sph_jid[ks], N, Tr, lo)
+    ks, ps, X, n, t, d, mu, jid, N, Tr, lo = out
+    return ContactSet(ks, ps, X, n, t, d, mu, jid, N, Tr, lo)
 
 
-def loop_friction_rows(mech, fm: FrictionModel, data):
-    """(Lf, ndof) friction rows of the loop pins: r axis^T (J_w,a - J_w,b) (relative spin about the pin)."""
+_EMPTY = np.zeros((0, 0))
+
+
+def loop_friction_rows(mech, fm: FrictionModel, ws):
+    """(Lf, ndof) friction rows of the loop pins: r axis^T (J_w,a - J_w,b) (relative spin about the pin).
+    ``ws``: the step's recursive.Workspace (St = data.J^T)."""
     if not len(fm.loop_index):
         return np.zeros((0, mech.ndof))
-    Jw = data.J.reshape(6, mech.nv)[3:]
-    sup = mech.site_support
-    a, b = fm.loop_sites[:, 0], fm.loop_sites[:, 1]
-    axw = fm.loop_axis @ Jw  # (Lf,nv)
-    rows = fm.loop_radius[:, None] * axw * (sup[a].astype(float) - sup[b].astype(float))
+    rows = (fm.pin_moment @ ws.St[:, 3:].T) * fm.loop_sdiff
     return rows if mech.T is None else rows @ mech.T

@@ -30,7 +30,6 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 
-import eigenpy
 import numba
 import numpy as np
 import proxsuite
@@ -41,7 +40,6 @@ from .errors import StepError
 from .forces import LinearSystem
 from .solve import Solution
 
-_SUCCESS = eigenpy.ComputationInfo.Success
 _INF = 1e20
 
 
@@ -54,7 +52,15 @@ class FrictionReport:
     active: int = 0  # ground contacts with a positive normal impulse
     max_penetration: float = 0.0  # m, before the step
     sticking: int = 0  # friction rows strictly inside their bound (static friction)
-    joint_normal: dict = field(default_factory=dict, repr=False)  # joint/loop -> sum |alpha| / h [N]
+    _jn_names: list = field(default_factory=list, repr=False)
+    _jn_values: np.ndarray | None = field(default=None, repr=False)
+
+    @property
+    def joint_normal(self) -> dict:
+        """joint/loop -> sum_k |alpha_k| / h [N] (built on access)."""
+        if self._jn_values is None:
+            return {}
+        return {name: float(x) for name, x in zip(self._jn_names, self._jn_values)}
 
 
 @numba.njit(cache=True)
@@ -115,10 +121,22 @@ def _small_solve(H, r):
 @numba.njit(cache=True)
 def _loop_kernel(W_U, X_UT, X_TU, U_v0, lo_U, W_T, T_v0, mu_g, a0, Mx, bound_mu, kmax, joint, wU, wT, tol,
                  max_iter, depth, alpha, beta):
+    """The staggered loop with the joint multipliers given as alpha = a0 + Mx x (bench/sp_maximal.py)."""
+    return _staggered_kernel(W_U, X_UT, X_TU, U_v0, lo_U, W_T, T_v0, mu_g, a0, Mx, np.zeros((0, kmax, 6)), 1.0,
+                             bound_mu, kmax, joint, wU, wT, tol, max_iter, depth, alpha, beta)
+
+
+@numba.njit(cache=True)
+def _staggered_kernel(W_U, X_UT, X_TU, U_v0, lo_U, W_T, T_v0, mu_g, a0, Mx, Lop, h, bound_mu, kmax, joint, wU, wT,
+                      tol, max_iter, depth, alpha, beta):
     """The staggered loop of solve() (same steps, same tests, PGS inner solves, Anderson) compiled:
     used when the friction bounds are whole-joint sums (no spherical joints) and qp = pgs.
+    Joint multipliers (Eq. 16): with Lop (J, kmax, 6) given, a0 (6J,) and Mx (6J, nx) are the joint
+    wrenches W = a0 + Mx x (bisp.linear_wrenches) and alpha_j = h Lop_j W_j; with Lop empty, alpha = a0 + Mx x.
     Returns (alpha, beta, bound, al, iterations, converged, residual)."""
     nu, nf, nc = len(U_v0), len(T_v0), len(mu_g)
+    nw = Lop.shape[0]
+    wr = np.zeros(len(a0))
     ng = 2 * nc
     nx = nu + nf
     bound = np.zeros(nf)
@@ -126,7 +144,7 @@ def _loop_kernel(W_U, X_UT, X_TU, U_v0, lo_U, W_T, T_v0, mu_g, a0, Mx, bound_mu,
     prev_b = np.zeros(nf)
     zeros_u = np.zeros(nu)
     inf_u = np.full(nu, 1e20)
-    al = np.zeros(len(a0))
+    al = np.zeros(len(a0) if nw == 0 else nw * kmax)
     x = np.zeros(nx)
     dX = np.zeros((depth, nf))
     dF = np.zeros((depth, nf))
@@ -153,7 +171,16 @@ def _loop_kernel(W_U, X_UT, X_TU, U_v0, lo_U, W_T, T_v0, mu_g, a0, Mx, bound_mu,
         if joint:
             x[:nu] = alpha
             x[nu:] = beta
-            al[:] = a0 + Mx @ x
+            if nw:  # Eq. (16) per joint: alpha_j = h L_j (W0 + Wx x)_j
+                wr[:] = a0 + Mx @ x
+                for j in range(nw):
+                    for kk in range(kmax):
+                        sacc = 0.0
+                        for c in range(6):
+                            sacc += Lop[j, kk, c] * wr[6 * j + c]
+                        al[j * kmax + kk] = h * sacc
+            else:
+                al[:] = a0 + Mx @ x
             nj = len(bound_mu)
             for j in range(nj):
                 sacc = 0.0
@@ -240,33 +267,93 @@ def _qp(H, c, lo, hi, x0, eps):
     return np.clip(x, lo, hi)
 
 
-def solve(mech, data, kin, system: LinearSystem, cons, q, v_prev_r, h, cache, site_forces=None):
-    """Frictional contact step. Returns (Solution, FrictionReport, new cache)."""
-    fm = mech.friction
-    st = fm.settings
-    A, b = system.A, system.b
-    n = len(b)
-    llt = eigenpy.LLT(A)
-    if llt.info() != _SUCCESS:
-        raise StepError("the LHS matrix of Eq. (2) is not positive definite (Cholesky failed)")
-    Ainv = np.asarray(llt.solve(np.eye(n))).reshape(n, n)
-    m = cons.m
-    if m:
-        Y = Ainv @ cons.G.T
-        S = cons.G @ Y
-        try:
-            Sinv = np.linalg.inv(S)
-        except np.linalg.LinAlgError:
-            raise StepError("bilateral constraints are redundant or conflicting (singular Schur complement)") from None
-        P = Ainv - Y @ Sinv @ Y.T
-        v0 = P @ b + Y @ (Sinv @ cons.g)
-    else:
-        P, v0 = Ainv, Ainv @ b
-    P = 0.5 * (P + P.T)
+@numba.njit(cache=True)
+def _spd_inverse(A):
+    """Inverse of a symmetric positive definite matrix through its Cholesky factor (A = L L^T,
+    A^-1 = L^-T L^-1); ok = False when A is not positive definite."""
+    n = A.shape[0]
+    L = np.zeros((n, n))
+    for j in range(n):
+        s = A[j, j]
+        for k in range(j):
+            s -= L[j, k] * L[j, k]
+        if not s > 0.0:
+            return L, False
+        d = math.sqrt(s)
+        L[j, j] = d
+        for i in range(j + 1, n):
+            s = A[i, j]
+            for k in range(j):
+                s -= L[i, k] * L[j, k]
+            L[i, j] = s / d
+    Li = np.zeros((n, n))
+    for j in range(n):
+        Li[j, j] = 1.0 / L[j, j]
+        for i in range(j + 1, n):
+            s = 0.0
+            for k in range(j, i):
+                s -= L[i, k] * Li[k, j]
+            Li[i, j] = s / L[i, i]
+    return np.ascontiguousarray(Li.T) @ Li, True
 
-    # rows: unilateral U (ground normals, limits) and friction T (ground tangents, joints, loops)
-    cs = detect(mech, fm, data, h)
-    nc = 0 if cs is None else len(cs.keys)
+
+@numba.njit(cache=True)
+def _condense(A, b, G, g, RX, nu):
+    """The condensed staggered system of one step (module docstring), compiled:
+        P = A^-1 - Y S^-1 Y^T (Y = A^-1 G^T, S = G Y),  qdot_0 = P b + Y S^-1 g,
+    and with RX = [U; -T] (generalized impulse RX^T x of x = [alpha_U; beta]): PX = P RX^T
+    (qdot = qdot_0 + PX x), the Delassus blocks W_U = U P U^T, W_T = T P T^T, X_UT = U P T^T, U qdot_0,
+    T qdot_0, their diagonals (convergence weights), and lambda = lambda_0 + LamX x
+    (lambda_0 = S^-1 (Y^T b - g), LamX = S^-1 Y^T RX^T: the external constraint forces of §5.3).
+    status: 0 ok, 1 A not positive definite, 2 G A^-1 G^T not positive definite (redundant rows)."""
+    n, m, nx = len(b), G.shape[0], RX.shape[0]
+    nf = nx - nu
+    Ainv, ok = _spd_inverse(A)
+    status = 0 if ok else 1
+    Y = np.zeros((n, m))
+    Sinv = np.zeros((m, m))
+    P = Ainv
+    v0 = np.zeros(n)
+    lam0 = np.zeros(m)
+    LamX = np.zeros((m, nx))
+    if ok and m:
+        Y = Ainv @ np.ascontiguousarray(G.T)
+        Sinv, ok = _spd_inverse(G @ Y)
+        if ok:
+            YS = Y @ Sinv
+            P = Ainv - YS @ np.ascontiguousarray(Y.T)
+            v0 = P @ b + YS @ g
+            lam0 = Sinv @ (np.ascontiguousarray(Y.T) @ b - g)
+            if nx:
+                LamX = Sinv @ np.ascontiguousarray((RX @ Y).T)
+        else:
+            status = 2
+    elif ok:
+        v0 = Ainv @ b
+    P = 0.5 * (P + P.T)
+    PX = np.zeros((n, nx))
+    WX = np.zeros((nx, nx))
+    Xv0 = np.zeros(nx)
+    if nx and status == 0:
+        PX = P @ np.ascontiguousarray(RX.T)
+        WX = RX @ PX
+        Xv0 = RX @ v0
+    W_U = np.ascontiguousarray(WX[:nu, :nu])
+    X_UT = np.ascontiguousarray(-WX[:nu, nu:])
+    X_TU = np.ascontiguousarray(X_UT.T)
+    W_T = np.ascontiguousarray(WX[nu:, nu:])
+    wU, wT = np.zeros(nu), np.zeros(nf)
+    for i in range(nu):
+        wU[i] = max(W_U[i, i], 0.0)
+    for i in range(nf):
+        wT[i] = max(W_T[i, i], 0.0)
+    return status, v0, PX, W_U, X_UT, X_TU, W_T, Xv0[:nu].copy(), -Xv0[nu:], wU, wT, lam0, LamX
+
+
+def _rows(mech, fm, cs, cons, ws, n):
+    """Unilateral rows U = [ground normals; limits +-C] with bounds lo_U and friction rows
+    T = [ground tangents; joint rows; loop-pin rows] of the step; RX = [U; -T]."""
+    nc = 0 if cs is None else len(cs.gap)
     U, lo_U = [], []
     if nc:
         U.append(cs.N)
@@ -275,50 +362,100 @@ def solve(mech, data, kin, system: LinearSystem, cons, q, v_prev_r, h, cache, si
         fin_lo, fin_hi = np.isfinite(cons.lo), np.isfinite(cons.hi)
         U += [cons.C[fin_lo], -cons.C[fin_hi]]
         lo_U += [cons.lo[fin_lo], -cons.hi[fin_hi]]
-    U = np.vstack(U) if U else np.zeros((0, n))
+    Tl = loop_friction_rows(mech, fm, ws)
+    RX = np.concatenate(U + ([-cs.T] if nc else []) + [-fm.rows_fixed, -Tl])
+    nu = sum(len(u) for u in U)
     lo_U = np.concatenate(lo_U) if lo_U else np.zeros(0)
-    Tl = loop_friction_rows(mech, fm, data)
-    Tr = np.vstack([cs.T if nc else np.zeros((0, n)), fm.rows_fixed, Tl])
-    nu, nf, ng = len(U), len(Tr), 2 * nc
-    PU, PT = P @ U.T, P @ Tr.T
-    W_U, W_T, X_UT = U @ PU, Tr @ PT, U @ PT
-    U_v0, T_v0 = U @ v0, Tr @ v0
-    wU, wT = np.maximum(np.diag(W_U), 0.0), np.maximum(np.diag(W_T), 0.0)
+    return np.ascontiguousarray(RX.reshape(-1, n)), lo_U, nu, nc, len(Tl)
 
-    # warm start of the friction impulses
-    keys = [("g", k, p, i) for (k, p) in (cs.keys if nc else []) for i in (0, 1)] \
-        + [("j", i) for i in range(len(fm.rows_fixed))] + [("l", i) for i in range(len(Tl))]
-    beta = np.array([cache.get(kk, 0.0) for kk in keys]) if cache else np.zeros(nf)
+
+def solve(mech, data, kin, system: LinearSystem, cons, q, v_prev_r, h, cache, site_forces=None):
+    """Frictional contact step. Returns (Solution, FrictionReport, new cache). ``cache``: the previous
+    step's friction impulses (ndarray of FrictionModel.n_slots, or None); ``data`` is not used (the
+    set-up runs on the FrictionModel's own kinematics workspace, bisp.body_frames)."""
+    fm = mech.friction
+    st = fm.settings
+    A, b = system.A, system.b
+    n = len(b)
+    ws, Z = bisp.body_frames(fm, q, v_prev_r)  # placements, subspaces, inertias, twists, Jdot qdot
+
+    # rows: unilateral U (ground normals, limits) and friction T (ground tangents, joints, loops)
+    cs = detect(mech, fm, ws, h)
+    RX, lo_U, nu, nc, nl = _rows(mech, fm, cs, cons, ws, n)
+    nf = len(RX) - nu
+    ng = 2 * nc
+    m = cons.m
+    G = cons.G if m else np.zeros((0, n))
+    gb = cons.g if m else np.zeros(0)
+    status, v0, PX, W_U, X_UT, X_TU, W_T, U_v0, T_v0, wU, wT, lam0, LamX = _condense(A, b, G, gb, RX, nu)
+    if status == 1:
+        raise StepError("the LHS matrix of Eq. (2) is not positive definite (Cholesky failed)")
+    if status == 2:
+        raise StepError("bilateral constraints are redundant or conflicting (singular Schur complement)")
+
+    # warm start of the friction impulses: one cache slot per (sphere, plane) tangent, joint and loop row
+    j0 = fm.joint_slot0
+    slots = np.arange(j0, j0 + nf - ng)
+    if nc:
+        g0 = 2 * (cs.sphere * len(fm.plane_n) + cs.plane)
+        slots = np.concatenate([np.stack([g0, g0 + 1], 1).reshape(-1), slots])
+    beta = np.ascontiguousarray(cache[slots]) if cache is not None else np.zeros(nf)
     joint_fric = fm.has_joint_friction
-    if joint_fric:  # Eq. (15)-(17) as an affine map of x = [alpha_U; beta] (bisp.linear_alphas)
-        ext = bisp.ExternalForces(mech, data)
-        fx_static = bisp.static_external(mech, kin, ext, data, site_forces).copy()
-        RX = np.vstack([U, -Tr])  # (nu+nf, n): generalized impulse = RX^T x
-        PX = np.hstack([PU, -PT])
-        if m:
-            lam0 = Sinv @ (Y.T @ b - cons.g)
-            LamX = Sinv @ (Y.T @ RX.T)
-        else:
-            lam0, LamX = np.zeros(0), np.zeros((0, nu + nf))
-        a0, Mx = bisp.linear_alphas(mech, fm, data, kin, q, v_prev_r, h, v0, PX, lam0, LamX, fx_static, cs,
-                                    nu, nf, cons, site_forces, ext)
+    if joint_fric:  # Eq. (15)-(17) as an affine map of x = [alpha_U; beta] (bisp.linear_wrenches)
+        T = mech.T
+        acc0 = (v0 if T is None else T @ v0) - v_prev_r
+        acc0 *= 1.0 / h
+        Ax = (PX if T is None else T @ PX) * (1.0 / h)
+        W0, Wx = bisp.linear_wrenches(mech, fm, kin, ws, Z, h, acc0, Ax, lam0, LamX, cs, nu, nf, cons,
+                                      site_forces)
         kmax = fm.L.shape[1]
     alpha = np.zeros(nu)
+    it, converged, resid = 0, False, np.inf
+    use_kernel = st.qp == "pgs" and (not joint_fric or fm.bound_mu is not None)
+    mu_g = cs.mu if nc else np.zeros(0)
+    if use_kernel:  # compiled loop, same steps
+        if not joint_fric:
+            kmax, w0, wx, Lop, bmu = 1, np.zeros(0), np.zeros((0, nu + nf)), np.zeros((0, 1, 6)), np.zeros(0)
+        else:
+            w0, wx, Lop, bmu = W0.reshape(-1), Wx.reshape(-1, nu + nf), fm.L, fm.bound_mu
+        alpha, beta, bound, al, it, converged, resid = _staggered_kernel(
+            W_U, X_UT, X_TU, U_v0, lo_U, W_T, T_v0, mu_g, w0, wx, Lop, h, bmu, kmax, joint_fric, wU, wT, st.tol,
+            st.max_iter, st.anderson, alpha, beta)
+    else:
+        alpha, beta, bound, al, it, converged, resid = _python_loop(
+            fm, st, W_U, X_UT, U_v0, lo_U, W_T, T_v0, mu_g, nc,
+            bisp.affine_alphas(fm, h, W0, Wx) if joint_fric else None, alpha, beta)
+
+    x = np.concatenate([alpha, beta])
+    v = v0 + PX @ x  # velocity of the last contact stage (Alg. 2 line 20)
+    r = b + RX.T @ x
+    lam = lam0 + LamX @ x
+    sol = Solution(v, lam, np.zeros(0), it, "staggered", LinearSystem(A, r), _no_unilateral(cons))
+    rep = FrictionReport(it, converged, float(resid), nc)
+    if nc:
+        rep.active = int(np.count_nonzero(alpha[:nc] > 1e-12))
+        rep.max_penetration = max(0.0, -float(cs.gap.min()))
+    rep.sticking = int(np.count_nonzero((bound > 1e-12) & (bound - np.abs(beta) > 1e-9 * np.maximum(bound, 1e-300))))
+    new_cache = np.zeros(fm.n_slots)
+    new_cache[slots] = beta
+    if joint_fric:
+        rep._jn_names = fm.fj_names
+        rep._jn_values = np.abs(al).reshape(-1, kmax).sum(1) / h
+    return sol, rep, new_cache
+
+
+def _python_loop(fm, st, W_U, X_UT, U_v0, lo_U, W_T, T_v0, mu_g, nc, affine, alpha, beta):
+    """The staggered loop in Python (ProxSuite inner solves, spherical-joint bounds); same steps as
+    _staggered_kernel. Returns (alpha, beta, bound, al, iterations, converged, residual)."""
+    nu, nf, ng = len(U_v0), len(T_v0), 2 * nc
+    wU, wT = np.maximum(np.diag(W_U), 0.0), np.maximum(np.diag(W_T), 0.0)
     acc = _Anderson(st.anderson)
     prev_u, prev_b = None, None
     bound = np.zeros(nf)
+    al = np.zeros(0)
+    kmax = fm.L.shape[1]
     it, converged, resid = 0, False, np.inf
-    use_kernel = st.qp == "pgs" and (not joint_fric or fm.bound_mu is not None)
-    if use_kernel:  # compiled loop, same steps
-        if not joint_fric:
-            kmax, a0, Mx, bmu = 1, np.zeros(0), np.zeros((0, nu + nf)), np.zeros(0)
-        else:
-            bmu = fm.bound_mu
-        alpha, beta, bound, al, it, converged, resid = _loop_kernel(
-            W_U, X_UT, np.ascontiguousarray(X_UT.T), U_v0, lo_U, W_T, T_v0, cs.mu if nc else np.zeros(0), a0,
-            np.ascontiguousarray(Mx), bmu,
-            kmax, joint_fric, wU, wT, st.tol, st.max_iter, st.anderson, alpha, np.ascontiguousarray(beta))
-    while not use_kernel:
+    while True:
         it += 1
         # CONTACT (Eq. 11 / 17c)
         if nu:
@@ -329,9 +466,9 @@ def solve(mech, data, kin, system: LinearSystem, cons, q, v_prev_r, h, cache, si
                 alpha = _box_qp(W_U, c, np.zeros(nu), np.full(nu, _INF), alpha, 0.1 * st.tol, st.qp)
         # BISP (Eq. 15-17): joint alphas -> bounds of the joint friction rows
         if nc:
-            a = alpha[:nc]
-            bound[:ng] = np.repeat(cs.mu * a, 2)
-        if joint_fric:
+            bound[:ng] = np.repeat(mu_g * alpha[:nc], 2)
+        if affine is not None:
+            a0, Mx = affine
             al = a0 + Mx @ np.concatenate([alpha, beta])
             if fm.bound_mu is not None:  # 1-DOF joints and pins: mu_j sum_k |alpha_jk|
                 bound[ng:] = fm.bound_mu * np.abs(al).reshape(-1, kmax).sum(1)
@@ -354,21 +491,7 @@ def solve(mech, data, kin, system: LinearSystem, cons, q, v_prev_r, h, cache, si
             beta = _box_qp(W_T, -cf, -bound, bound, beta, 0.1 * st.tol, st.qp)
             if st.anderson:
                 beta = acc.update(b_in, beta, bound)
-
-    v = v0 + PU @ alpha - PT @ beta  # velocity of the last contact stage (Alg. 2 line 20)
-    r = b + U.T @ alpha - Tr.T @ beta
-    lam = Sinv @ (Y.T @ r - cons.g) if m else np.zeros(0)
-    sol = Solution(v, lam, np.zeros(0), it, "staggered", LinearSystem(A, r), _no_unilateral(cons))
-    rep = FrictionReport(it, converged, float(resid), nc)
-    if nc:
-        rep.active = int(np.sum(alpha[:nc] > 1e-12))
-        rep.max_penetration = float(max(0.0, -cs.gap.min()))
-    slack = bound - np.abs(beta)
-    rep.sticking = int(np.sum((bound > 1e-12) & (slack > 1e-9 * np.maximum(bound, 1e-300))))
-    new_cache = {kk: float(x) for kk, x in zip(keys, beta) if x != 0.0}
-    if joint_fric:
-        rep.joint_normal = {name: float(x) for name, x in zip(fm.fj_names, np.abs(al).reshape(-1, kmax).sum(1) / h)}
-    return sol, rep, new_cache
+    return alpha, beta, bound, al, it, converged, resid
 
 
 class _Anderson:
