@@ -4,8 +4,8 @@ A Mechanism whose scene uses any of them gets ``mech.extras = Extras(...)``; oth
 ``mech.extras is None`` and the step pays one ``is None`` test per hook.
 
 * **Mapped joints** (joint_maps.py): J_rR rows of the carriers refreshed at the start of the step,
-  the Jdot_rR qdot_R term of Eq. 2.89 in the RHS, coordinates integrated / carriers re-synchronised
-  and exponential coordinates reparameterised at the end.
+  the Jdot_rR qdot_R term of Eq. 2.89 in the RHS, coordinates integrated / carriers re-synchronised,
+  exponential coordinates reparameterised and Euler charts switched (Eq. 2.40) at the end.
 * **Linear equality constraints between joint coordinates** (notes §2.9, reduced constraints G_r,
   Eq. 2.107-2.108): sum_i c_i q_i = value as constant velocity rows G_r qdot_r = 0 in the KKT system,
   alone or with the loop rows. For coordinates that integrate linearly (q+ = q + h qdot) the
@@ -56,6 +56,9 @@ class Extras:
                 if jn not in mech.joint_index:
                     raise SceneError(src, f"constraints '{c.name}'", f"unknown joint '{jn}'")
                 ji = mech.joint_index[jn]
+                if maps is not None and any(m.spec.name == jn for m in maps.euler):
+                    raise SceneError(src, f"constraints '{c.name}'", f"joint '{jn}' switches Euler charts: its "
+                                     "angles jump at a switch and cannot be constrained")
                 if not 0 <= dof < ji.nv or q_index(model, ji.idx_v + dof) is None:
                     raise SceneError(src, f"constraints '{c.name}'", f"DOF {dof} of joint '{jn}' is not a coordinate")
                 row[ji.idx_v + dof] += coef
@@ -198,6 +201,8 @@ class Extras:
         if self.maps is not None:
             self.maps.reparameterize(q_new, vR, mech.T)
             self.maps.sync(q_new)
+            if self.maps.euler:  # spherical_euler chart switching (Eq. 2.40; euler_charts.py)
+                self.maps.switch_charts(q_new, vR, mech.T)
         if self.has_rows or (self.maps is not None and len(mech.loop_ab)):
             if self._needs_projection(mech, data, q_new):
                 q_new, _ = self.project(mech, data, q_new, hold_dofs)

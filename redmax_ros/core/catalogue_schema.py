@@ -35,7 +35,7 @@ SUB_TYPES = {"revolute": (1, 1), "prismatic": (1, 1), "universal": (2, 2), "sphe
              "free2d": (3, 3), "free3d": (6, 6)}
 COMMON_KEYS = {"name", "type", "parent", "child", "placement", "body_placement", "q0", "v0", "limits", "stiffness",
                "rest", "damping", "armature", "torque"}
-SPECIFIC_KEYS = {"planar_translation": {"axes"}, "translational": set(), "spherical_euler": {"chart"},
+SPECIFIC_KEYS = {"planar_translation": {"axes"}, "translational": set(), "spherical_euler": {"chart", "switch_charts"},
                  "spherical_exp": set(), "free2d": set(), "free3d": {"conserve_momentum"}, "composite": {"joints"},
                  "spline_curve": {"control_frames"}, "spline_surface": {"control_grid"}}
 
@@ -116,6 +116,14 @@ def validate_joint(v, entry, d, base_dir=None):
             v.err(entry, "the two axes of a planar_translation joint must be linearly independent")
     elif t == "spherical_euler":
         extra["chart"] = _chart(v, entry, d)
+        if d.get("switch_charts", False):
+            if d["switch_charts"] is not True:
+                v.err(entry, "'switch_charts' must be true or false")
+            for k in ("limits", "stiffness", "torque"):
+                if k == "limits" and k in d or k != "limits" and np.any(np.asarray(d.get(k, 0.0), dtype=float) != 0):
+                    v.err(entry, f"'{k}' is not allowed with switch_charts: true (the angles jump at a chart "
+                                 "switch; euler_charts.py)")
+            extra["switch_charts"] = True
     elif t == "composite":
         subs = d["joints"]
         if not isinstance(subs, list) or len(subs) < 2:

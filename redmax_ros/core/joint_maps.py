@@ -1,8 +1,9 @@
 """Joints Pinocchio cannot represent, as configuration-dependent hyper-reduced coordinates.
 
 Pinocchio's joints are a closed set (a boost::variant compiled into the library; no joint can be
-added from Python), so the spline curve/surface joints (notes §2.5.12-2.5.13) and the
-exponential-coordinate spherical joint (§2.5.8) cannot be Pinocchio joints. They are realised with
+added from Python), so the spline curve/surface joints (notes §2.5.12-2.5.13), the
+exponential-coordinate spherical joint (§2.5.8) and the three-angle spherical joint whose chart changes
+at run time (§2.5.5, Eq. 2.40, ``switch_charts: true``) cannot be Pinocchio joints. They are realised with
 the notes' own tool for chaining Jacobians, hyper-reduced coordinates with a *configuration-
 dependent* J_rR (§2.7, Eq. 2.88-2.90):
 
@@ -20,7 +21,11 @@ dependent* J_rR (§2.7, Eq. 2.88-2.90):
 * after the configuration update the coordinates are integrated as in the notes
   (g+ = g + h gdot+, which pin.integrate does on the coordinate joint) and the carrier is set to
   exactly Q(g+), so the body never leaves the spline/sphere; ``spherical_exp`` coordinates are
-  reparameterised when ||g|| > pi (Grassia; joints.reparameterize_exp), which also maps gdot.
+  reparameterised when ||g|| > pi (Grassia; joints.reparameterize_exp), which also maps gdot, and a
+  switching ``spherical_euler`` joint changes chart when its rotation enters the home chart's
+  singular band (euler_charts.select), with g from R and gdot mapped by Eq. 2.40. Its current chart
+  is a function of the carrier's rotation, so it is recovered from any configuration (reset,
+  set_state) and is set by :meth:`Maps.refresh`.
 
 Cost (per mapped joint): 6 (or 3) carrier DOFs plus k coordinate DOFs in the Pinocchio model
 instead of k, so CRBA/RNEA work on a slightly larger tree; the carrier rows of J_rR and the Sdot
@@ -35,17 +40,27 @@ from dataclasses import dataclass
 import numpy as np
 import pinocchio as pin
 
+from . import euler_charts
 from . import joints as jt
 
 I6 = pin.SE3.Identity()
 
 
+ROTATION_TYPES = ("spherical_exp", "spherical_euler")  # mapped joints on a quaternion Spherical carrier
+
+
+def is_mapped(j) -> bool:
+    """Realised as a coordinate map: spline joints, spherical_exp, and spherical_euler with chart switching
+    (``switch_charts: true``; euler_charts.py)."""
+    return j.type in jt.MAPPED_TYPES or (j.type == "spherical_euler" and bool(j.extra.get("switch_charts")))
+
+
 def coordinate_count(jtype: str) -> int:
-    return {"spherical_exp": 3, "spline_curve": 1, "spline_surface": 2}[jtype]
+    return {"spherical_exp": 3, "spherical_euler": 3, "spline_curve": 1, "spline_surface": 2}[jtype]
 
 
 def carrier_model(jtype: str):
-    return pin.JointModelSpherical() if jtype == "spherical_exp" else pin.JointModelFreeFlyer()
+    return pin.JointModelSpherical() if jtype in ROTATION_TYPES else pin.JointModelFreeFlyer()
 
 
 def coordinate_model(k: int):
@@ -56,15 +71,18 @@ def coordinate_model(k: int):
     return pin.JointModelTranslation()
 
 
-def joint_kinematics(j, g, gd):
-    """(Q, S (6,k), Sdot (6,k)) of a mapped scene joint at coordinates g, rates gd."""
+def joint_kinematics(j, g, gd, chart=None):
+    """(Q, S (6,k), Sdot (6,k)) of a mapped scene joint at coordinates g, rates gd (spherical_euler: in
+    ``chart``, default its home chart)."""
     if j.type == "spherical_exp":
         return jt.ref_spherical_exp(g, gd)
+    if j.type == "spherical_euler":
+        return jt.ref_euler(chart or j.extra["chart"], g, gd)
     return j.extra["geometry"].kinematics(g, gd)
 
 
 def carrier_configuration(jtype: str, Q: pin.SE3) -> np.ndarray:
-    if jtype == "spherical_exp":
+    if jtype in ROTATION_TYPES:
         return pin.Quaternion(Q.rotation).coeffs().copy()
     return pin.SE3ToXYZQUAT(Q).copy()
 
@@ -72,7 +90,7 @@ def carrier_configuration(jtype: str, Q: pin.SE3) -> np.ndarray:
 def carrier_rows(jtype: str, S: np.ndarray) -> np.ndarray:
     """The carrier's velocity as a function of gdot: FreeFlyer takes the whole body twist, Spherical the
     angular part (the exponential-coordinate joint has no translation)."""
-    return S[3:] if jtype == "spherical_exp" else S
+    return S[3:] if jtype in ROTATION_TYPES else S
 
 
 def carrier_spec(j, nv):
@@ -90,7 +108,7 @@ def add_to_model(model, parent_jid, j, jM):
 
     Returns (jid the child body hangs on, [(spec, q0 part, rest part), ...] for each Pinocchio joint
     added, in order: one native joint, or the carrier then the coordinate joint)."""
-    if j.type not in jt.MAPPED_TYPES:
+    if not is_mapped(j):
         jid = model.addJoint(parent_jid, jt.pin_joint_model(j), jM, j.name)
         return jid, [(j, jt.configuration(j, j.q0), jt.configuration(j, j.rest))]
     k = coordinate_count(j.type)
@@ -113,6 +131,7 @@ class MappedJoint:
     cv: slice
     gq: slice  # coordinate-joint configuration / velocity indices
     gv: slice
+    chart: str = ""  # spherical_euler with switching: the chart in use (a function of the rotation)
     _key: bytes = b""
     _val: tuple = ()
 
@@ -120,8 +139,8 @@ class MappedJoint:
         """(Q, S, Sdot) at the coordinates in q (Sdot for rates vg, zero if None). Spline evaluations are
         cached on g (the step evaluates the same g for J_rR and for the Jdot_rR term)."""
         g = q[self.gq]
-        if self.spec.type == "spherical_exp":
-            return joint_kinematics(self.spec, g, np.zeros(self.k) if vg is None else vg)
+        if self.spec.type in ROTATION_TYPES:
+            return joint_kinematics(self.spec, g, np.zeros(self.k) if vg is None else vg, self.chart)
         key = g.tobytes()
         if self._key != key:
             self._key, self._val = key, self.spec.extra["geometry"].eval(g if self.k > 1 else g[0])
@@ -139,10 +158,11 @@ class Maps:
         """Maps of a compiled tree, or None when it has no mapped joint. Sets ``T0`` (J_rR at q0, carriers
         driven by their coordinates; T: the coupling matrix or None) and fills the carriers' rows of
         the initial reduced velocity v0r (in place) from the coordinate rates."""
-        mapped = {js.name: js for js in jspecs if js.type in jt.MAPPED_TYPES}
+        mapped = {js.name: js for js in jspecs if is_mapped(js)}
         if not mapped:
             return None
         maps = cls(model, joint_infos, mapped)
+        maps.start_charts(q0, v0r)
         maps.T0 = maps.compose_T(T, model.nv)
         maps.refresh(maps.T0, q0)
         maps.v0r = v0r
@@ -164,6 +184,40 @@ class Maps:
             self.items.append(MappedJoint(spec, g.nv, slice(c.idx_q, c.idx_q + c.nq), slice(c.idx_v, c.idx_v + c.nv),
                                           slice(g.idx_q, g.idx_q + g.nq), slice(g.idx_v, g.idx_v + g.nv)))
         self.carrier_dofs = sorted(d for m in self.items for d in range(m.cv.start, m.cv.stop))
+        self.euler = [m for m in self.items if m.spec.type == "spherical_euler"]
+        for m in self.euler:
+            m.chart = m.spec.extra["chart"]
+
+    # -- charts of spherical_euler joints with switching (euler_charts.py, Eq. 2.40)
+    def start_charts(self, q0, v0r):
+        """At compile: q0 (home-chart angles, carriers at Q(q0)) and v0r are rewritten in place into the
+        chart the rotation selects (the partner when q0 is within MARGIN of the home chart's singularity)."""
+        for m in self.euler:
+            home = m.spec.extra["chart"]
+            R, _ = euler_charts.rotation_jacobian(home, q0[m.gq])
+            c = euler_charts.select(home, R)
+            if c != home:
+                q0[m.gq], v0r[m.gv] = euler_charts.convert(home, c, q0[m.gq], v0r[m.gv])
+            m.chart = c
+        self.sync(q0)
+
+    def switch_charts(self, q, vR, T):
+        """After the configuration update and sync: switch every joint whose rotation now selects another
+        chart; angles from R (Table 3), rates by qdot_new = S_new^-1 S_old qdot_old (Eq. 2.40) through the
+        coordinate columns of J_rR; the carrier is re-set to Q(q_new). Returns True if any switched."""
+        changed = False
+        for m in self.euler:
+            c = euler_charts.select(m.spec.extra["chart"], pin.Quaternion(q[m.cq]).matrix())
+            if c == m.chart:
+                continue
+            Tg = T[m.gv]
+            cols = [int(np.flatnonzero(Tg[i])[0]) for i in range(m.k)]
+            q[m.gq], vR[cols] = euler_charts.convert(m.chart, c, q[m.gq], Tg @ vR)
+            m.chart = c
+            Q, _, _ = m.kin(q)
+            q[m.cq] = carrier_configuration(m.spec.type, Q)
+            changed = True
+        return changed
 
     # -- J_rR
     def compose_T(self, T, nv):
@@ -176,7 +230,10 @@ class Maps:
         return T
 
     def refresh(self, T, q):
-        """Carrier rows of J_rR at configuration q: T[carrier] = S_c(g) T[coordinates]."""
+        """Carrier rows of J_rR at configuration q: T[carrier] = S_c(g) T[coordinates]. The chart of a
+        switching spherical_euler joint is first set from the carrier's rotation in q."""
+        for m in self.euler:
+            m.chart = euler_charts.select(m.spec.extra["chart"], pin.Quaternion(q[m.cq]).matrix())
         for m in self.items:
             _, S, _ = m.kin(q)
             T[m.cv] = carrier_rows(m.spec.type, S) @ T[m.gv]

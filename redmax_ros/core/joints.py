@@ -26,7 +26,8 @@ planar_translation     2        §2.5.3 (the notes' "planar joint": Q = [I, B q]
 translational          3        §2.5.4; Translation
 spherical              3        §2.5.5/§2.5.8 via Pinocchio's unit quaternion (see below); Spherical
 spherical_euler        3        §2.5.5 three-angle charts (XYZ default, any Euler/Tait-Bryan chart);
-                                Composite(R_a1, R_a2, R_a3)
+                                Composite(R_a1, R_a2, R_a3); with switch_charts: coordinate map onto a
+                                Spherical carrier, chart switched near gimbal lock (euler_charts.py)
 spherical_exp          3        §2.5.8 exponential coordinates with Grassia's reparameterisation;
                                 coordinate map onto a quaternion Spherical carrier (joint_maps.py)
 universal              2        §2.5.6; Universal(a1, a2) (R = exp(a1 q1) exp(a2 q2))
@@ -54,8 +55,10 @@ q <- (1 - 2 pi/||q||) q when ||q|| > pi [Grassia 1998]; it is realised as a coor
 qdot_pin = S(q) qdot on a quaternion carrier joint (see joint_maps.py). ``spherical_euler`` is the
 notes' 3-parameter chart (Eq. 2.33-2.37 for XYZ) as a Pinocchio composite of three revolute joints;
 it has the chart's singularity (q2 = ±pi/2 for Tait-Bryan charts, q2 = 0, pi for proper Euler
-charts) where S, and therefore the mass matrix, become singular. Chart switching (Eq. 2.40) is not
-done: a Pinocchio model's joint types are fixed once built.
+charts) where S, and therefore the mass matrix, become singular. A Pinocchio model's joint types are
+fixed once built, so with ``switch_charts: true`` the joint is instead realised as a coordinate map on a
+quaternion carrier (joint_maps.py), like ``spherical_exp``, and changes chart near the singularity
+(Eq. 2.40; euler_charts.py).
 """
 from __future__ import annotations
 
