@@ -394,12 +394,9 @@ def solve(mech, data, kin, system: LinearSystem, cons, q, v_prev_r, h, cache, si
         raise StepError("bilateral constraints are redundant or conflicting (singular Schur complement)")
 
     # warm start of the friction impulses: one cache slot per (sphere, plane) tangent, joint and loop row
-    j0 = fm.joint_slot0
-    slots = np.arange(j0, j0 + nf - ng)
-    if nc:
-        g0 = 2 * (cs.sphere * len(fm.plane_n) + cs.plane)
-        slots = np.concatenate([np.stack([g0, g0 + 1], 1).reshape(-1), slots])
-    beta = np.ascontiguousarray(cache[slots]) if cache is not None else np.zeros(nf)
+    slots, beta = _warm_start(_NO_CACHE if cache is None else cache, cache is not None,
+                              cs.sphere if nc else _NO_INDEX, cs.plane if nc else _NO_INDEX, len(fm.plane_n),
+                              fm.joint_slot0, nf)
     joint_fric = fm.has_joint_friction
     if joint_fric:  # Eq. (15)-(17) as an affine map of x = [alpha_U; beta] (bisp.linear_wrenches)
         T = mech.T
@@ -426,22 +423,77 @@ def solve(mech, data, kin, system: LinearSystem, cons, q, v_prev_r, h, cache, si
             fm, st, W_U, X_UT, U_v0, lo_U, W_T, T_v0, mu_g, nc,
             bisp.affine_alphas(fm, h, W0, Wx) if joint_fric else None, alpha, beta)
 
-    x = np.concatenate([alpha, beta])
-    v = v0 + PX @ x  # velocity of the last contact stage (Alg. 2 line 20)
-    r = b + RX.T @ x
-    lam = lam0 + LamX @ x
-    sol = Solution(v, lam, np.zeros(0), it, "staggered", LinearSystem(A, r), _no_unilateral(cons))
-    rep = FrictionReport(it, converged, float(resid), nc)
-    if nc:
-        rep.active = int(np.count_nonzero(alpha[:nc] > 1e-12))
-        rep.max_penetration = max(0.0, -float(cs.gap.min()))
-    rep.sticking = int(np.count_nonzero((bound > 1e-12) & (bound - np.abs(beta) > 1e-9 * np.maximum(bound, 1e-300))))
-    new_cache = np.zeros(fm.n_slots)
-    new_cache[slots] = beta
+    if not joint_fric:
+        kmax, al = 1, np.zeros(0)
+    v, r, lam, new_cache, active, max_pen, sticking, jn = _finish(
+        v0, PX, b, RX, lam0, LamX, alpha, beta, bound, al, slots, fm.n_slots, cs.gap if nc else _NO_GAP, kmax, h)
+    # velocity of the last contact stage (Alg. 2 line 20); the unilateral rows are in r = b + RX^T x
+    sol = Solution(v, lam, _NO_GAP, it, "staggered", LinearSystem(A, r), cons if cons.C is None else _no_unilateral(cons))
+    rep = FrictionReport(it, converged, float(resid), nc, active, max_pen, sticking)
     if joint_fric:
         rep._jn_names = fm.fj_names
-        rep._jn_values = np.abs(al).reshape(-1, kmax).sum(1) / h
+        rep._jn_values = jn
     return sol, rep, new_cache
+
+
+_NO_CACHE = np.zeros(0)
+_NO_INDEX = np.zeros(0, dtype=np.int64)
+_NO_GAP = np.zeros(0)
+
+
+@numba.njit(cache=True)
+def _warm_start(cache, has_cache, sphere, plane, n_planes, j0, nf):
+    """Cache slots of this step's friction rows (2 per (sphere, plane) ground contact, then the joint and
+    loop rows from j0) and the warm-start impulses beta [Kaufman et al. 2008] (zeros without a cache)."""
+    nc = len(sphere)
+    slots = np.empty(nf, dtype=np.int64)
+    for c in range(nc):
+        g0 = 2 * (sphere[c] * n_planes + plane[c])
+        slots[2 * c], slots[2 * c + 1] = g0, g0 + 1
+    for i in range(nf - 2 * nc):
+        slots[2 * nc + i] = j0 + i
+    beta = np.zeros(nf)
+    if has_cache:
+        for i in range(nf):
+            beta[i] = cache[slots[i]]
+    return slots, beta
+
+
+@numba.njit(cache=True)
+def _finish(v0, PX, b, RX, lam0, LamX, alpha, beta, bound, al, slots, n_slots, gap, kmax, h):
+    """Outputs of the staggered solve from its last iterate x = [alpha; beta]: velocity qdot_0 + PX x,
+    generalized impulse RHS b + RX^T x, multipliers lambda_0 + LamX x, the new warm-start cache, and the
+    report's counts (active ground contacts, deepest penetration, sticking friction rows, joint normal
+    loads sum_k |alpha_k| / h)."""
+    nu, nf = len(alpha), len(beta)
+    x = np.empty(nu + nf)
+    x[:nu] = alpha
+    x[nu:] = beta
+    v = v0 + PX @ x
+    r = b + x @ RX
+    lam = lam0 + LamX @ x if len(lam0) else lam0.copy()
+    cache = np.zeros(n_slots)
+    for i in range(nf):
+        cache[slots[i]] = beta[i]
+    nc = len(gap)
+    active = 0
+    max_pen = 0.0
+    for c in range(nc):
+        if alpha[c] > 1e-12:
+            active += 1
+        max_pen = max(max_pen, -gap[c])
+    sticking = 0
+    for i in range(nf):
+        if bound[i] > 1e-12 and bound[i] - abs(beta[i]) > 1e-9 * max(bound[i], 1e-300):
+            sticking += 1
+    nj = len(al) // kmax
+    jn = np.zeros(nj)
+    for j in range(nj):
+        sacc = 0.0
+        for k in range(kmax):
+            sacc += abs(al[j * kmax + k])
+        jn[j] = sacc / h
+    return v, r, lam, cache, active, max_pen, sticking, jn
 
 
 def _python_loop(fm, st, W_U, X_UT, U_v0, lo_U, W_T, T_v0, mu_g, nc, affine, alpha, beta):
