@@ -35,6 +35,7 @@ import numpy as np
 import proxsuite
 
 from . import bisp
+from .condense import condense
 from .contact import detect, loop_friction_rows
 from .errors import StepError
 from .forces import LinearSystem
@@ -267,89 +268,6 @@ def _qp(H, c, lo, hi, x0, eps):
     return np.clip(x, lo, hi)
 
 
-@numba.njit(cache=True)
-def _spd_inverse(A):
-    """Inverse of a symmetric positive definite matrix through its Cholesky factor (A = L L^T,
-    A^-1 = L^-T L^-1); ok = False when A is not positive definite."""
-    n = A.shape[0]
-    L = np.zeros((n, n))
-    for j in range(n):
-        s = A[j, j]
-        for k in range(j):
-            s -= L[j, k] * L[j, k]
-        if not s > 0.0:
-            return L, False
-        d = math.sqrt(s)
-        L[j, j] = d
-        for i in range(j + 1, n):
-            s = A[i, j]
-            for k in range(j):
-                s -= L[i, k] * L[j, k]
-            L[i, j] = s / d
-    Li = np.zeros((n, n))
-    for j in range(n):
-        Li[j, j] = 1.0 / L[j, j]
-        for i in range(j + 1, n):
-            s = 0.0
-            for k in range(j, i):
-                s -= L[i, k] * Li[k, j]
-            Li[i, j] = s / L[i, i]
-    return np.ascontiguousarray(Li.T) @ Li, True
-
-
-@numba.njit(cache=True)
-def _condense(A, b, G, g, RX, nu):
-    """The condensed staggered system of one step (module docstring), compiled:
-        P = A^-1 - Y S^-1 Y^T (Y = A^-1 G^T, S = G Y),  qdot_0 = P b + Y S^-1 g,
-    and with RX = [U; -T] (generalized impulse RX^T x of x = [alpha_U; beta]): PX = P RX^T
-    (qdot = qdot_0 + PX x), the Delassus blocks W_U = U P U^T, W_T = T P T^T, X_UT = U P T^T, U qdot_0,
-    T qdot_0, their diagonals (convergence weights), and lambda = lambda_0 + LamX x
-    (lambda_0 = S^-1 (Y^T b - g), LamX = S^-1 Y^T RX^T: the external constraint forces of §5.3).
-    status: 0 ok, 1 A not positive definite, 2 G A^-1 G^T not positive definite (redundant rows)."""
-    n, m, nx = len(b), G.shape[0], RX.shape[0]
-    nf = nx - nu
-    Ainv, ok = _spd_inverse(A)
-    status = 0 if ok else 1
-    Y = np.zeros((n, m))
-    Sinv = np.zeros((m, m))
-    P = Ainv
-    v0 = np.zeros(n)
-    lam0 = np.zeros(m)
-    LamX = np.zeros((m, nx))
-    if ok and m:
-        Y = Ainv @ np.ascontiguousarray(G.T)
-        Sinv, ok = _spd_inverse(G @ Y)
-        if ok:
-            YS = Y @ Sinv
-            P = Ainv - YS @ np.ascontiguousarray(Y.T)
-            v0 = P @ b + YS @ g
-            lam0 = Sinv @ (np.ascontiguousarray(Y.T) @ b - g)
-            if nx:
-                LamX = Sinv @ np.ascontiguousarray((RX @ Y).T)
-        else:
-            status = 2
-    elif ok:
-        v0 = Ainv @ b
-    P = 0.5 * (P + P.T)
-    PX = np.zeros((n, nx))
-    WX = np.zeros((nx, nx))
-    Xv0 = np.zeros(nx)
-    if nx and status == 0:
-        PX = P @ np.ascontiguousarray(RX.T)
-        WX = RX @ PX
-        Xv0 = RX @ v0
-    W_U = np.ascontiguousarray(WX[:nu, :nu])
-    X_UT = np.ascontiguousarray(-WX[:nu, nu:])
-    X_TU = np.ascontiguousarray(X_UT.T)
-    W_T = np.ascontiguousarray(WX[nu:, nu:])
-    wU, wT = np.zeros(nu), np.zeros(nf)
-    for i in range(nu):
-        wU[i] = max(W_U[i, i], 0.0)
-    for i in range(nf):
-        wT[i] = max(W_T[i, i], 0.0)
-    return status, v0, PX, W_U, X_UT, X_TU, W_T, Xv0[:nu].copy(), -Xv0[nu:], wU, wT, lam0, LamX
-
-
 def _rows(mech, fm, cs, cons, ws, n):
     """Unilateral rows U = [ground normals; limits +-C] with bounds lo_U and friction rows
     T = [ground tangents; joint rows; loop-pin rows] of the step; RX = [U; -T]."""
@@ -387,7 +305,7 @@ def solve(mech, data, kin, system: LinearSystem, cons, q, v_prev_r, h, cache, si
     m = cons.m
     G = cons.G if m else np.zeros((0, n))
     gb = cons.g if m else np.zeros(0)
-    status, v0, PX, W_U, X_UT, X_TU, W_T, U_v0, T_v0, wU, wT, lam0, LamX = _condense(A, b, G, gb, RX, nu)
+    status, v0, PX, W_U, X_UT, X_TU, W_T, U_v0, T_v0, wU, wT, lam0, LamX = condense(A, b, G, gb, RX, nu)
     if status == 1:
         raise StepError("the LHS matrix of Eq. (2) is not positive definite (Cholesky failed)")
     if status == 2:
