@@ -21,6 +21,7 @@ import numpy as np
 import pinocchio as pin
 
 from .kinematics import Kinematics, frame_jacobian
+from .recursive import njit
 
 
 @dataclass
@@ -75,7 +76,7 @@ def assemble(mech, data, kin: Kinematics, q, v_r, tau, h, site_forces=None) -> L
     explicit maximal point forces (J_site^T f). Needs data from kinematics.compute.
     """
     M = kin.M
-    A = M + mech.reduced_diag(h)  # J^T M_m J + armature + h D_r + h^2 K_r
+    A = None  # maximal and catalogue terms of the LHS, added to M + h D_r + h^2 K_r below
     f = tau - kin.nle  # f_r + J^T (f_m - M_m Jdot qdot)
     if mech.has_stiffness:
         f -= mech.stiffness * joint_displacement(mech, q)
@@ -84,8 +85,10 @@ def assemble(mech, data, kin: Kinematics, q, v_r, tau, h, site_forces=None) -> L
         P, nv = Jd.shape[0], Jd.shape[2]
         W = np.matmul(h * D + (h * h) * K, Jd)
         Jf = Jd.reshape(3 * P, nv)
-        A += Jf.T @ W.reshape(3 * P, nv)
+        A = Jf.T @ W.reshape(3 * P, nv)
         f += Jf.T @ fs.reshape(3 * P)
+    if len(mech.damped_bodies) or mech.extras is not None:
+        A = np.zeros_like(M) if A is None else A
     for bi in mech.damped_bodies:  # body damping D_m = c diag(m I3, I_com), implicit
         _, Jc, Jw, R = frame_jacobian(mech, data, mech.body_com_fid[bi])
         Iw = R @ mech.body_inertia[bi] @ R.T
@@ -98,8 +101,31 @@ def assemble(mech, data, kin: Kinematics, q, v_r, tau, h, site_forces=None) -> L
             f += kin.J[kin.row[s]].T @ fv
     if mech.extras is not None:  # catalogue force elements; Jdot_rR qdot_R of spline/exp joints (catalogue.py)
         mech.extras.forces(mech, data, kin, q, v_r, h, A, f)
-    b = M @ v_r + h * f
-    T = mech.T
-    if T is not None:
-        return LinearSystem(T.T @ A @ T, T.T @ b)
+    A, b = _lhs_rhs(M, mech.reduced_diag_vector(h), _NONE if A is None else A, f, v_r, h,
+                    _NONE if mech.T is None else mech.T)
     return LinearSystem(A, b)
+
+
+_NONE = np.zeros((0, 0))
+
+
+@njit
+def _lhs_rhs(M, dvec, A_add, f, v, h, T):
+    """A = T^T (M + diag(dvec) + A_add) T and b = T^T (M v + h f) (Eq. 2 projected by J_rR = T, Eq. 9-10;
+    an empty A_add / T means none) in one compiled call."""
+    n = M.shape[0]
+    A = M.copy()
+    for i in range(n):
+        A[i, i] += dvec[i]
+    if A_add.shape[0]:
+        A += A_add
+    b = h * f
+    for i in range(n):
+        s = 0.0
+        for k in range(n):
+            s += M[i, k] * v[k]
+        b[i] += s
+    if T.shape[0]:
+        TA = np.ascontiguousarray(T.T) @ A
+        return TA @ T, np.ascontiguousarray(T.T) @ b
+    return A, b

@@ -82,7 +82,7 @@ class Mechanism:
     jac_row: dict = field(default_factory=dict)  # site -> row in Kinematics.X/J for jac_sites
     spring_rows: np.ndarray | None = None  # (P,2) rows of spring ends in Kinematics.X/J
     loop_rows_ab: np.ndarray | None = None  # (L,2) rows of loop sites in Kinematics.X/J
-    diag_cache: dict = field(default_factory=dict)  # h -> diag(h D_r + h^2 K_r)
+    diag_cache: dict = field(default_factory=dict)  # h -> h D_r + h^2 K_r
     has_stiffness: bool = False
     row_cache: dict = field(default_factory=dict)  # prescribed joint -> constant constraint rows
     layout_cache: dict = field(default_factory=dict)  # prescription set -> constraints.RowLayout
@@ -119,11 +119,11 @@ class Mechanism:
                     held.update(np.flatnonzero(self.T[d]).tolist())
         return sorted(held)
 
-    def reduced_diag(self, h: float) -> np.ndarray:
-        """h D_r + h^2 K_r as a dense diagonal matrix (cached per h)."""
+    def reduced_diag_vector(self, h: float) -> np.ndarray:
+        """h D_r + h^2 K_r (nv,) (cached per h)."""
         D = self.diag_cache.get(h)
         if D is None:
-            D = self.diag_cache[h] = np.diag(h * self.damping + h * h * self.stiffness)
+            D = self.diag_cache[h] = h * self.damping + h * h * self.stiffness
         return D
 
     @property
