@@ -161,6 +161,35 @@ def test_both_writers_roundtrip(tmp_path, writer):
     assert len(got) == 500 and all(_same(a, b) for a, b in zip(got, sent))
 
 
+@pytest.mark.parametrize("writer", ["process", "thread"])
+def test_write_many_mixes_with_write(tmp_path, writer):
+    """write_many (the node's per-step call): one log time for its messages, per-topic sequence
+    numbers continue across write and write_many, unknown topics are skipped."""
+    from mcap.reader import make_reader
+
+    lg = _logger(tmp_path, writer=writer)
+    sent = []
+    for i in range(50):
+        m, pf = _js(i), PointForces(sites=["tip"], forces=[Vector3(x=float(i), y=0.0, z=0.0)])
+        sent.append(m)
+        if i % 2:
+            lg.write("/joint_states", serialize_message(m), log_time_ns=10 + i)
+        else:
+            lg.write_many([("/joint_states", serialize_message(m)), ("/not_logged", b"x"),
+                           ("/point_forces", serialize_message(pf))], log_time_ns=10 + i)
+    lg.close()
+    assert lg.error is None and lg.written == lg.handed_over == 75
+    got = _read_rosbags(lg.files[0], "/joint_states")
+    assert len(got) == 50 and all(_same(a, b) for a, b in zip(got, sent))
+    with open(lg.files[0], "rb") as f:
+        msgs = [(c.topic, m.sequence, m.log_time, m.publish_time) for _, c, m in make_reader(f).iter_messages()]
+    js = [x for x in msgs if x[0] == "/joint_states"]
+    assert [x[1] for x in js] == list(range(1, 51)) and [x[2] for x in js] == [10 + i for i in range(50)]
+    pf = [x for x in msgs if x[0] == "/point_forces"]
+    assert [x[1] for x in pf] == list(range(1, 26)) and all(x[2] == x[3] for x in pf)
+    assert [x[2] for x in pf] == [10 + i for i in range(0, 50, 2)]
+
+
 def test_writer_process_ignores_sigint_and_sigterm(tmp_path):
     """Ctrl-C / a stop signal to the process group must not cut the log short while the node drains."""
     import signal

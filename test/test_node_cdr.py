@@ -78,3 +78,17 @@ def test_joint_state_encoder_reuses_no_output_and_checks_lengths():
     for bad in (np.zeros(2), np.zeros(4), np.zeros((3, 1))):
         with pytest.raises(ValueError):
             enc.encode(0.0, bad, np.zeros(3), np.zeros(3))
+
+
+def test_joint_state_encoder_fast_and_buffer_paths_agree():
+    """float64 ndarrays take the join path; lists, other dtypes and strided views the buffer path
+    or tobytes() of a non-contiguous array: the same bytes either way."""
+    rng = np.random.default_rng(3)
+    enc = JointStateEncoder([f"j{i}" for i in range(5)], "f")
+    q, v, e = (rng.normal(size=5) for _ in range(3))
+    ref = enc._encode_buffer(0.25, q, v, e)
+    assert enc.encode(0.25, q, v, e) == ref
+    assert enc.encode(0.25, q.tolist(), v, e) == ref
+    wide = np.stack([e, e]).T  # (5, 2): column 0 is a strided view of e
+    assert enc.encode(0.25, q, v, wide[:, 0]) == ref
+    assert enc.encode(0.25, q, v, e.astype(np.float32)) == enc._encode_buffer(0.25, q, v, e.astype(np.float32))

@@ -606,6 +606,29 @@ class McapLogger:
             self._buf += data
             self.handed_over += 1
 
+    def write_many(self, items, log_time_ns: int | None = None):
+        """``write`` for several (topic, data) messages with one log time (= publish time) and one
+        lock: the messages of one simulation step."""
+        if self._closed or self._failed:
+            return
+        if log_time_ns is None:
+            log_time_ns = time.time_ns()
+        if self.writer == "thread":
+            for topic, data in items:
+                self.write(topic, data, log_time_ns)
+            return
+        topics, head = self._topics, _MESSAGE_HEAD.pack
+        with self._lock:
+            buf = self._buf
+            for topic, data in items:
+                t = topics.get(topic)
+                if t is None:
+                    continue
+                t.seq = seq = (t.seq + 1) & 0xFFFFFFFF
+                buf += head(_OP_MESSAGE, 22 + len(data), t.index + 1, seq, log_time_ns, log_time_ns)
+                buf += data
+                self.handed_over += 1
+
     def flush(self, timeout=10.0) -> bool:
         """Block until everything handed over so far is written and the open chunk finalized."""
         if self._closed:

@@ -71,6 +71,7 @@ _STAMP = struct.Struct("<iI")
 _U32 = struct.Struct("<I")
 _U64 = struct.Struct("<Q")
 _8D = struct.Struct("<8d")
+_F8 = np.dtype("<f8")
 
 
 class JointStateEncoder:
@@ -96,8 +97,27 @@ class JointStateEncoder:
         self.padding = list(w.padding)
         self._buf = np.frombuffer(bytearray(self.template), dtype=np.uint8)
         self._views = [self._buf[o:o + 8 * n].view("<f8") for o in self.off]
+        # the fast path joins constant pieces of the template with the arrays' bytes
+        o0, o1, o2 = self.off
+        self._pieces = (self.template[:4], self.template[12:o0], self.template[o0 + 8 * n:o1],
+                        self.template[o1 + 8 * n:o2])
+        self._shape = (n,)
 
     def encode(self, t, position, velocity, effort) -> bytes:
+        """One join of template pieces and ``tobytes()`` of the three arrays (~2 us for the
+        hand) when all three are 1-D float64 ndarrays of length n; anything else (lists, other
+        dtypes) goes through the patched buffer, which also checks the lengths."""
+        shape = self._shape
+        if (type(position) is np.ndarray and type(velocity) is np.ndarray and type(effort) is np.ndarray
+                and position.shape == shape and velocity.shape == shape and effort.shape == shape
+                and position.dtype == _F8 and velocity.dtype == _F8 and effort.dtype == _F8 and self.n):
+            ns = int(round(t * 1e9))
+            enc, mid, sep1, sep2 = self._pieces
+            return b"".join((enc, _STAMP.pack(ns // 1_000_000_000, ns % 1_000_000_000), mid, position.tobytes(),
+                             sep1, velocity.tobytes(), sep2, effort.tobytes()))
+        return self._encode_buffer(t, position, velocity, effort)
+
+    def _encode_buffer(self, t, position, velocity, effort) -> bytes:
         if self.n == 0:  # Fast CDR pads empty double sequences lazily: let rclpy do this rare case
             from rclpy.serialization import serialize_message
             from sensor_msgs.msg import JointState

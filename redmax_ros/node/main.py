@@ -415,14 +415,30 @@ class RedmaxNode(Node):
         self._desc_cache = (None, None)
 
     def state(self, t, q, v, effort, site_forces, diag, step_index):
-        # fast path: CDR written directly (test_node_cdr.py checks it against rclpy's serializer)
-        self._send_bytes(self.pub_js, self.js_enc.encode(t, self.msgs.info.positions(q), v, effort), False)
-        self._send_bytes(self.pub_clock, encode_clock(t), False)
+        """One published step: the messages are serialized once (joint_states, /clock and
+        solver_stats by the fast CDR encoders, test_node_cdr.py checks them against rclpy's
+        serializer), logged together (one lock, one log time), then published in this order.
+        joint_states and /clock (volatile) are not even encoded while nobody subscribes and they
+        are not logged: such a message could reach nobody (the sender would drop it)."""
+        lg = self.logger_mcap
+        out = []
+        pub = self.pub_js
+        if (lg is not None and lg.logs(self._topic_names[pub])) or pub.handle.get_subscription_count():
+            out.append((pub, self.js_enc.encode(t, self.msgs.info.positions(q), v, effort)))
+        pub = self.pub_clock
+        if (lg is not None and lg.logs(self._topic_names[pub])) or pub.handle.get_subscription_count():
+            out.append((pub, encode_clock(t)))
         if site_forces or self._last_pf_nonempty:
-            self._send_bytes(self.pub_pf, serialize_message(self.msgs.point_forces(t, site_forces)), False)
+            out.append((self.pub_pf, serialize_message(self.msgs.point_forces(t, site_forces))))
             self._last_pf_nonempty = bool(site_forces)
         if diag is not None and self._stats_wanted():
-            self._send_bytes(self.pub_stats, self.stats_enc.encode(t, step_index, diag), False)
+            out.append((self.pub_stats, self.stats_enc.encode(t, step_index, diag)))
+        if lg is not None and out:
+            names = self._topic_names
+            lg.write_many([(names[p], data) for p, data in out])
+        send = self._sender.send
+        for p, data in out:
+            send(p, data, False)
         self._sender.wake()
 
     def _stats_wanted(self):
@@ -430,7 +446,7 @@ class RedmaxNode(Node):
         someone subscribes or it is logged."""
         lg = self.logger_mcap
         return (lg is not None and lg.logs(self._topic_names[self.pub_stats])) or \
-            self.pub_stats.get_subscription_count() > 0
+            self.pub_stats.handle.get_subscription_count() > 0
 
     def markers(self, t, poses, springs):
         self._send(self.pub_markers, markers_msg(t, poses, springs, self.frame_id))
