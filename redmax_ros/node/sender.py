@@ -44,7 +44,9 @@ class _Allocator(ctypes.Structure):  # rcutils_allocator_t
 
 
 class _SerializedMessage(ctypes.Structure):  # rcl_serialized_message_t = rcutils_uint8_array_t
-    _fields_ = [("buffer", ctypes.c_void_p), ("buffer_length", ctypes.c_size_t),
+    # buffer is uint8_t *; declared c_char_p so that assigning a bytes object stores its data
+    # pointer (and keeps the object alive) in ~0.4 us, vs ~3 us for cast(c_char_p(data), c_void_p)
+    _fields_ = [("buffer", ctypes.c_char_p), ("buffer_length", ctypes.c_size_t),
                 ("buffer_capacity", ctypes.c_size_t), ("allocator", _Allocator)]
 
 
@@ -181,7 +183,7 @@ class Sender:
         msg = getattr(self._local, "msg", None)
         if msg is None:
             msg = self._local.msg = _SerializedMessage()
-        msg.buffer = ctypes.cast(ctypes.c_char_p(data), ctypes.c_void_p)
+        msg.buffer = data
         msg.buffer_length = msg.buffer_capacity = len(data)
         ret = (fn if n else held)(ptr, ctypes.byref(msg), None)
         if ret != 0:
@@ -306,7 +308,7 @@ class Sender:
             done = 0
             while q:
                 ptr, data, pub = q.popleft()
-                msg.buffer = ctypes.cast(ctypes.c_char_p(data), ctypes.c_void_p)
+                msg.buffer = data
                 msg.buffer_length = msg.buffer_capacity = len(data)
                 call = fn if not self.hold_unsubscribed or self._subscribed(pub, monotonic()) else held
                 ret = call(ptr, ctypes.byref(msg), None)
