@@ -277,36 +277,24 @@ def static_external_world(mech, kin, ws, site_forces=None):
     return out
 
 
-def linear_wrenches(mech, fm, kin, ws, Z, h, acc0, Ax, lam0, LamX, cs, nu, nf, cons, site_forces=None):
+def linear_wrenches(mech, fm, kin, ws, Z, h, v0, PX, v_prev_r, lam0, LamX, cs, nu, nf, cons, site_forces=None):
     """The joint wrenches of Eq. (15)-(17) as an affine function of the staggered unknowns
     x = [alpha_U; beta]: W = W0 + Wx x, W0 (J+Lf, 6), Wx (J+Lf, 6, nx); the multipliers of Eq. (16) are
     then alpha_j = h L_j W_j (L_j the constant local least-squares operator, contact.ls_operator).
 
-    Everything is linear in x once q and qdot^prev are fixed: the constrained acceleration
-    (qdot^con - qdot^prev)/h = acc0 + Ax x (acc0 = (qdot_0 - qdot^prev)/h, Ax = P [U^T, -T^T] / h, both
-    in reduced coordinates), the bilateral multipliers lambda = lambda_0 + LamX x (§5.3: loop closures
-    and prescribed sites act as external forces), the ground impulses (Eq. 11-12) and the loop-pin
-    friction moments. One compiled Newton-Euler pass over the tree (bisp._reaction_kernel) gives both
-    parts; the loop pins' rows are the loop forces F = Sel^T lambda / h (world). Same numbers as
-    Pinocchio's RNEA with the external forces (bisp.joint_alphas, the test reference)."""
+    Everything is linear in x once q and qdot^prev are fixed: the constrained velocity qdot_0 + PX x
+    (hyper-reduced; PX = P [U^T, -T^T], condense.py) gives the acceleration (qdot^con - qdot^prev)/h in
+    reduced coordinates through the coupling matrix (Eq. 9), the bilateral multipliers lambda = lambda_0 +
+    LamX x (§5.3: loop closures and prescribed sites act as external forces), the ground impulses
+    (Eq. 11-12) and the loop-pin friction moments. One compiled Newton-Euler pass over the tree
+    (_map_kernel) gives both parts; the loop pins' rows are the loop forces F = Sel^T lambda / h (world).
+    Same numbers as Pinocchio's RNEA with the external forces (bisp.joint_alphas, the test reference)."""
     topo = fm.topo
     nx = nu + nf
     E0 = static_external_world(mech, kin, ws, site_forces)
     E = np.zeros((topo.njoints, 6, nx))
-    nl = len(fm.loop_index)
     J = len(fm.fj_names)
     W0, Wx = np.zeros((J, 6)), np.zeros((J, 6, nx))
-    if cons.loop_rows.stop:
-        Sel = mech.loop_select  # (rows, 3L): phi = Sel (x_a - x_b) stacked
-        nr, L = Sel.shape[0], len(mech.loop_ab)
-        F0 = (Sel.T @ lam0[:nr]).reshape(L, 3) * (1.0 / h)
-        dF = (Sel.T @ LamX[:nr]).reshape(L, 3, nx) * (1.0 / h)
-        xa, xb = kin.X[mech.loop_rows_ab[:, 0]], kin.X[mech.loop_rows_ab[:, 1]]
-        if nl:
-            W0[fm.n_tree:, :3] = F0[fm.loop_index]
-            Wx[fm.n_tree:, :3] = dF[fm.loop_index]
-    else:
-        F0, dF, xa, xb = np.zeros((0, 3)), np.zeros((0, 3, nx)), np.zeros((0, 3)), np.zeros((0, 3))
     for name, sl in cons.site_rows.items():  # prescribed sites (§5.3), rare: numpy
         s = mech.site_index[name]
         x = kin.X[kin.row[s]]
@@ -315,14 +303,73 @@ def linear_wrenches(mech, fm, kin, ws, Z, h, acc0, Ax, lam0, LamX, cs, nu, nf, c
         E0[j] += np.concatenate([f0, _cross(x, f0)])
         E[j] += np.concatenate([dFs, _cross(x[:, None], dFs, axis=0)], axis=0)
     if cs is None:
-        c_jid, c_X, c_n, c_t = np.zeros(0, dtype=np.int64), np.zeros((0, 3)), np.zeros((0, 3)), np.zeros((0, 2, 3))
+        c_jid, c_X, c_n, c_t = _NO_INT, _NO_3, _NO_3, _NO_23
     else:
         c_jid, c_X, c_n, c_t = cs.jid, cs.X, cs.n, cs.t
-    _external_kernel(nu, h, c_jid, c_X, c_n, c_t, fm.pin_ja, fm.pin_jb, nx - nl, fm.pin_moment / h,
-                     fm.loop_ja, fm.loop_jb, xa, xb, F0, dF, E0, E)
-    _reaction_kernel(topo.parents, topo.idx_v, topo.nv_j, ws.St, ws.I, ws.ov, Z, fm.gravity, acc0,
-                     np.ascontiguousarray(Ax), E0, E, ws.R, ws.p, fm.fj_jid, W0, Wx)
+    nloops = len(mech.loop_ab) if cons.loop_rows.stop else 0
+    _map_kernel(nu, h, v0, PX, v_prev_r, fm.T_ptr, fm.T_idx, fm.T_val, lam0, LamX, fm.sel_r, fm.sel_c, fm.sel_v,
+                nloops, kin.X, fm.loop_xa, fm.loop_xb, fm.loop_index, fm.n_tree, c_jid, c_X, c_n, c_t, fm.pin_ja,
+                fm.pin_jb, fm.pin_moment, fm.loop_ja, fm.loop_jb, topo.parents, topo.idx_v, topo.nv_j, ws.St, ws.I,
+                ws.ov, Z, fm.gravity, ws.R, ws.p, fm.fj_jid, E0, E, W0, Wx)
     return W0, Wx
+
+
+_NO_INT = np.zeros(0, dtype=np.int64)
+_NO_3 = np.zeros((0, 3))
+_NO_23 = np.zeros((0, 2, 3))
+
+
+@njit(cache=True, nogil=True)
+def _map_kernel(nu, h, v0, PX, v_prev, T_ptr, T_idx, T_val, lam0, LamX, sel_r, sel_c, sel_v, nloops, X, rows_a,
+                rows_b, loop_index, n_tree, c_jid, c_X, c_n, c_t, pin_ja, pin_jb, pin_m, lp_ja, lp_jb, parents, idx_v,
+                nv_j, St, I, ov, Z, g, R, p, jids, E0, E, W0, Wx):
+    """linear_wrenches in one compiled call: reduced accelerations acc0 = (T qdot_0 - qdot^prev)/h and
+    Ax = T PX / h (T = coupling matrix of Eq. 9 in CSR form), loop forces F = Sel^T (lambda_0 + LamX x) / h
+    (Sel as triplets), then _external_kernel and _reaction_kernel."""
+    nv, nx = len(v_prev), PX.shape[1]
+    inv_h = 1.0 / h
+    acc0 = np.empty(nv)
+    Ax = np.zeros((nv, nx))
+    for i in range(nv):
+        s = 0.0
+        for q in range(T_ptr[i], T_ptr[i + 1]):
+            c, t = T_idx[q], T_val[q]
+            s += t * v0[c]
+            for col in range(nx):
+                Ax[i, col] += t * PX[c, col]
+        acc0[i] = (s - v_prev[i]) * inv_h
+        for col in range(nx):
+            Ax[i, col] *= inv_h
+    F0 = np.zeros((nloops, 3))
+    dF = np.zeros((nloops, 3, nx))
+    if nloops:
+        for q in range(len(sel_r)):
+            r, c, sv = sel_r[q], sel_c[q], sel_v[q]
+            lp, a = c // 3, c % 3
+            F0[lp, a] += sv * lam0[r]
+            for col in range(nx):
+                dF[lp, a, col] += sv * LamX[r, col]
+        for lp in range(nloops):
+            for a in range(3):
+                F0[lp, a] *= inv_h
+                for col in range(nx):
+                    dF[lp, a, col] *= inv_h
+        for q in range(len(loop_index)):
+            li = loop_index[q]
+            for a in range(3):
+                W0[n_tree + q, a] = F0[li, a]
+                for col in range(nx):
+                    Wx[n_tree + q, a, col] = dF[li, a, col]
+    xa = np.empty((nloops, 3))
+    xb = np.empty((nloops, 3))
+    for lp in range(nloops):
+        for a in range(3):
+            xa[lp, a] = X[rows_a[lp], a]
+            xb[lp, a] = X[rows_b[lp], a]
+    pin_mh = pin_m * inv_h
+    _external_kernel(nu, h, c_jid, c_X, c_n, c_t, pin_ja, pin_jb, nx - len(pin_ja), pin_mh, lp_ja[:nloops],
+                     lp_jb[:nloops], xa, xb, F0, dF, E0, E)
+    _reaction_kernel(parents, idx_v, nv_j, St, I, ov, Z, g, acc0, Ax, E0, E, R, p, jids, W0, Wx)
 
 
 def affine_alphas(fm, h, W0, Wx):
@@ -336,8 +383,6 @@ def linear_alphas(mech, fm, kin, q, v_prev_r, h, v0, PX, lam0, LamX, cs, nu, nf,
     """alpha_joints = a0 + Mx x from the condensed velocity qdot_0 + PX x (hyper-reduced) and
     lambda_0 + LamX x: body_frames + linear_wrenches + affine_alphas in one call (tests, reference)."""
     ws, Z = body_frames(fm, q, v_prev_r)
-    T = mech.T
-    to_r = (lambda X: X) if T is None else (lambda X: T @ X)
-    W0, Wx = linear_wrenches(mech, fm, kin, ws, Z, h, (to_r(v0) - v_prev_r) / h, to_r(PX) / h, lam0, LamX, cs,
+    W0, Wx = linear_wrenches(mech, fm, kin, ws, Z, h, v0, np.ascontiguousarray(PX), v_prev_r, lam0, LamX, cs,
                              nu, nf, cons, site_forces)
     return affine_alphas(fm, h, W0, Wx)

@@ -84,6 +84,14 @@ class FrictionModel:
     loop_sdiff: np.ndarray | None = None  # (Lf,nv) support(a) - support(b) (loop friction rows)
     sph_support_f: np.ndarray | None = None  # (K,nv) float support of the contact spheres
     n_slots: int = 0  # warm-start cache: 2 K P ground tangents, then the joint and loop rows
+    loop_xa: np.ndarray | None = None  # (L,) rows of the loops' sites a / b in Kinematics.X
+    loop_xb: np.ndarray | None = None
+    T_ptr: np.ndarray | None = None  # coupling matrix T (nv, ndof) in CSR form (identity without couplings)
+    T_idx: np.ndarray | None = None
+    T_val: np.ndarray | None = None
+    sel_r: np.ndarray | None = None  # loop selection matrix Sel as (row, column, value) triplets
+    sel_c: np.ndarray | None = None
+    sel_v: np.ndarray | None = None
 
     @property
     def joint_slot0(self) -> int:
@@ -267,7 +275,27 @@ def _index_maps(mech, n_slots, lsites, laxis, lrad, sph_support):
         pin_jb=np.ascontiguousarray(mech.site_jid[lsites[:, 1]], dtype=np.int64),
         pin_moment=lrad[:, None] * laxis,
         loop_sdiff=(sup[lsites[:, 0]] - sup[lsites[:, 1]]) if len(lsites) else np.zeros((0, mech.nv)),
-        sph_support_f=np.ascontiguousarray(sph_support, dtype=float), n_slots=int(n_slots))
+        sph_support_f=np.ascontiguousarray(sph_support, dtype=float), n_slots=int(n_slots),
+        loop_xa=np.ascontiguousarray(mech.loop_rows_ab[:, 0], dtype=np.int64),
+        loop_xb=np.ascontiguousarray(mech.loop_rows_ab[:, 1], dtype=np.int64),
+        **_sparse_maps(mech))
+
+
+def _sparse_maps(mech):
+    """The coupling matrix T (Eq. 9; identity when absent) in CSR form and the loop selection matrix
+    (phi = Sel (x_a - x_b)) as (row, column, value) triplets, for the compiled BISP map."""
+    T = np.eye(mech.nv) if mech.T is None else np.asarray(mech.T, dtype=float)
+    ptr, idx, val = [0], [], []
+    for row in T:
+        nz = np.flatnonzero(row)
+        idx += nz.tolist()
+        val += row[nz].tolist()
+        ptr.append(len(idx))
+    nl = len(mech.loop_ab)
+    Sel = np.asarray(mech.loop_select, dtype=float).reshape(-1, 3 * nl) if nl else np.zeros((0, 0))
+    r, c = np.nonzero(Sel)
+    return dict(T_ptr=np.array(ptr, dtype=np.int64), T_idx=np.array(idx, dtype=np.int64), T_val=np.array(val, dtype=float),
+                sel_r=r.astype(np.int64), sel_c=c.astype(np.int64), sel_v=Sel[r, c].astype(float))
 
 
 @dataclass

@@ -317,11 +317,7 @@ def solve(mech, data, kin, system: LinearSystem, cons, q, v_prev_r, h, cache, si
                               fm.joint_slot0, nf)
     joint_fric = fm.has_joint_friction
     if joint_fric:  # Eq. (15)-(17) as an affine map of x = [alpha_U; beta] (bisp.linear_wrenches)
-        T = mech.T
-        acc0 = (v0 if T is None else T @ v0) - v_prev_r
-        acc0 *= 1.0 / h
-        Ax = (PX if T is None else T @ PX) * (1.0 / h)
-        W0, Wx = bisp.linear_wrenches(mech, fm, kin, ws, Z, h, acc0, Ax, lam0, LamX, cs, nu, nf, cons,
+        W0, Wx = bisp.linear_wrenches(mech, fm, kin, ws, Z, h, v0, PX, v_prev_r, lam0, LamX, cs, nu, nf, cons,
                                       site_forces)
         kmax = fm.L.shape[1]
     alpha = np.zeros(nu)
