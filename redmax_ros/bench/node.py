@@ -12,8 +12,10 @@ message) so the client measures the node rather than its own decoding.
     the first joint_states carrying that velocity arrives.
 (b) lockstep step_simulation(steps=1) round trip, in blocks interleaved with the same number of
     in-process core steps (same scene) and of calls to do-nothing servers of the same service type
-    (the rclpy floor: one spun by a MultiThreadedExecutor, one by the EventsExecutor, the
-    executor that serves our step_simulation): overhead per step = round trip - core step.
+    (the floor: one spun by rclpy's MultiThreadedExecutor, one by its EventsExecutor, one served
+    like the node's step_simulation by node/step_server.py's StepServer): overhead per step =
+    round trip - core step; node - StepServer floor = what the node adds to serving the call
+    (the step itself, run in the node process between calls, included).
 (c) real-time factor in free-run as fast as possible (real_time_factor 0), joint_states every
     step with a subscriber attached, node subprocess per run, logging off/on alternated, for each
     scene; RTF from the node's /diagnostics (median over 1 s windows, start-up window dropped).
@@ -225,6 +227,17 @@ def _floor_server(kind, ns):
         resp.completed_steps = req.steps
         return resp
 
+    if kind == "raw":  # the node's own way of serving step_simulation (node/step_server.py)
+        from redmax_ros.node.step_server import StepServer
+        srv = StepServer(node, "step_simulation", lambda steps: (1, "", steps, 0.0))
+        srv.start()
+        try:
+            while rclpy.ok():
+                time.sleep(0.2)
+        except BaseException:
+            pass
+        srv.close()
+        return 0
     if kind == "mte":
         from rclpy.callback_groups import ReentrantCallbackGroup
         from rclpy.executors import MultiThreadedExecutor
@@ -295,17 +308,19 @@ def bench_step_service(scene, n, dt, rounds):
     sim = Simulator.load(scene, overrides=[f"dt={dt}"])
     sim.step(20)
     pid = os.getpid()
-    ns_node, ns_mte, ns_ev = f"/bench_step{pid}", f"/bench_floor_mte{pid}", f"/bench_floor_ev{pid}"
+    ns_node, ns_mte, ns_ev, ns_raw = (f"/bench_step{pid}", f"/bench_floor_mte{pid}", f"/bench_floor_ev{pid}",
+                                      f"/bench_floor_raw{pid}")
     procs = [_start_node(ns_node, {"scene": scene, "mode": "lockstep", "dt": dt, "publish_rate": 0.0,
                                    "marker_rate": 0.0, "command_timeout": 0.0})]
-    floor = [("floor_mte", ns_mte, "mte"), ("floor_events", ns_ev, "events")]
+    floor = [("floor_mte", ns_mte, "mte"), ("floor_events", ns_ev, "events"), ("floor_raw", ns_raw, "raw")]
     for _, ns, kind in floor:
         procs.append(subprocess.Popen([sys.executable, "-m", "redmax_ros.bench.node", "_floor_server", kind, ns],
                                       stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL))
     clients = {"node": _StepClient(ns_node, "redmax_bench_step")}
     for key, ns, _ in floor:
         clients[key] = _StepClient(ns, f"redmax_bench_{key}")
-    rows = {k: [] for k in ("core", "node", "floor_mte", "floor_events", "load")}
+    keys = ("node", "floor_mte", "floor_events", "floor_raw")
+    rows = {k: [] for k in ("core",) + keys + ("load",)}
     try:
         for c in clients.values():
             c.ready()
@@ -314,7 +329,7 @@ def bench_step_service(scene, n, dt, rounds):
             for _ in range(n):
                 sim.step(1)
             rows["core"].append((time.perf_counter() - t0) / n)
-            for key in ("node", "floor_mte", "floor_events") if r % 2 == 0 else ("floor_events", "floor_mte", "node"):
+            for key in keys if r % 2 == 0 else keys[::-1]:
                 rows[key].append(clients[key].time_calls(n))
             rows["load"].append(_load())
     finally:
@@ -328,7 +343,9 @@ def bench_step_service(scene, n, dt, rounds):
             "core_step_ms": 1e3 * core, "service_round_trip_ms": 1e3 * rt, "overhead_ms": 1e3 * overhead,
             "overhead_ratio": rt / core,
             "floor_round_trip_ms": {"multi_threaded_executor": 1e3 * _median(rows["floor_mte"]),
-                                    "events_executor": 1e3 * _median(rows["floor_events"])},
+                                    "events_executor": 1e3 * _median(rows["floor_events"]),
+                                    "step_server": 1e3 * _median(rows["floor_raw"])},
+            "node_minus_step_server_floor_ms": 1e3 * _median([b - a for a, b in zip(rows["floor_raw"], rows["node"])]),
             "blocks_ms": {k: [round(1e3 * x, 4) for x in v] for k, v in rows.items() if k != "load"},
             "load": _median(rows["load"])}
 
@@ -574,8 +591,9 @@ def main(argv=None) -> int:
                 f = r["floor_round_trip_ms"]
                 print(f"    {sc}: core {r['core_step_ms']:.3f} ms, service {r['service_round_trip_ms']:.3f} ms, "
                       f"overhead {r['overhead_ms']:.3f} ms/step (x{r['overhead_ratio']:.2f}); do-nothing service "
-                      f"{f['events_executor']:.3f} ms (EventsExecutor), {f['multi_threaded_executor']:.3f} ms "
-                      f"(MultiThreadedExecutor); load {r['load']}")
+                      f"{f['step_server']:.3f} ms (StepServer), {f['events_executor']:.3f} ms (EventsExecutor), "
+                      f"{f['multi_threaded_executor']:.3f} ms (MultiThreadedExecutor); node - StepServer floor "
+                      f"{r['node_minus_step_server_floor_ms']:.3f} ms; load {r['load']}")
         if "rtf" in want:
             print(f"(c) free-run real-time factor (as fast as possible), h = {a.dt:g} s, joint_states every step, "
                   f"{a.rtf_rounds} runs each, logging off/on alternated")
