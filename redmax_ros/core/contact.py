@@ -394,6 +394,69 @@ def detect(mech, fm: FrictionModel, ws, h) -> ContactSet:
 _EMPTY = np.zeros((0, 0))
 
 
+@njit(cache=True, nogil=True)
+def _rows_kernel(R, p, St, sph_jid, sph_local, sph_radius, sph_support, sph_mu, plane_n, plane_off, plane_t, plane_mu,
+                 margin, erp, h, T, T_ptr, T_idx, T_val, ndof, rows_fixed, pin_moment, loop_sdiff, CU, lo_CU):
+    """_detect_kernel plus the stacked rows of the staggered solve, RX = [N; CU; -T_ground; -T_joints;
+    -T_loops] (unilateral rows first: ground normals, then the limit rows CU), with the loop-pin rows
+    r axis^T (J_w,a - J_w,b) mapped through the coupling matrix (CSR)."""
+    ks, ps, X, n, t, d, mu, jid, N, Tv, lo = _detect_kernel(R, p, St, sph_jid, sph_local, sph_radius, sph_support,
+                                                           sph_mu, plane_n, plane_off, plane_t, plane_mu, margin, erp,
+                                                           h, T)
+    nc, nlim, F1, Lf, nv = len(ks), CU.shape[0], rows_fixed.shape[0], pin_moment.shape[0], St.shape[0]
+    nu = nc + nlim
+    RX = np.zeros((nu + 2 * nc + F1 + Lf, ndof))
+    RX[:nc] = N
+    RX[nc:nu] = CU
+    RX[nu:nu + 2 * nc] = -Tv
+    RX[nu + 2 * nc:nu + 2 * nc + F1] = -rows_fixed
+    r0 = nu + 2 * nc + F1
+    for q in range(Lf):
+        for c in range(nv):
+            sd = loop_sdiff[q, c]
+            if sd == 0.0:
+                continue
+            w = sd * (pin_moment[q, 0] * St[c, 3] + pin_moment[q, 1] * St[c, 4] + pin_moment[q, 2] * St[c, 5])
+            for e in range(T_ptr[c], T_ptr[c + 1]):
+                RX[r0 + q, T_idx[e]] -= w * T_val[e]
+    lo_U = np.empty(nu)
+    lo_U[:nc] = lo
+    lo_U[nc:] = lo_CU
+    return ks, ps, X, n, t, d, mu, jid, N, Tv, lo, RX, lo_U, nu
+
+
+def staggered_rows(mech, fm: FrictionModel, ws, h, cons):
+    """Contacts and rows of one staggered step in one compiled call: (ContactSet or None, RX (nx, ndof),
+    lo_U, nu) with RX = [U; -T], U = [ground normals; limit rows +-C] (N qdot >= lo_U), T = [ground
+    tangents; joint rows; loop-pin rows] (same rows as detect, loop_friction_rows and the joint rows)."""
+    if cons.C is not None:
+        fin_lo, fin_hi = np.isfinite(cons.lo), np.isfinite(cons.hi)
+        CU = np.ascontiguousarray(np.vstack([cons.C[fin_lo], -cons.C[fin_hi]]))
+        lo_CU = np.concatenate([cons.lo[fin_lo], -cons.hi[fin_hi]])
+    else:
+        CU, lo_CU = _NO_ROWS[mech.ndof], _NO_VALUES
+    st = fm.settings
+    contacts = len(fm.plane_n) > 0
+    out = _rows_kernel(ws.R, ws.p, ws.St, fm.sph_jid if contacts else _NO_SPHERES, fm.sph_local, fm.sph_radius,
+                       fm.sph_support_f, fm.sph_mu, fm.plane_n, fm.plane_off, fm.plane_t, fm.plane_mu, st.margin, st.erp,
+                       h, _EMPTY if mech.T is None else mech.T, fm.T_ptr, fm.T_idx, fm.T_val, mech.ndof,
+                       fm.rows_fixed, fm.pin_moment, fm.loop_sdiff, CU, lo_CU)
+    ks, ps, X, n, t, d, mu, jid, N, Tv, lo, RX, lo_U, nu = out
+    cs = ContactSet(ks, ps, X, n, t, d, mu, jid, N, Tv, lo) if len(ks) else None
+    return cs, RX, lo_U, nu
+
+
+class _EmptyRows(dict):
+    def __missing__(self, ndof):
+        self[ndof] = np.zeros((0, ndof))
+        return self[ndof]
+
+
+_NO_ROWS = _EmptyRows()
+_NO_VALUES = np.zeros(0)
+_NO_SPHERES = np.zeros(0, dtype=np.int64)
+
+
 def loop_friction_rows(mech, fm: FrictionModel, ws):
     """(Lf, ndof) friction rows of the loop pins: r axis^T (J_w,a - J_w,b) (relative spin about the pin).
     ``ws``: the step's recursive.Workspace (St = data.J^T)."""

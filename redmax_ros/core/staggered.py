@@ -36,7 +36,7 @@ import proxsuite
 
 from . import bisp
 from .condense import condense
-from .contact import detect, loop_friction_rows
+from .contact import staggered_rows
 from .errors import StepError
 from .forces import LinearSystem
 from .solve import Solution
@@ -173,13 +173,15 @@ def _staggered_kernel(W_U, X_UT, X_TU, U_v0, lo_U, W_T, T_v0, mu_g, a0, Mx, Lop,
             x[:nu] = alpha
             x[nu:] = beta
             if nw:  # Eq. (16) per joint: alpha_j = h L_j (W0 + Wx x)_j
-                wr[:] = a0 + Mx @ x
+                np.dot(Mx, x, wr)
                 for j in range(nw):
+                    o = 6 * j
+                    f0, f1, f2 = a0[o] + wr[o], a0[o + 1] + wr[o + 1], a0[o + 2] + wr[o + 2]
+                    t0, t1, t2 = a0[o + 3] + wr[o + 3], a0[o + 4] + wr[o + 4], a0[o + 5] + wr[o + 5]
                     for kk in range(kmax):
-                        sacc = 0.0
-                        for c in range(6):
-                            sacc += Lop[j, kk, c] * wr[6 * j + c]
-                        al[j * kmax + kk] = h * sacc
+                        Lk = Lop[j, kk]
+                        al[j * kmax + kk] = h * (Lk[0] * f0 + Lk[1] * f1 + Lk[2] * f2 + Lk[3] * t0 + Lk[4] * t1
+                                                 + Lk[5] * t2)
             else:
                 al[:] = a0 + Mx @ x
             nj = len(bound_mu)
@@ -268,25 +270,6 @@ def _qp(H, c, lo, hi, x0, eps):
     return np.clip(x, lo, hi)
 
 
-def _rows(mech, fm, cs, cons, ws, n):
-    """Unilateral rows U = [ground normals; limits +-C] with bounds lo_U and friction rows
-    T = [ground tangents; joint rows; loop-pin rows] of the step; RX = [U; -T]."""
-    nc = 0 if cs is None else len(cs.gap)
-    U, lo_U = [], []
-    if nc:
-        U.append(cs.N)
-        lo_U.append(cs.lo)
-    if cons.C is not None:
-        fin_lo, fin_hi = np.isfinite(cons.lo), np.isfinite(cons.hi)
-        U += [cons.C[fin_lo], -cons.C[fin_hi]]
-        lo_U += [cons.lo[fin_lo], -cons.hi[fin_hi]]
-    Tl = loop_friction_rows(mech, fm, ws)
-    RX = np.concatenate(U + ([-cs.T] if nc else []) + [-fm.rows_fixed, -Tl])
-    nu = sum(len(u) for u in U)
-    lo_U = np.concatenate(lo_U) if lo_U else np.zeros(0)
-    return np.ascontiguousarray(RX.reshape(-1, n)), lo_U, nu, nc, len(Tl)
-
-
 def solve(mech, data, kin, system: LinearSystem, cons, q, v_prev_r, h, cache, site_forces=None):
     """Frictional contact step. Returns (Solution, FrictionReport, new cache). ``cache``: the previous
     step's friction impulses (ndarray of FrictionModel.n_slots, or None); ``data`` is not used (the
@@ -298,8 +281,8 @@ def solve(mech, data, kin, system: LinearSystem, cons, q, v_prev_r, h, cache, si
     ws, Z = bisp.body_frames(fm, q, v_prev_r)  # placements, subspaces, inertias, twists, Jdot qdot
 
     # rows: unilateral U (ground normals, limits) and friction T (ground tangents, joints, loops)
-    cs = detect(mech, fm, ws, h)
-    RX, lo_U, nu, nc, nl = _rows(mech, fm, cs, cons, ws, n)
+    cs, RX, lo_U, nu = staggered_rows(mech, fm, ws, h, cons)
+    nc = 0 if cs is None else len(cs.gap)
     nf = len(RX) - nu
     ng = 2 * nc
     m = cons.m
