@@ -111,8 +111,43 @@ def body_frames(fm, q, v_prev_r):
     the FrictionModel's own workspace: no per-joint Pinocchio calls): world placements R, p, motion
     subspaces St (= data.J^T), spatial inertias I at the origin, twists ov = J qdot^prev and the bias
     accelerations Z = Jdot qdot^prev (the quadratic velocity term of Eq. 2). Returns (ws, Z)."""
-    ws = rc.update_kinematics(fm.topo, fm.ws, q, v_prev_r)
-    return ws, rc.bias_acceleration(fm.topo, ws, fm.Z)
+    topo, ws = fm.topo, fm.ws
+    if fm.planar is None:
+        rc.update_kinematics(topo, ws, q, v_prev_r)
+    else:  # every FALLBACK joint is a Pinocchio planar joint: constant S, zero bias, transform from q
+        _planar_kernel(fm.planar, topo.idx_q, q, ws.jR, ws.jp)
+        rc._fk_kernel(topo.parents, topo.kind, topo.idx_q, topo.idx_v, topo.nv_j, topo.axis, topo.pitch,
+                      topo.place_R, topo.place_p, q, ws.jR, ws.jp, ws.Sl, ws.R, ws.p, ws.St)
+        rc._world_inertia_kernel(topo.mass, topo.com, topo.inertia_com, ws.R, ws.p, ws.I)
+        ws.v = v_prev_r
+        rc._jv_kernel(topo.parents, topo.idx_v, topo.nv_j, ws.St, v_prev_r, ws.ov)
+    return ws, rc.bias_acceleration(topo, ws, fm.Z)
+
+
+def planar_fallbacks(topo, ws):
+    """Indices of the FALLBACK joints of recursive.py when all of them are Pinocchio planar joints (q = (x, y,
+    cos, sin), S constant, bias zero: body_frames then needs no per-joint Pinocchio call; their constant
+    motion subspaces are written into ws once), else None."""
+    if not topo.fallback or any(jm.shortname() != "JointModelPlanar" for jm in topo.fallback_models):
+        return None
+    for j, jm in zip(topo.fallback, topo.fallback_models):
+        i0 = topo.idx_v[j]
+        ws.Sl[i0:i0 + 3, :] = np.array([[1.0, 0, 0, 0, 0, 0], [0, 1.0, 0, 0, 0, 0], [0, 0, 0, 0, 0, 1.0]])
+        ws.c_local[j] = 0.0
+    ws.has_bias = False
+    return np.array(topo.fallback, dtype=np.int64)
+
+
+@njit(cache=True, nogil=True)
+def _planar_kernel(joints, idx_q, q, jR, jp):
+    """Joint transforms of planar joints: rotation about z by (cos, sin) = q[2:4], translation (q0, q1, 0)."""
+    for j in joints:
+        i = idx_q[j]
+        c, s = q[i + 2], q[i + 3]
+        jR[j, 0, 0], jR[j, 0, 1], jR[j, 0, 2] = c, -s, 0.0
+        jR[j, 1, 0], jR[j, 1, 1], jR[j, 1, 2] = s, c, 0.0
+        jR[j, 2, 0], jR[j, 2, 1], jR[j, 2, 2] = 0.0, 0.0, 1.0
+        jp[j, 0], jp[j, 1], jp[j, 2] = q[i], q[i + 1], 0.0
 
 
 @njit(cache=True, nogil=True)

@@ -75,6 +75,7 @@ class FrictionModel:
     topo: object = None  # recursive.Topology of the model
     ws: object = None  # recursive.Workspace (per-step kinematics of the BISP map; a workspace like fext)
     Z: np.ndarray | None = None  # (njoints,6) bias accelerations (workspace)
+    planar: np.ndarray | None = None  # FALLBACK joints of ws when all are planar (bisp.body_frames fast path)
     gravity: np.ndarray | None = None  # (3,)
     loop_ja: np.ndarray | None = None  # (L,) Pinocchio joint of site a / b of every loop
     loop_jb: np.ndarray | None = None
@@ -263,11 +264,13 @@ def compile_friction(mech, fspec) -> FrictionModel | None:
 def _index_maps(mech, n_slots, lsites, laxis, lrad, sph_support):
     """Constant structure of the per-step set-up, computed once per mechanism."""
     from . import recursive as rc
+    from .bisp import planar_fallbacks
     topo = rc.build_topology(mech.model)
+    ws = rc.make_workspace(topo)
     ab = np.asarray(mech.loop_ab, dtype=int).reshape(-1, 2)
     sup = mech.site_support.astype(float).reshape(-1, mech.nv)
     return dict(
-        topo=topo, ws=rc.make_workspace(topo), Z=np.zeros((topo.njoints, 6)),
+        topo=topo, ws=ws, planar=planar_fallbacks(topo, ws), Z=np.zeros((topo.njoints, 6)),
         gravity=np.array(mech.model.gravity.linear, dtype=float),
         loop_ja=np.ascontiguousarray(mech.site_jid[ab[:, 0]], dtype=np.int64),
         loop_jb=np.ascontiguousarray(mech.site_jid[ab[:, 1]], dtype=np.int64),
