@@ -1,6 +1,7 @@
 """redmax_bench friction: Fig. 5c (crank torque of the Klann walker vs time for joint mu 0 ... 0.8),
 staggered iterations per step, walker steps/s and real-time factor at h = 1 ms with floor contact and
-joint friction, and BISP (reduced coordinates) vs Staggered Projections in maximal coordinates with
+joint friction (best-of-3 CPU time, with the load average, and the CPU time of each stage of a step), and
+BISP (reduced coordinates) vs Staggered Projections in maximal coordinates with
 Baumgarte (bench/sp_maximal.py) on friction_chain and a frictional four-bar, in one run.
 Writes bench/results/friction.json and friction_fig5c.png.
 
@@ -9,6 +10,8 @@ Writes bench/results/friction.json and friction_fig5c.png.
 from __future__ import annotations
 
 import argparse
+import math
+import os
 import time
 
 import numpy as np
@@ -52,6 +55,76 @@ def walker(mu, dt, duration):
                 speed_m_s=float((sim.state.q[0] - x0) / duration), max_penetration_m=pen, max_loop_violation_m=viol)
 
 
+_STAGES = (  # (module path, function, label): the stages of a walker step, timed from inside the step
+    ("redmax_ros.core.stepper", "kinematics.compute", "kinematics"),
+    ("redmax_ros.core.stepper", "forces.assemble", "forces"),
+    ("redmax_ros.core.stepper", "constraints.build", "constraints"),
+    ("redmax_ros.core.stepper", "staggered.solve", "staggered solve (total)"),
+    ("redmax_ros.core.staggered", "bisp.body_frames", "  body frames (FK, inertias, twists, Jdot qdot)"),
+    ("redmax_ros.core.staggered", "staggered_rows", "  contact detection + rows"),
+    ("redmax_ros.core.staggered", "condense", "  condensation (P, Delassus blocks, lambda map)"),
+    ("redmax_ros.core.staggered", "bisp.linear_wrenches", "  BISP joint-wrench map (Eq. 15-17)"),
+    ("redmax_ros.core.staggered", "_staggered_kernel", "  staggered iterations (compiled loop)"),
+    ("redmax_ros.core.staggered", "_finish", "  outputs"),
+    ("redmax_ros.core.stepper", "stabilization.project_chord", "loop post-stabilization"),
+    ("redmax_ros.core.stepper", "energies", "energies"),
+)
+
+
+def walker_profile(mu, dt, steps):
+    """CPU time per step of each stage of the walker step (wrappers around the stage functions; each
+    adds ~0.3 us), and the whole step. Returns {label: us per step}."""
+    import importlib
+    acc, patched = {}, []
+    for modname, attr, label in _STAGES:
+        obj = importlib.import_module(modname)
+        *path, name = attr.split(".")
+        try:
+            for p_ in path:
+                obj = getattr(obj, p_)
+            f = getattr(obj, name)
+        except AttributeError:  # the stage moved: not timed
+            continue
+
+        def wrap(*a, _f=f, _l=label, **k):
+            t0 = time.process_time()
+            try:
+                return _f(*a, **k)
+            finally:
+                acc[_l] = acc.get(_l, 0.0) + time.process_time() - t0
+        setattr(obj, name, wrap)
+        patched.append((obj, name, f))
+    try:
+        sim = Simulator.load("klann", overrides=[f"friction.joint_mu={mu}", f"dt={dt}"])
+        sim.step(20)
+        acc.clear()
+        c0 = time.process_time()
+        sim.step(steps)
+        total = time.process_time() - c0
+    finally:
+        for obj, name, f in reversed(patched):
+            setattr(obj, name, f)
+    out = {"step (total)": 1e6 * total / steps}
+    out.update({label: 1e6 * acc.get(label, 0.0) / steps for _, _, label in _STAGES})
+    return out
+
+
+def walker_speed(mu, dt, steps, repeats=3):
+    """Best-of-``repeats`` CPU time of ``steps`` walker steps (after a warm-up run that loads the compiled
+    kernels): steps per CPU second and the real-time factor; the load average before and after."""
+    Simulator.load("klann", overrides=[f"friction.joint_mu={mu}", f"dt={dt}"]).step(20)
+    load0 = os.getloadavg()[0]
+    best = math.inf
+    for _ in range(repeats):
+        sim = Simulator.load("klann", overrides=[f"friction.joint_mu={mu}", f"dt={dt}"])
+        c0 = time.process_time()
+        sim.step(steps)
+        best = min(best, time.process_time() - c0)
+    return dict(mu=mu, dt=dt, steps=steps, repeats=repeats, cpu_ms_per_step=1e3 * best / steps,
+                steps_per_cpu_s=steps / best, real_time_factor_cpu=steps * dt / best,
+                load_before=load0, load_after=os.getloadavg()[0])
+
+
 def _reduced_coms(sim):
     m = sim.mech
     data = m.model.createData()
@@ -91,6 +164,12 @@ def main(argv=None) -> int:
     a = ap.parse_args(argv)
     dt = 2e-3 if a.quick else a.dt
     dur = a.duration or (0.6 if a.quick else 2.0)
+    Simulator.load("klann", overrides=["friction.joint_mu=0.2", f"dt={dt}"]).step(5)  # load compiled kernels
+    speed = [walker_speed(mu, 1e-3, 300 if a.quick else 1000) for mu in (0.4, 0.0)]
+    for r in speed:
+        print(f"klann joint mu {r['mu']:.1f}, h = 1 ms: {r['cpu_ms_per_step']:.3f} ms CPU per step (best of "
+              f"{r['repeats']} x {r['steps']}) = {r['steps_per_cpu_s']:.0f} steps/s, RTF {r['real_time_factor_cpu']:.2f} "
+              f"(load {r['load_before']:.2f} -> {r['load_after']:.2f})", flush=True)
     runs = []
     for mu in MUS:
         r = walker(mu, dt, dur)
@@ -100,6 +179,10 @@ def main(argv=None) -> int:
               f"{r['steps_per_s']:.0f} steps/s = RTF {r['real_time_factor']:.3f} (CPU time: {r['steps_per_cpu_s']:.0f} "
               f"steps/s, RTF {r['real_time_factor_cpu']:.3f}), walked {r['distance_m']:.3f} m, "
               f"max sink {1e3 * r['max_penetration_m']:.3f} mm", flush=True)
+    prof = walker_profile(0.4, dt, 500 if a.quick else 2000)
+    print(f"klann joint mu 0.4, where the CPU time of a step goes [us/step, best-of-1 with timing wrappers]:")
+    for k, v in prof.items():
+        print(f"  {k:50s} {v:8.1f}")
     taus = [r["tau_mean"] for r in runs]
     mono = all(b > a_ for a_, b in zip(taus, taus[1:]))
     cmp_dur = 1.0 if a.quick else 2.0
@@ -111,7 +194,7 @@ def main(argv=None) -> int:
     payload = {
         "walker": [{k: v for k, v in r.items() if k not in ("t", "tau")} for r in runs],
         "fig5c_monotonic": mono, "fig5c_tau_mean": dict(zip([str(m) for m in MUS], taus)),
-        "walker_dt": dt, "walker_duration": dur,
+        "walker_dt": dt, "walker_duration": dur, "walker_speed_h1ms": speed, "walker_stage_us_per_step_mu_0.4": prof,
         "iterations_mean_all": float(np.mean([r["iterations_mean"] for r in runs])),
         "bisp_vs_sp": comps,
     }
