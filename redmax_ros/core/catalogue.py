@@ -220,6 +220,10 @@ class Extras:
         M = pin.crba(model, d, q).copy()
         M = np.triu(M) + np.triu(M, 1).T
         C = pin.nonLinearEffects(model, d, q, v_r) - pin.computeGeneralizedGravity(model, d, q)
+        self._Kv = None
+        if mech.coriolis_implicit:  # the step's Coriolis force is C + K_v (qdot+ - qdot) (forces.assemble)
+            from .forces import coriolis_jacobian
+            self._Kv = coriolis_jacobian(mech, q, v_r)
         pin.computeJointJacobians(model, d, q)
         roots = []
         for jid, sl, sub in self.momentum_roots:
@@ -230,6 +234,8 @@ class Extras:
     def _momentum_targets(self, mech, v_r_new, h):
         M, C, v_r, roots = self._before
         imp = M @ (v_r_new - v_r) + h * C  # external generalized impulse of the step (root rows)
+        if self._Kv is not None:  # integrator.coriolis: implicit
+            imp += h * (self._Kv @ (v_r_new - v_r))
         return [H + JsiT @ imp[sl] for (H, JsiT), (_, sl, _) in zip(roots, self.momentum_roots)]
 
     def _subtree_map(self, mech, d, sub):

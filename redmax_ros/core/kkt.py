@@ -123,3 +123,123 @@ def kkt_solve(A, b, G, g, C, lo, hi):
             ok = False
             break
     return 0, v, lam, S, ratio, viol, ok
+
+
+# ------------------------------------------------------------------------------------------------
+# non-symmetric A (integrator.coriolis: implicit, forces.coriolis_jacobian): LU with partial pivoting
+
+
+@njit
+def _lu(A, LU, piv):
+    """LU (n,n) packed (unit lower L below the diagonal, U on and above it) with row pivots piv:
+    P A = L U. Returns (ok, min |U_ii|, max |U_ii|); ok is False for an exactly zero pivot."""
+    n = A.shape[0]
+    LU[:, :] = A
+    umin, umax = np.inf, 0.0
+    for j in range(n):
+        p, best = j, abs(LU[j, j])
+        for i in range(j + 1, n):
+            if abs(LU[i, j]) > best:
+                p, best = i, abs(LU[i, j])
+        piv[j] = p
+        if p != j:
+            for k in range(n):
+                t = LU[j, k]
+                LU[j, k] = LU[p, k]
+                LU[p, k] = t
+        d = LU[j, j]
+        umin = min(umin, abs(d))
+        umax = max(umax, abs(d))
+        if d == 0.0 or not np.isfinite(d):
+            return False, umin, umax
+        for i in range(j + 1, n):
+            LU[i, j] /= d
+            l = LU[i, j]
+            if l != 0.0:
+                for k in range(j + 1, n):
+                    LU[i, k] -= l * LU[j, k]
+    return True, umin, umax
+
+
+@njit
+def _lu_solve(LU, piv, x):
+    """x <- A^-1 x in place (P A = L U from _lu)."""
+    n = LU.shape[0]
+    for j in range(n):
+        p = piv[j]
+        if p != j:
+            t = x[j]
+            x[j] = x[p]
+            x[p] = t
+    for i in range(n):
+        s = x[i]
+        for k in range(i):
+            s -= LU[i, k] * x[k]
+        x[i] = s
+    for i in range(n - 1, -1, -1):
+        s = x[i]
+        for k in range(i + 1, n):
+            s -= LU[i, k] * x[k]
+        x[i] = s / LU[i, i]
+
+
+@njit
+def kkt_solve_lu(A, b, G, g, C, lo, hi):
+    """kkt_solve for a non-symmetric A (LHS of Eq. 2 with the implicit Coriolis term): the same Schur
+    complement with LU factorisations, Y = A^-1 G^T, S = G Y (not symmetric either), lam = S^-1 (G A^-1 b - g).
+    Same outputs; status 1: A singular, 2: S singular. pivot ratio = sqrt(min/max |U_S ii|), comparable
+    with the Cholesky ratio of kkt_solve (whose L_S diagonal is the square root of the pivots)."""
+    n, m = A.shape[0], G.shape[0]
+    LU = np.empty((n, n))
+    piv = np.empty(n, np.int64)
+    v = b.copy()
+    lam = np.zeros(m)
+    S = np.zeros((m, m))
+    ok, _, _ = _lu(A, LU, piv)
+    if not ok:
+        return 1, v, lam, S, 0.0, 0.0, False
+    _lu_solve(LU, piv, v)
+    ratio, viol = 1.0, 0.0
+    if m:
+        Y = np.empty((n, m))
+        for r in range(m):
+            y = G[r].copy()
+            _lu_solve(LU, piv, y)
+            Y[:, r] = y
+        for r in range(m):
+            for c in range(m):
+                s = 0.0
+                for k in range(n):
+                    s += G[r, k] * Y[k, c]
+                S[r, c] = s
+        LUS = np.empty((m, m))
+        pivS = np.empty(m, np.int64)
+        ok, umin, umax = _lu(S, LUS, pivS)
+        if not ok:
+            return 2, v, lam, S, 0.0, 0.0, False
+        ratio = np.sqrt(umin / umax)
+        for r in range(m):
+            s = -g[r]
+            for k in range(n):
+                s += G[r, k] * v[k]
+            lam[r] = s
+        _lu_solve(LUS, pivS, lam)
+        for k in range(n):
+            s = 0.0
+            for r in range(m):
+                s += Y[k, r] * lam[r]
+            v[k] -= s
+        for r in range(m):
+            s = -g[r]
+            for k in range(n):
+                s += G[r, k] * v[k]
+            viol = max(viol, abs(s))
+    ok = True
+    for r in range(C.shape[0]):
+        s = 0.0
+        for k in range(n):
+            s += C[r, k] * v[k]
+        if s < lo[r] - 1e-12 or s > hi[r] + 1e-12:
+            ok = False
+            break
+    return 0, v, lam, S, ratio, viol, ok

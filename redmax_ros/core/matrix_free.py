@@ -658,6 +658,10 @@ def make_backend(mech, solver: str, rtol: float = DEFAULT_RTOL, max_iter: int | 
                              f"solver 'pcg' does not support {' and '.join(unsupported)} (use direct or auto)")
         if solver in ("direct", "auto"):
             return DirectBackend(mech)
+    if getattr(mech, "coriolis_implicit", False) and (solver != "direct" or mech.nv > PIN_DATA_MAX_NV):
+        raise SceneError(mech.spec.source, "integrator.coriolis",
+                         f"'implicit' is implemented in the Pinocchio pipeline only (solver 'direct' with at most "
+                         f"{PIN_DATA_MAX_NV} DOFs; here solver '{solver}', {mech.nv} DOFs); use coriolis: explicit")
     if solver == "direct":
         return DirectBackend(mech) if mech.nv <= PIN_DATA_MAX_NV else DataFreeBackend(mech, "direct")
     if solver == "pcg":

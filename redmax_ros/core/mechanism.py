@@ -96,6 +96,8 @@ class Mechanism:
     extras: object = None  # catalogue.Extras: mapped joints, linear joint constraints, force elements (or None)
     friction: object = None  # contact.FrictionModel (ground contact, joint friction) or None
     joint_support: np.ndarray | None = None  # (njoints, nv) bool: DOFs moving each joint's body (row 0: world)
+    coriolis_implicit: bool = False  # integrator.coriolis: implicit (forces.coriolis_jacobian; docs/scenes.md)
+    coriolis_ws: object = None  # (zero-gravity pin.Model, its pin.Data) for forces.coriolis_jacobian
 
     def joint_rows(self, name: str) -> np.ndarray:
         """Rows *G_r of a prescribed joint (identity on its DOFs, Eq. 7), projected by J_rR (cached)."""
@@ -358,6 +360,7 @@ def compile_scene(spec: SceneSpec) -> Mechanism:
         if joint_index[name].nv != len(spec.prescribed_joints[name]):
             raise SceneError(src, f"prescribed.joints.{name}",
                              f"needs {joint_index[name].nv} values, got {len(spec.prescribed_joints[name])}")
+    mech.coriolis_implicit = spec.coriolis == "implicit"
     from .catalogue import attach
     attach(mech, maps)  # mech.extras for catalogue features (None otherwise)
     _check_couplings_q0(mech, spec, src)

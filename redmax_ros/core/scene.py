@@ -152,6 +152,7 @@ class SceneSpec:
     urdf: str | None = None  # path of a URDF giving the tree (bodies/joints then come from it)
     urdf_fixed_base: bool = True
     solver: str = "direct"
+    coriolis: str = "explicit"  # integrator.coriolis: explicit (Eq. 2 as in the paper) | implicit (linearised)
     description: str = ""
     raw: dict = field(default_factory=dict, repr=False)
     friction: object = None  # contact_schema.FrictionSpec: ground, contacts, joint/loop friction (or None)
@@ -404,7 +405,8 @@ class _Validator:
     # -- sections
     def scene(self, raw) -> SceneSpec:
         top = {"name", "description", "units", "gravity", "dt", "duration", "bodies", "joints", "sites", "springs",
-               "wrenches", "loops", "couplings", "prescribable", "prescribed", "urdf", "params", "solver"}
+               "wrenches", "loops", "couplings", "prescribable", "prescribed", "urdf", "params", "solver",
+               "integrator"}
         top |= contact_schema.TOP_KEYS | catalogue_schema.TOP_KEYS
         self.keys("scene", raw, top)
         if raw.get("units", "SI") != "SI":
@@ -439,7 +441,27 @@ class _Validator:
         self.prescriptions(spec, raw, site_names)
         spec.friction = contact_schema.parse(self, raw, spec, body_names)
         spec.catalogue = catalogue_schema.parse(self, raw, spec, body_names)
+        self.integrator(spec, raw.get("integrator"))
         return spec
+
+    def integrator(self, spec, d):
+        """``integrator: {coriolis: explicit | implicit}`` (docs/scenes.md, "Integrator")."""
+        if d is None:
+            return
+        if not isinstance(d, dict):
+            self.err("integrator", f"must be a mapping such as {{coriolis: implicit}}, got {d!r}")
+        self.keys("integrator", d, {"coriolis"})
+        c = d.get("coriolis", "explicit")
+        if c not in ("explicit", "implicit"):
+            self.err("integrator.coriolis", f"unknown value {c!r} (explicit, implicit)")
+        if c == "implicit":
+            if spec.solver != "direct":
+                self.err("integrator.coriolis", f"'implicit' needs solver: direct (the Pinocchio pipeline); "
+                         f"solver '{spec.solver}' does not support it")
+            if spec.friction is not None:
+                self.err("integrator.coriolis", "'implicit' is not supported with contact or joint friction "
+                         "(the staggered solve needs a symmetric LHS); use coriolis: explicit")
+        spec.coriolis = c
 
     def urdf(self, spec, d):
         if isinstance(d, str):

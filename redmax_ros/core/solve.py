@@ -1,6 +1,9 @@
 """Direct solver for one step: dense Cholesky of the LHS of Eq. (2), bilateral constraints by the
 Schur complement of the KKT system (Eq. 6/7), unilateral joint limits by the QP of Eq. (5)
 (ProxSuite). Sign convention: A qdot = b - G^T lam - C^T mu, so -G^T lam is the constraint impulse.
+With integrator.coriolis: implicit the LHS is not symmetric (LinearSystem.symmetric False): LU instead of
+Cholesky (kkt.kkt_solve_lu, numpy's LU above kkt.SMALL_N) and the joint-limit QP as a fixed point of
+symmetric QPs (_solve_qp_nonsymmetric).
 """
 from __future__ import annotations
 
@@ -15,7 +18,7 @@ import proxsuite
 from .constraints import Constraints
 from .errors import StepError
 from .forces import LinearSystem
-from .kkt import SMALL_N, kkt_solve
+from .kkt import SMALL_N, kkt_solve, kkt_solve_lu
 
 _SUCCESS = eigenpy.ComputationInfo.Success
 
@@ -55,6 +58,8 @@ def solve_direct(sys: LinearSystem, cons: Constraints, qp_eps: float = 1e-10) ->
     """Eq. (2) with the bilateral rows of Eq. (6)/(7) (Schur complement) and, when the unconstrained
     solution crosses a joint limit, the QP of Eq. (5). Small systems (n <= kkt.SMALL_N) in one
     compiled call (kkt.py), larger ones with Eigen's LLT."""
+    if not sys.symmetric:
+        return _solve_direct_lu(sys, cons, qp_eps)
     A, b = sys.A, sys.b
     n = len(b)
     if n <= SMALL_N:
@@ -127,3 +132,87 @@ def _solve_qp(A, b, cons, eps):
     if not np.all(np.isfinite(x)):
         raise StepError("joint-limit QP (Eq. 5) returned non-finite velocities")
     return x, np.array(qp.results.y), np.array(qp.results.z), int(qp.results.info.iter)
+
+
+# ------------------------------------------------------------------------------------------------
+# non-symmetric LHS (integrator.coriolis: implicit; forces.coriolis_jacobian)
+
+
+def _solve_direct_lu(sys: LinearSystem, cons: Constraints, qp_eps: float) -> Solution:
+    """solve_direct for a non-symmetric A = M + h K_v + ...: the same Schur complement of Eq. (6)/(7)
+    with LU factorisations (Y = A^-1 G^T, S = G Y), the joint limits of Eq. (5) by _solve_qp_nonsymmetric."""
+    A, b = sys.A, sys.b
+    n = len(b)
+    if n <= SMALL_N:
+        C = _NO_ROWS if cons.C is None else cons.C
+        status, v, lam, S, ratio, viol, limits_ok = kkt_solve_lu(
+            A, b, cons.G, cons.g, C, _EMPTY if cons.C is None else cons.lo, _EMPTY if cons.C is None else cons.hi)
+        if status == 1:
+            raise StepError("the LHS matrix of Eq. (2) (with the implicit Coriolis term) is singular (LU failed)")
+        if status == 2 or ratio <= 1e-6:
+            _check_rank_nonsymmetric(S, cons.labels)
+            if status == 2:
+                raise StepError("constraints are redundant or conflicting (Schur complement singular)")
+    else:
+        rhs = np.column_stack([b, cons.G.T]) if cons.m else b[:, None]
+        try:
+            X = np.linalg.solve(A, rhs)
+        except np.linalg.LinAlgError:
+            raise StepError("the LHS matrix of Eq. (2) (with the implicit Coriolis term) is singular (LU failed)")
+        v, lam = X[:, 0].copy(), np.zeros(cons.m)
+        if cons.m:
+            Y = X[:, 1:]
+            S = cons.G @ Y
+            sv = np.linalg.svd(S, compute_uv=False)
+            if sv[-1] <= 1e-12 * sv[0]:  # singular or nearly so: name the rows
+                _check_rank_nonsymmetric(S, cons.labels)
+            lam = np.linalg.solve(S, cons.G @ v - cons.g)
+            v = v - Y @ lam
+        viol = float(np.abs(cons.G @ v - cons.g).max()) if cons.m else 0.0
+        limits_ok = True
+        if cons.C is not None:
+            Cv = cons.C @ v
+            limits_ok = not ((Cv < cons.lo - 1e-12).any() or (Cv > cons.hi + 1e-12).any())
+    mu = _EMPTY if cons.C is None else np.zeros(len(cons.lo))
+    solver, iters = "direct", 1
+    if not limits_ok:
+        v, lam, mu, iters = _solve_qp_nonsymmetric(A, b, cons, qp_eps, v)
+        solver = "qp"
+        viol = float(np.abs(cons.G @ v - cons.g).max()) if cons.m else 0.0
+    return Solution(v, lam, mu, iters, solver, sys, cons, viol)
+
+
+def _check_rank_nonsymmetric(S, labels):
+    """_check_rank for a non-symmetric Schur complement (SVD instead of eigh; right null vector)."""
+    d = np.sqrt(np.abs(np.diag(S)))
+    if np.any(d == 0):
+        i = int(np.argmin(d))
+        raise StepError(f"constraint row of {labels[i]} does not act on any DOF (impossible constraint)")
+    _, w, Vt = np.linalg.svd(S / d[:, None] / d[None, :])
+    if w[-1] < 1e-12:
+        involved = sorted({labels[i] for i in np.flatnonzero(np.abs(Vt[-1]) > 1e-3)})
+        raise StepError("constraints are redundant or conflicting (over-constrained mechanism): "
+                        + ", ".join(involved))
+
+
+QP_FIXED_POINT_MAX = 50
+
+
+def _solve_qp_nonsymmetric(A, b, cons, eps, v):
+    """Eq. (5) with a non-symmetric A: the optimality conditions A v = b - G^T lam - C^T mu with the limit
+    complementarity are not a QP, but with A = H + K (H symmetric part, K = h skew(K_v) small) they are
+    the fixed point of the QPs  min 1/2 v^T H v - (b - K v_k)^T v  (same constraints), which converges
+    linearly at the rate |H^-1 K| = O(h |qdot|). Each iterate is one ProxSuite solve; stops when the
+    velocity changes by less than the QP tolerance. iterations = total QP iterations."""
+    H = 0.5 * (A + A.T)
+    K = A - H
+    total = 0
+    for _ in range(QP_FIXED_POINT_MAX):
+        x, y, z, it = _solve_qp(H, b - K @ v, cons, eps)
+        total += it
+        dv = float(np.abs(x - v).max())
+        v = x
+        if dv <= max(eps, 1e-14 * float(np.abs(x).max())):
+            return x, y, z, total
+    raise StepError(f"joint-limit QP (Eq. 5) with the implicit Coriolis term did not converge in "
+                    f"{QP_FIXED_POINT_MAX} fixed-point iterations (|dv| = {dv:.3g})")
