@@ -247,6 +247,49 @@ def test_bisp_affine_map_matches_newton_euler_pass():
     assert np.abs(affine - direct).max() < 1e-9 * max(1.0, np.abs(direct).max())
 
 
+def test_compiled_setup_matches_numpy_reference():
+    """The compiled per-step set-up of the staggered solve equals its NumPy/Pinocchio definition on the
+    walker in stance: body frames (oMi, data.J), the stacked rows RX = [N; -T] and the condensation
+    (P = A^-1 - A^-1 G^T S^-1 G A^-1, qdot_0, Delassus blocks, lambda = lambda_0 + LamX x)."""
+    from redmax_ros.core import bisp, constraints, forces, kinematics
+    from redmax_ros.core.condense import condense
+    from redmax_ros.core.contact import detect, loop_friction_rows, staggered_rows
+
+    sim = Simulator.load("klann", overrides=["friction.joint_mu=0.4", "dt=0.002"])
+    sim.step(150)
+    m, data, st, h = sim.mech, sim.data, sim.state, sim.dt
+    fm = m.friction
+    v_r = m.to_reduced(st.v)
+    kin = kinematics.compute(m, data, st.q, v_r, [])
+    system = forces.assemble(m, data, kin, st.q, v_r, m.torque0.copy(), h)
+    cons = constraints.build(m, kin, st.q, sim.commands.joint_velocities, {}, h)
+    ws, _ = bisp.body_frames(fm, st.q, v_r)
+    for j in range(m.model.njoints):
+        assert np.abs(ws.R[j] - data.oMi[j].rotation).max() < 1e-12
+        assert np.abs(ws.p[j] - data.oMi[j].translation).max() < 1e-12
+    assert np.abs(ws.St.T - data.J).max() < 1e-12
+    cs, RX, lo_U, nu = staggered_rows(m, fm, ws, h, cons)
+    ref = detect(m, fm, ws, h)
+    assert nu == len(ref.gap) >= 2 and np.array_equal(lo_U, ref.lo)
+    U, Tr = ref.N, np.vstack([ref.T, fm.rows_fixed, loop_friction_rows(m, fm, ws)])
+    assert np.abs(RX - np.vstack([U, -Tr])).max() < 1e-12
+    A, b, G, g = system.A, system.b, cons.G, cons.g
+    status, v0, PX, W_U, X_UT, X_TU, W_T, U_v0, T_v0, wU, wT, lam0, LamX = condense(A, b, G, g, RX, nu)
+    assert status == 0
+    Ainv = np.linalg.inv(A)
+    Y = Ainv @ G.T
+    Sinv = np.linalg.inv(G @ Y)
+    P = Ainv - Y @ Sinv @ Y.T
+    P = 0.5 * (P + P.T)
+
+    def close(a, b_):
+        return np.abs(a - b_).max() <= 1e-9 * max(1.0, np.abs(b_).max())
+    assert close(v0, P @ b + Y @ (Sinv @ g)) and close(PX, P @ RX.T)
+    assert close(W_U, U @ P @ U.T) and close(W_T, Tr @ P @ Tr.T) and close(X_UT, U @ P @ Tr.T)
+    assert close(X_TU, X_UT.T) and close(U_v0, U @ v0) and close(T_v0, Tr @ v0)
+    assert close(lam0, Sinv @ (Y.T @ b - g)) and close(LamX, Sinv @ (Y.T @ RX.T))
+
+
 def _drop(contact, z0, v0):
     raw = {"bodies": [{"name": "b", "mass": 1.0, "shape": {"type": "sphere", "radius": 0.05}}],
            "joints": [{"name": "j", "type": "free", "parent": "world", "child": "b",
