@@ -2,28 +2,32 @@
 Projections (Alg. 3, Eq. 15-18) for joint friction, in one loop, in (hyper-)reduced coordinates.
 
 The step's linear system A qdot = b (Eq. 2) with the bilateral rows G qdot = g (loops, prescriptions)
-is condensed once per step: with P = A^-1 - A^-1 G^T (G A^-1 G^T)^-1 G A^-1 (the inverse of the
+is condensed once per step (condense.py): with P = A^-1 - A^-1 G^T (G A^-1 G^T)^-1 G A^-1 (the inverse of the
 bilaterally constrained mass matrix) every impulse R^T x changes the velocity by P R^T x and
     qdot(alpha, beta) = qdot_0 + P U^T alpha - P T^T beta,     qdot_0 = P b + A^-1 G^T S^-1 g.
 (This is the dual / Schur-complement form of the QPs of Eq. 17c/18: their equality rows are
 eliminated, which the paper suggests for the small external systems.)
   * CONTACT (Alg. 2 line 9, Eq. 11 in reduced coordinates through Eq. 5): the unilateral rows U =
     [ground normals N; joint-limit rows +-C] with lower bounds lo, dual QP over alpha >= 0:
-        min 1/2 alpha^T (U P U^T) alpha + alpha^T (U qdot(0, beta) - lo)      (ProxSuite)
+        min 1/2 alpha^T (U P U^T) alpha + alpha^T (U qdot(0, beta) - lo)      (PGS or ProxSuite)
   * BISP (Alg. 3 lines 8-14): joint reaction forces of the constrained velocity (Eq. 15/17), their
-    leaf-to-root distribution (§5.2.2) and the local least squares of Eq. (16) -> joint alphas
-    (bisp.joint_alphas); loop pins from lambda (§5.3).
+    leaf-to-root distribution (§5.2.2) and the local least squares of Eq. (16) -> joint alphas;
+    the wrenches are affine in x = [alpha; beta] (bisp.linear_wrenches, once per step), so each
+    iteration evaluates alpha_j = h L_j (W0 + Wx x)_j; loop pins from lambda (§5.3).
   * CONVERGENCE (Alg. 2 line 12): ||f_alpha - f_alpha^0||_{M^-1} <= eps, measured per contact as the
     velocity change the change of its normal impulse (ground) or of its friction bound (joints) makes,
     max_k W_kk |delta_k| <= tol [m/s] (the diagonal of the Delassus operator stands in for M^-1).
   * FRICTION (Eq. 12): box QP over beta with W_T = T P T^T,
-        min 1/2 beta^T W_T beta - beta^T T qdot(alpha, 0),  -bound <= beta <= bound   (ProxSuite)
+        min 1/2 beta^T W_T beta - beta^T T qdot(alpha, 0),  -bound <= beta <= bound   (PGS or ProxSuite)
     bounds: mu alpha on both tangents of a ground contact (four-sided pyramid), mu sum_k |alpha_k| on
     a 1-DOF joint's row, mu |alpha_k| on a spherical joint's tangent rows.
 The friction impulses are cached per contact (sphere, plane) and per joint in the returned state and
 warm-start the next step [Kaufman et al. 2008]. The loop exits after a CONTACT stage, so the returned
 velocity always satisfies the bilateral and unilateral rows (feasible) even when the iteration cap is
 reached; that case is reported (FrictionReport.converged = False), never silent.
+Per step: bisp.body_frames (kinematics), contact.staggered_rows (detection, rows RX = [U; -T]),
+condense.condense, bisp.linear_wrenches, _warm_start, _staggered_kernel (with PGS and whole-joint bounds;
+_python_loop otherwise), _finish: all compiled (numba), a few calls per step.
 """
 from __future__ import annotations
 
