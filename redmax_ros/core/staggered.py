@@ -151,6 +151,9 @@ def _staggered_kernel(W_U, X_UT, X_TU, U_v0, lo_U, W_T, T_v0, mu_g, a0, Mx, Lop,
     inf_u = np.full(nu, 1e20)
     al = np.zeros(len(a0) if nw == 0 else nw * kmax)
     x = np.zeros(nx)
+    c = np.zeros(nu)
+    cf = np.zeros(nf)
+    nb = np.zeros(nf)
     dX = np.zeros((depth, nf))
     dF = np.zeros((depth, nf))
     gprev = np.zeros(nf)
@@ -163,8 +166,14 @@ def _staggered_kernel(W_U, X_UT, X_TU, U_v0, lo_U, W_T, T_v0, mu_g, a0, Mx, Lop,
     while True:
         it += 1
         if nu:
-            c = U_v0 - X_UT @ beta - lo_U
-            if np.all(c >= 0.0):
+            allpos = True
+            for i in range(nu):  # c = U qdot(0, beta) - lo (explicit loops: no small BLAS calls)
+                sacc = U_v0[i] - lo_U[i]
+                for k in range(nf):
+                    sacc -= X_UT[i, k] * beta[k]
+                c[i] = sacc
+                allpos = allpos and sacc >= 0.0
+            if allpos:
                 alpha[:] = 0.0
             else:
                 for i in range(nu):
@@ -212,11 +221,17 @@ def _staggered_kernel(W_U, X_UT, X_TU, U_v0, lo_U, W_T, T_v0, mu_g, a0, Mx, Lop,
         prev_u[:] = alpha
         prev_b[:] = bound
         if nf:
-            cf = T_v0 + X_TU @ alpha if nu else T_v0.copy()
+            for i in range(nf):
+                sacc = T_v0[i]
+                for k in range(nu):
+                    sacc += X_TU[i, k] * alpha[k]
+                cf[i] = -sacc
             b_in = beta.copy()
             for i in range(nf):
                 beta[i] = min(max(beta[i], -bound[i]), bound[i])
-            _pgs(W_T, -cf, -bound, bound, beta, 0.1 * tol, 500)
+            for i in range(nf):
+                nb[i] = -bound[i]
+            _pgs(W_T, cf, nb, bound, beta, 0.1 * tol, 500)
             if depth > 0:  # Anderson (see _Anderson)
                 g = beta.copy()
                 f = g - b_in
@@ -234,14 +249,29 @@ def _staggered_kernel(W_U, X_UT, X_TU, U_v0, lo_U, W_T, T_v0, mu_g, a0, Mx, Lop,
                 have_prev = True
                 if k_hist > 0:
                     D = dF[:k_hist]
-                    H = D @ D.T
+                    H = np.empty((k_hist, k_hist))
+                    Df = np.empty(k_hist)
+                    for r in range(k_hist):
+                        for q in range(r + 1):
+                            sacc = 0.0
+                            for i in range(nf):
+                                sacc += D[r, i] * D[q, i]
+                            H[r, q] = sacc
+                            H[q, r] = sacc
+                        sacc = 0.0
+                        for i in range(nf):
+                            sacc += D[r, i] * f[i]
+                        Df[r] = sacc
                     tr = 0.0
                     for r in range(k_hist):
                         tr += H[r, r]
                     for r in range(k_hist):
                         H[r, r] += 1e-12 * max(tr, 1e-300)
-                    gam, ok = _small_solve(H, D @ f)
-                    out = g - gam @ dX[:k_hist]
+                    gam, ok = _small_solve(H, Df)
+                    out = g.copy()
+                    for r in range(k_hist):
+                        for i in range(nf):
+                            out[i] -= gam[r] * dX[r, i]
                     if ok and np.isfinite(out.sum()):
                         for i in range(nf):
                             beta[i] = min(max(out[i], -bound[i]), bound[i])
