@@ -297,10 +297,10 @@ def test_catalogue_scenes_listed():
     assert set(CONSERVATIVE + DISSIPATIVE + ["gear", "limits_multi", "timed_wrench", "timed_torque"]) <= names
 
 
-def energy_run(name, h, T=0.5):
+def energy_run(name, h, T=0.5, *overrides):
     """(total energy E(t_k) including t_0, energy scale: max kinetic + range of potential energies)."""
     from redmax_ros.core.energy import energies
-    sim = load(name, f"dt={h}")
+    sim = load(name, f"dt={h}", *overrides)
     m = sim.mech
     ek, ep, es = energies(m, m.model.createData(), sim.state.q, m.to_reduced(sim.state.v))
     E, K, P = [ek + ep + es], [ek], [ep + es]
@@ -325,18 +325,30 @@ def test_energy_error_is_first_order(name):
     assert e2 <= 0.6 * e1 + 1e-12 * s2, (name, e1, e2)
 
 
-# Energy classes of the catalogue scenes without input (docs/scenes.md, "Energy"): gravity and Coriolis
-# forces are explicit in Eq. (2) (K_m = 0 for gravity), springs/dampers implicit.
+# Energy classes of the catalogue scenes without input (docs/scenes.md, "Energy"): gravity is explicit in
+# Eq. (2) (K_m = 0 for gravity), springs/dampers implicit, the Coriolis force explicit (the default) or
+# linearised (integrator.coriolis: implicit, set in the IMPLICIT_CORIOLIS scenes).
 # SYMPLECTIC: one DOF with a constant mass matrix: the step is exactly symplectic Euler; E oscillates by
 #   O(h) with a bounded envelope. DECAYING: no net increase (loops, spline carriers, explicit constant
-#   forces, limit impacts or the momentum projection remove energy). GYROSCOPIC: several coupled rotation
-#   DOFs: the explicit velocity-dependent (Coriolis/gyroscopic) force adds energy at a rate O(h).
+#   forces, limit impacts, the momentum projection or the implicit Coriolis force remove energy).
+#   GYROSCOPIC: several coupled rotation DOFs with the explicit Coriolis force (the default; the
+#   IMPLICIT_CORIOLIS scenes run with integrator.coriolis: explicit here): it adds energy at a rate O(h).
 SYMPLECTIC = ["revolute", "fixed", "composite_body", "mesh_cube"]
+IMPLICIT_CORIOLIS = ["spherical", "spherical_euler", "spherical_euler_switch", "spherical_exp", "universal",
+                     "composite"]
 DECAYING = ["gear_loop", "spline_curve", "spline_surface", "planar_translation", "translational", "limits_multi",
-            "free3d"]
-GYROSCOPIC = ["spherical", "spherical_euler", "spherical_euler_switch", "spherical_exp", "universal", "composite",
-              "mesh_wedge"]
-MONOTONE = DISSIPATIVE + ["free3d", "planar_translation", "translational"]
+            "free3d", "spherical", "spherical_euler", "universal", "composite"]
+GYROSCOPIC = IMPLICIT_CORIOLIS + ["mesh_wedge"]
+MONOTONE = DISSIPATIVE + ["free3d", "planar_translation", "translational", "spherical_exp", "spherical_euler_switch"]
+EXPLICIT = "integrator={coriolis: explicit}"
+
+
+def test_implicit_coriolis_scenes():
+    """The scenes with several coupled rotation DOFs where the linearised Coriolis force gives no energy increase
+    set integrator.coriolis: implicit; mesh_wedge does not (its joint origin is off the COM, so M(q) changes
+    along the rotation and the step still gains O(h^2) per step with the option: docs/scenes.md)."""
+    names = {s.split("/", 1)[1] for s in list_scenes() if s.startswith("catalogue/")}
+    assert {n for n in names if load(n).mech.coriolis_implicit} == set(IMPLICIT_CORIOLIS)
 
 
 def test_energy_classes_cover_the_catalogue():
@@ -350,7 +362,10 @@ def test_energy_no_secular_increase(name):
     """No input: the largest energy over the last 1.5 s of a 4.5 s run does not exceed the largest energy
     over the first 1.5 s (each window longer than an energy oscillation) by more than 1e-5 of the first
     window's O(h) oscillation amplitude (the discrete samples hit the peak at varying phase; measured
-    <= 4e-6 of it on mesh_cube, the others below 4e-7 or negative); DECAYING scenes end below E0."""
+    <= 4e-6 of it on mesh_cube, the others below 4e-7 or negative); DECAYING scenes end below E0. The
+    IMPLICIT_CORIOLIS scenes under gravity (spherical, spherical_euler, universal, composite) are here: with
+    explicit gravity E still rises within a step sequence (the symplectic-Euler oscillation, at most 2.4e-5 J
+    per step), so per-step non-increase does not hold for them, but the envelope decays."""
     E, _ = energy_run(name, 1e-3, 4.5)
     w = 1500
     first, last = E[:w + 1].max(), E[-w:].max()
@@ -361,7 +376,8 @@ def test_energy_no_secular_increase(name):
 
 @pytest.mark.parametrize("name", GYROSCOPIC)
 def test_energy_gyroscopic_drift_is_first_order(name):
-    """Several coupled rotation DOFs without input: the explicit Coriolis/gyroscopic term makes energy grow
+    """The explicit default (integrator.coriolis: explicit, forced here on the IMPLICIT_CORIOLIS scenes).
+    Several coupled rotation DOFs without input: the explicit Coriolis/gyroscopic term makes energy grow
     secularly (for a free body exactly 1/2 h^2 |I w x w|^2_(I^-1) per step, see
     test_energy_per_step_as_the_integrator_implies). The drift rate (least-squares slope of E over 2 s) halves
     with h (ratio 0.35-0.65), i.e. it is the O(h) error of a first-order method, not an instability; it is
@@ -370,7 +386,7 @@ def test_energy_gyroscopic_drift_is_first_order(name):
     kinetic energy over 2 s at h = 1e-3 (measured at most 1.5 %, spherical)."""
     slopes = []
     for h in (2e-3, 1e-3):
-        E, scale = energy_run(name, h, 2.0)
+        E, scale = energy_run(name, h, 2.0, EXPLICIT)
         slopes.append(np.polyfit(h * np.arange(len(E)), E, 1)[0])
     assert np.abs(E - E[0]).max() < 2e-2 * scale, (name, np.abs(E - E[0]).max(), scale)
     assert 0.35 < slopes[1] / slopes[0] < 0.65, (name, slopes)
@@ -380,8 +396,10 @@ def test_energy_gyroscopic_drift_is_first_order(name):
 @pytest.mark.parametrize("name", MONOTONE)
 def test_energy_never_increases(name):
     """Implicit springs/dampers (h D + h^2 K on the LHS of Eq. 2) dissipate, and so do the explicit constant
-    force of a falling body (see the per-step test) and the momentum projection of free3d (least change in
-    the kinetic-energy metric): E(t_k+1) <= E(t_k) at every step."""
+    force of a falling body (see the per-step test), the momentum projection of free3d (least change in
+    the kinetic-energy metric) and, in zero gravity, the linearised Coriolis force (integrator.coriolis:
+    implicit; spherical_exp, spherical_euler_switch, also through their mapped joints' M Jdot_rR term):
+    E(t_k+1) <= E(t_k) at every step."""
     E, _ = energy_run(name, 1e-3, 1.0)
     assert np.all(np.diff(E) <= 1e-12 * np.abs(E).max()), np.diff(E).max()
     assert E[-1] < E[0]
@@ -803,9 +821,11 @@ def test_spherical_euler_chart_switching_through_gimbal_lock():
     1e-12 (measured 7e-16 and 9e-16), hence also the kinetic energy. Before the first switch the mapped
     joint is the fixed-chart Pinocchio composite (energy and orientation equal to 1e-12); the fixed chart
     then breaks at the singularity (measured: energy off by 0.45 J = 220 % of E0 = 0.201 J) while the
-    switching joint's energy error stays below 0.1 % over 2 s (measured 6.9e-5 J) and is first order in
-    h (E(2 s) - E0 = -1.4e-4, -6.2e-5 J at h = 2e-3, 1e-3). The orientation agrees with the quaternion
-    `spherical` joint to O(h) at t = 1 s (rotation angle between them 1.5e-3, 7.9e-4, 3.9e-4 rad at
+    switching joint's energy never increases (the scene's integrator.coriolis: implicit; M Jdot_rR of the
+    mapped joint linearised too) and its error stays below 0.5 % over 2 s (measured 5.6e-4 J = 0.28 %) and
+    is first order in h (E(2 s) - E0 = -1.17e-3, -5.6e-4 J at h = 2e-3, 1e-3; with the explicit default
+    -1.4e-4, -6.2e-5 J, not monotone). The orientation agrees with the quaternion `spherical` joint (same
+    integrator option) to O(h) at t = 1 s (rotation angle between them 1.3e-3, 6.2e-4, 3.1e-4 rad at
     h = 2e-3, 1e-3, 5e-4)."""
     from redmax_ros.core import euler_charts as ec
     sim = _switch_variant("switch", 1e-3)
@@ -845,7 +865,8 @@ def test_spherical_euler_chart_switching_through_gimbal_lock():
     J = np.array(jumps)
     assert J.max() < 1e-12, J.max(axis=0)
     assert not fixed_ok or np.abs(Ef - Ef[0]).max() > 0.1 * E[0]
-    assert np.abs(E - E[0]).max() < 1e-3 * E[0]
+    assert np.abs(E - E[0]).max() < 5e-3 * E[0]
+    assert np.all(np.diff(E) <= 1e-12 * E[0]), np.diff(E).max()
     errs = []
     for h in (2e-3, 1e-3):
         a = _switch_variant("switch", h)
