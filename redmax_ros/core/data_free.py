@@ -25,6 +25,7 @@ test/test_matrix_free.py checks each piece against it.
 """
 from __future__ import annotations
 
+import eigenpy
 import numpy as np
 import pinocchio as pin
 
@@ -196,8 +197,25 @@ class Context:
         if not self.n_loop_rows:
             return np.zeros(0)
         X = self.jac_positions() if Xjac is None else Xjac
-        d = X[self.loop_a] - X[self.loop_b]
-        return np.concatenate([P @ di for P, di in zip(self.loop_axes, d)])
+        return self.mech.loop_select @ (X[self.loop_a] - X[self.loop_b]).reshape(-1)
+
+    def loop_phi_at(self, q: np.ndarray) -> np.ndarray:
+        """Loop residuals phi (rows,) [m] at q from the joint placements alone: forward kinematics,
+        loop-site positions and phi = S (x_a - x_b) in one compiled call (the inner loop of
+        :func:`project_chord`). Leaves placements of q in the workspace (the fk cache is reset)."""
+        topo, ws = self.topo, self.ws
+        self._fk_key = None
+        q = np.ascontiguousarray(q, dtype=float).reshape(topo.nq)
+        if len(self.uni_joints):
+            _universal_kernel(self.uni_joints, topo.idx_q, topo.idx_v, self.uni_a1, self.uni_a2, q,
+                              self.zero_v, False, ws.jR, ws.jp, ws.Sl, ws.c_local)
+        for j, jm, jd in self.other_fallback:
+            jm.calc(jd, q)
+            ws.jR[j], ws.jp[j] = jd.M.rotation, jd.M.translation
+        return _loop_phi_kernel(topo.parents, topo.kind, topo.idx_q, topo.idx_v, topo.nv_j, topo.axis,
+                                topo.pitch, topo.place_R, topo.place_p, q, ws.jR, ws.jp, ws.Sl, ws.R, ws.p,
+                                ws.St, self.jac_jid, self.jac_local, self.loop_a, self.loop_b,
+                                self.mech.loop_select)
 
     def loop_rows(self) -> tuple:
         """(G_r (rows, nv), phi (rows,)) of the loop closures at the configuration in ws."""
@@ -226,6 +244,23 @@ def context(mech) -> Context:
 
 # ----------------------------------------------------------------------------------------------
 # numba kernels
+
+
+@njit
+def _loop_phi_kernel(parents, kind, idx_q, idx_v, nv_j, axis, pitch, place_R, place_p, q, jR, jp, Sl, R, p,
+                     St, jid, local, a, b, S):
+    """recursive._fk_kernel, then phi = S (x_a - x_b) of the loop sites (rows a, b of jid/local)."""
+    rc._fk_kernel(parents, kind, idx_q, idx_v, nv_j, axis, pitch, place_R, place_p, q, jR, jp, Sl, R, p, St)
+    L = a.shape[0]
+    d = np.empty(3 * L)
+    for l in range(L):
+        ja, jb = jid[a[l]], jid[b[l]]
+        oa, ob = local[a[l]], local[b[l]]
+        for r in range(3):
+            xa = p[ja, r] + R[ja, r, 0] * oa[0] + R[ja, r, 1] * oa[1] + R[ja, r, 2] * oa[2]
+            xb = p[jb, r] + R[jb, r, 0] * ob[0] + R[jb, r, 1] * ob[1] + R[jb, r, 2] * ob[2]
+            d[3 * l + r] = xa - xb
+    return S @ d
 
 
 @njit
@@ -542,8 +577,13 @@ TOL = 1e-10
 
 
 def _hold_rows(mech, hold_dofs):
-    hold = np.zeros((len(hold_dofs), mech.ndof))
-    hold[np.arange(len(hold_dofs)), list(hold_dofs)] = 1.0
+    """Rows selecting the held hyper-reduced DOFs (cached per set)."""
+    key = ("hold rows", *hold_dofs)
+    hold = mech.layout_cache.get(key)
+    if hold is None:
+        hold = np.zeros((len(hold_dofs), mech.ndof))
+        hold[np.arange(len(hold_dofs)), list(hold_dofs)] = 1.0
+        mech.layout_cache[key] = hold
     return hold
 
 
@@ -579,19 +619,16 @@ def project_chord(ctx: Context, q, G, hold_dofs=(), tol=TOL, max_iter=8):
     mech = ctx.mech
     hold = _hold_rows(mech, hold_dofs)
     K = np.vstack([G, hold]) if len(hold) else G
-    try:
-        L = np.linalg.cholesky(K @ K.T)
-    except np.linalg.LinAlgError:
+    llt = eigenpy.LLT(K @ K.T)
+    if llt.info() != eigenpy.ComputationInfo.Success:
         return project(ctx, q, hold_dofs, tol)
     pad = np.zeros(len(hold))
     for _ in range(max_iter):
-        ctx.fk(q)
-        phi = ctx.loop_phi()
+        phi = ctx.loop_phi_at(q)
         err = float(np.abs(phi).max())
         if err < tol:
             return q, err
-        rhs_ = np.concatenate([phi, pad]) if len(hold) else phi
-        y = np.linalg.solve(L.T, np.linalg.solve(L, rhs_))
+        y = np.asarray(llt.solve(np.concatenate([phi, pad]) if len(hold) else phi)).reshape(-1)
         q = pin.integrate(mech.model, q, mech.to_reduced(K.T @ (-y)))
     return project(ctx, q, hold_dofs, tol)
 

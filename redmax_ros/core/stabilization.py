@@ -10,7 +10,6 @@ drift to solver precision; see docs/architecture.md.
 """
 from __future__ import annotations
 
-import eigenpy
 import numpy as np
 import pinocchio as pin
 
@@ -59,24 +58,13 @@ def project_chord(mech, data, q, G, hold_dofs=(), tol=TOL, max_iter=8):
     """Chord-Newton projection onto phi(q) = 0 reusing the step's loop rows G (hyper-reduced, at q_k):
     each iteration costs forward kinematics and the loop sites only. The chord converges at a rate
     O(h |qdot|) (the change of G over one step); if it has not converged in ``max_iter`` iterations the
-    full Newton projection takes over. Returns (q, max|phi|)."""
-    hold = np.zeros((len(hold_dofs), mech.ndof))
-    hold[np.arange(len(hold_dofs)), list(hold_dofs)] = 1.0
-    K = np.vstack([G, hold]) if len(hold) else G
-    llt = eigenpy.LLT(K @ K.T)
-    if llt.info() != eigenpy.ComputationInfo.Success:
-        return project(mech, data, q, hold_dofs, tol)
-    pad = np.zeros(len(hold))
-    model = mech.model
-    for _ in range(max_iter):
-        pin.forwardKinematics(model, data, q)
-        phi = loop_phi(mech, data)
-        err = float(np.abs(phi).max())
-        if err < tol:
-            return q, err
-        y = np.asarray(llt.solve(np.concatenate([phi, pad]) if len(hold) else phi)).reshape(-1)
-        q = pin.integrate(model, q, mech.to_reduced(K.T @ (-y)))
-    return project(mech, data, q, hold_dofs, tol)
+    full Newton projection takes over. Returns (q, max|phi|) at the returned q.
+
+    One implementation serves both pipelines: data_free.project_chord, whose forward kinematics and
+    site positions are compiled O(n) passes (recursive.py) instead of a Pinocchio forwardKinematics
+    and one frame update per loop site per iteration. ``data`` is not used (kept for the signature)."""
+    from .data_free import context, project_chord as chord  # data_free imports this module
+    return chord(context(mech), q, G, hold_dofs, tol, max_iter)
 
 
 def loop_phi(mech, data) -> np.ndarray:

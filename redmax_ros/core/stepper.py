@@ -128,8 +128,8 @@ def step(mech, data, state: State, cmd: Commands, h: float) -> tuple:
     v_new = mech.to_reduced(sol.v)  # 5
     q_new = pin.integrate(mech.model, state.q, h * v_new)
     if len(mech.loop_ab):
-        q_new, _ = stabilization.project_chord(mech, data, q_new, cons.G[cons.loop_rows],
-                                               mech.held_dofs(cmd.joint_velocities))
+        q_new, viol_pos = stabilization.project_chord(mech, data, q_new, cons.G[cons.loop_rows],
+                                                      mech.held_dofs(cmd.joint_velocities))
         if not math.isfinite(q_new.sum()):
             raise StepError("non-finite configuration after loop stabilization")
     v_hyper = sol.v
@@ -148,7 +148,8 @@ def step(mech, data, state: State, cmd: Commands, h: float) -> tuple:
             if name in site_forces:
                 site_forces[name] = P.T @ site_forces[name]  # world-frame force of the prescribed rows
     ek, ep, es = energies(mech, data, q_new, v_new)
-    viol_pos = stabilization.loop_violation(mech, data)
+    if ext is not None or not len(mech.loop_ab):  # else: max|phi| at q_new from the projection
+        viol_pos = stabilization.loop_violation(mech, data)
     viol_vel = sol.violation if fric is None else (float(np.abs(cons.G @ sol.v - cons.g).max()) if cons.m else 0.0)
     if not math.isfinite(ek + ep + es):
         raise StepError("non-finite energy after the step")
