@@ -32,6 +32,7 @@ import pinocchio as pin
 from numba import njit
 
 from . import recursive as rc
+from .contact import coupling_csr
 
 
 class ExternalForces:
@@ -342,7 +343,7 @@ def linear_wrenches(mech, fm, kin, ws, Z, h, v0, PX, v_prev_r, lam0, LamX, cs, n
     else:
         c_jid, c_X, c_n, c_t = cs.jid, cs.X, cs.n, cs.t
     nloops = len(mech.loop_ab) if cons.loop_rows.stop else 0
-    _map_kernel(nu, h, v0, PX, v_prev_r, fm.T_ptr, fm.T_idx, fm.T_val, lam0, LamX, fm.sel_r, fm.sel_c, fm.sel_v,
+    _map_kernel(nu, h, v0, PX, v_prev_r, *coupling_csr(mech, fm), lam0, LamX, fm.sel_r, fm.sel_c, fm.sel_v,
                 nloops, kin.X, fm.loop_xa, fm.loop_xb, fm.loop_index, fm.n_tree, c_jid, c_X, c_n, c_t, fm.pin_ja,
                 fm.pin_jb, fm.pin_moment, fm.loop_ja, fm.loop_jb, topo.parents, topo.idx_v, topo.nv_j, ws.St, ws.I,
                 ws.ov, Z, fm.gravity, ws.R, ws.p, fm.fj_jid, E0, E, W0, Wx)

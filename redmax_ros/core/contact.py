@@ -284,6 +284,31 @@ def _index_maps(mech, n_slots, lsites, laxis, lrad, sph_support):
         **_sparse_maps(mech))
 
 
+def coupling_csr(mech, fm):
+    """The coupling matrix T of Eq. (9) in CSR form (ptr, idx, val): the constant one built with the
+    mechanism, or, with catalogue joint maps (a configuration-dependent J_rR refreshed in place in
+    mech.T every step, catalogue.py), the current one."""
+    if mech.extras is None or mech.T is None:
+        return fm.T_ptr, fm.T_idx, fm.T_val
+    return _csr(np.ascontiguousarray(mech.T, dtype=float))
+
+
+@njit(cache=True, nogil=True)
+def _csr(T):
+    rows, cols = T.shape
+    ptr = np.zeros(rows + 1, dtype=np.int64)
+    idx = np.empty(rows * cols, dtype=np.int64)
+    val = np.empty(rows * cols)
+    k = 0
+    for i in range(rows):
+        for c in range(cols):
+            if T[i, c] != 0.0:
+                idx[k], val[k] = c, T[i, c]
+                k += 1
+        ptr[i + 1] = k
+    return ptr, idx[:k], val[:k]
+
+
 def _sparse_maps(mech):
     """The coupling matrix T (Eq. 9; identity when absent) in CSR form and the loop selection matrix
     (phi = Sel (x_a - x_b)) as (row, column, value) triplets, for the compiled BISP map."""
@@ -442,7 +467,7 @@ def staggered_rows(mech, fm: FrictionModel, ws, h, cons):
     contacts = len(fm.plane_n) > 0
     out = _rows_kernel(ws.R, ws.p, ws.St, fm.sph_jid if contacts else _NO_SPHERES, fm.sph_local, fm.sph_radius,
                        fm.sph_support_f, fm.sph_mu, fm.plane_n, fm.plane_off, fm.plane_t, fm.plane_mu, st.margin, st.erp,
-                       h, _EMPTY if mech.T is None else mech.T, fm.T_ptr, fm.T_idx, fm.T_val, mech.ndof,
+                       h, _EMPTY if mech.T is None else mech.T, *coupling_csr(mech, fm), mech.ndof,
                        fm.rows_fixed, fm.pin_moment, fm.loop_sdiff, CU, lo_CU)
     ks, ps, X, n, t, d, mu, jid, N, Tv, lo, RX, lo_U, nu = out
     cs = ContactSet(ks, ps, X, n, t, d, mu, jid, N, Tv, lo) if len(ks) else None
