@@ -214,13 +214,14 @@ def _reaction_kernel(parents, idx_v, nv_j, St, I, ov, Z, g, acc0, Ax, E0, E, R, 
     body accelerations a_i = J_i (acc0 + Ax x) + Z_i - (g, 0) (forward, tree prefix sums), body wrenches
     F_i = I_i a_i + ov_i x* (I_i ov_i) - f_ext,i (E0 + E x), backward subtree sums (the backward pass of
     the RNEA), and each frictional joint's wrench in its joint frame (f = R^T F, tau = R^T (tau_o - p x F)):
-    W0 (J,6) constant part, Wx (J,6,nx) per unit x. Equals Pinocchio's rnea(q, qdot^prev, acc, fext).f."""
+    W0 (J,6) constant part, Wx (J,6,nx) per unit x. Equals Pinocchio's rnea(q, qdot^prev, acc, fext).f.
+    E is scratch: it is overwritten by the linear part of the body wrenches and their subtree sums."""
     nj = parents.shape[0]
     nx = Ax.shape[1]
     A0 = np.zeros((nj, 6))
     AX = np.zeros((nj, 6, nx))
     F0 = np.zeros((nj, 6))
-    FX = np.zeros((nj, 6, nx))
+    FX = E  # in place: FX_i = I_i AX_i - E_i element by element
     A0[0, 0], A0[0, 1], A0[0, 2] = -g[0], -g[1], -g[2]
     a = np.empty(6)
     hm = np.empty(6)
@@ -256,7 +257,7 @@ def _reaction_kernel(parents, idx_v, nv_j, St, I, ov, Z, g, acc0, Ax, E0, E, R, 
         F0[j, 5] += v0 * f1 - v1 * f0 + w0 * n1 - w1 * n0
         for r in range(6):
             for col in range(nx):
-                FX[j, r, col] = -E[j, r, col]
+                FX[j, r, col] = -FX[j, r, col]
             for k in range(6):
                 ik = I[j, r, k]
                 if ik != 0.0:
