@@ -35,6 +35,11 @@ def _compare(name, overrides, warm=15, prepare=None, want=None):
         with pytest.raises(SceneError, match="pcg"):
             Simulator.load(name, overrides, solver="pcg")
         return None
+    if sim.mech.coriolis_implicit:  # direct pipeline only (docs/scenes.md, "Integrator"): compare the default step
+        with pytest.raises(SceneError, match="integrator.coriolis"):
+            Simulator.load(name, overrides, solver="pcg")
+        overrides = list(overrides) + ["integrator={coriolis: explicit}"]
+        sim = Simulator.load(name, overrides, solver="direct")
     if prepare:
         prepare(sim)
     sim.step(warm)

@@ -11,6 +11,8 @@ a dozen interpreter round trips of 1-5 us each while the arithmetic is a few tho
 kernel does the factorisations, the triangular solves, the joint-limit feasibility test of Eq. (5)
 and the velocity-level residual max|G qdot+ - g| in one call. Larger systems keep Eigen's blocked
 LLT (solve.py), which is faster from a few dozen DOFs on (measured in docs/architecture.md).
+kkt_solve_lu is the same solve for a non-symmetric A (integrator.coriolis: implicit): LU with partial
+pivoting for A and for the Schur complement S.
 """
 from __future__ import annotations
 
