@@ -116,7 +116,7 @@ def body_frames(fm, q, v_prev_r):
     if fm.planar is None:
         rc.update_kinematics(topo, ws, q, v_prev_r)
     else:  # every FALLBACK joint is a Pinocchio planar joint: constant S, zero bias, transform from q
-        _planar_kernel(fm.planar, topo.idx_q, q, ws.jR, ws.jp)
+        rc.planar_placements(fm.planar, topo.idx_q, q, ws.jR, ws.jp)
         rc._fk_kernel(topo.parents, topo.kind, topo.idx_q, topo.idx_v, topo.nv_j, topo.axis, topo.pitch,
                       topo.place_R, topo.place_p, q, ws.jR, ws.jp, ws.Sl, ws.R, ws.p, ws.St)
         rc._world_inertia_kernel(topo.mass, topo.com, topo.inertia_com, ws.R, ws.p, ws.I)
@@ -137,18 +137,6 @@ def planar_fallbacks(topo, ws):
         ws.c_local[j] = 0.0
     ws.has_bias = False
     return np.array(topo.fallback, dtype=np.int64)
-
-
-@njit(cache=True, nogil=True)
-def _planar_kernel(joints, idx_q, q, jR, jp):
-    """Joint transforms of planar joints: rotation about z by (cos, sin) = q[2:4], translation (q0, q1, 0)."""
-    for j in joints:
-        i = idx_q[j]
-        c, s = q[i + 2], q[i + 3]
-        jR[j, 0, 0], jR[j, 0, 1], jR[j, 0, 2] = c, -s, 0.0
-        jR[j, 1, 0], jR[j, 1, 1], jR[j, 1, 2] = s, c, 0.0
-        jR[j, 2, 0], jR[j, 2, 1], jR[j, 2, 2] = 0.0, 0.0, 1.0
-        jp[j, 0], jp[j, 1], jp[j, 2] = q[i], q[i + 1], 0.0
 
 
 @njit(cache=True, nogil=True)

@@ -51,7 +51,7 @@ class Context:
         # Universal joints are FALLBACK joints of recursive.py (one Pinocchio JointModel.calc per
         # joint and pass, ~3 us each); here they get a numba kernel (Pinocchio's formulas:
         # R = R(a1, q0) R(a2, q1), S = [0; R(a2, q1)^T a1 | 0; a2], c = (S_0 x a2) qdot0 qdot1).
-        uni, a1, a2, other = [], [], [], []
+        uni, a1, a2, other, planar = [], [], [], [], []
         for j, jm, jd in zip(self.topo.fallback, self.topo.fallback_models, self.ws.jdata):
             if jm.shortname() == "JointModelUniversal":
                 e = jm.extract()
@@ -60,10 +60,16 @@ class Context:
                 a2.append(np.array(e.axis2, float))
             else:
                 other.append((j, jm, jd))
+                if jm.shortname() == "JointModelPlanar":
+                    planar.append(j)
         self.uni_joints = np.array(uni, dtype=np.int64)
         self.uni_a1 = np.array(a1, dtype=float).reshape(-1, 3)
         self.uni_a2 = np.array(a2, dtype=float).reshape(-1, 3)
         self.other_fallback = other
+        # planar joints: their placement from q by a kernel where only placements are needed (loop_phi_at)
+        self.planar_joints = np.array(planar, dtype=np.int64)
+        self.placement_fallback = [(j, jm, jd) for j, jm, jd in zip(self.topo.fallback, self.topo.fallback_models,
+                                                                      self.ws.jdata) if j not in planar and j not in uni]
         nv = mech.nv
         self.site_jid = np.ascontiguousarray(mech.site_jid, dtype=np.int64).reshape(-1)
         self.site_local = np.ascontiguousarray(mech.site_local, dtype=float).reshape(-1, 3)
@@ -199,23 +205,41 @@ class Context:
         X = self.jac_positions() if Xjac is None else Xjac
         return self.mech.loop_select @ (X[self.loop_a] - X[self.loop_b]).reshape(-1)
 
-    def loop_phi_at(self, q: np.ndarray) -> np.ndarray:
-        """Loop residuals phi (rows,) [m] at q from the joint placements alone: forward kinematics,
-        loop-site positions and phi = S (x_a - x_b) in one compiled call (the inner loop of
-        :func:`project_chord`). Leaves placements of q in the workspace (the fk cache is reset)."""
+    def _fallback_placements(self, q):
+        """Joint transforms of the FALLBACK joints at q (placements only; the fk cache is reset)."""
         topo, ws = self.topo, self.ws
         self._fk_key = None
         q = np.ascontiguousarray(q, dtype=float).reshape(topo.nq)
         if len(self.uni_joints):
             _universal_kernel(self.uni_joints, topo.idx_q, topo.idx_v, self.uni_a1, self.uni_a2, q,
                               self.zero_v, False, ws.jR, ws.jp, ws.Sl, ws.c_local)
-        for j, jm, jd in self.other_fallback:
+        if len(self.planar_joints):
+            rc.planar_placements(self.planar_joints, topo.idx_q, q, ws.jR, ws.jp)
+        for j, jm, jd in self.placement_fallback:
             jm.calc(jd, q)
             ws.jR[j], ws.jp[j] = jd.M.rotation, jd.M.translation
+        return q
+
+    def loop_phi_at(self, q: np.ndarray) -> np.ndarray:
+        """Loop residuals phi (rows,) [m] at q from the joint placements alone: forward kinematics,
+        loop-site positions and phi = S (x_a - x_b) in one compiled call (the inner loop of
+        :func:`project_chord`). Leaves placements of q in the workspace (the fk cache is reset)."""
+        q = self._fallback_placements(q)
+        topo, ws = self.topo, self.ws
         return _loop_phi_kernel(topo.parents, topo.kind, topo.idx_q, topo.idx_v, topo.nv_j, topo.axis,
                                 topo.pitch, topo.place_R, topo.place_p, q, ws.jR, ws.jp, ws.Sl, ws.R, ws.p,
                                 ws.St, self.jac_jid, self.jac_local, self.loop_a, self.loop_b,
                                 self.mech.loop_select)
+
+    def site_positions_at(self, q: np.ndarray, jid: np.ndarray, local: np.ndarray) -> np.ndarray:
+        """World positions (K,3) [m] at q of sites given as (joint, offset in the joint frame), from the
+        joint placements alone in one compiled call (kinematics.site_jacobians for many sites)."""
+        q = self._fallback_placements(q)
+        topo, ws = self.topo, self.ws
+        out = np.empty((len(jid), 3))
+        _sites_at_kernel(topo.parents, topo.kind, topo.idx_q, topo.idx_v, topo.nv_j, topo.axis, topo.pitch,
+                         topo.place_R, topo.place_p, q, ws.jR, ws.jp, ws.Sl, ws.R, ws.p, ws.St, jid, local, out)
+        return out
 
     def loop_rows(self) -> tuple:
         """(G_r (rows, nv), phi (rows,)) of the loop closures at the configuration in ws."""
@@ -261,6 +285,14 @@ def _loop_phi_kernel(parents, kind, idx_q, idx_v, nv_j, axis, pitch, place_R, pl
             xb = p[jb, r] + R[jb, r, 0] * ob[0] + R[jb, r, 1] * ob[1] + R[jb, r, 2] * ob[2]
             d[3 * l + r] = xa - xb
     return S @ d
+
+
+@njit
+def _sites_at_kernel(parents, kind, idx_q, idx_v, nv_j, axis, pitch, place_R, place_p, q, jR, jp, Sl, R, p,
+                     St, jid, local, out):
+    """recursive._fk_kernel, then the world positions of sites (joint jid, offset local)."""
+    rc._fk_kernel(parents, kind, idx_q, idx_v, nv_j, axis, pitch, place_R, place_p, q, jR, jp, Sl, R, p, St)
+    rc._site_pos_kernel(R, p, jid, local, out)
 
 
 @njit

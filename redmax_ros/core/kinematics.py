@@ -60,22 +60,35 @@ def _point_jacobians(J6, X, support):
     return out
 
 
+GATHER_MAX = 8  # sites: up to this many, positions are read from Pinocchio's frames (~1.4 us each)
+
+
 def _site_set(mech, sites):
-    """(frame ids, DOF support (K,nv)) of a list of sites, cached per list in mech.site_cache."""
+    """(frame ids, DOF support (K,nv), joint ids, offsets) of a list of sites, cached per list."""
     key = ("sites", *sites)
     hit = mech.site_cache.get(key)
     if hit is None:
+        idx = list(sites)
         hit = mech.site_cache[key] = ([int(mech.site_fid[s]) for s in sites],
-                                      np.ascontiguousarray(mech.site_support[list(sites)]))
+                                      np.ascontiguousarray(mech.site_support[idx]),
+                                      np.ascontiguousarray(np.asarray(mech.site_jid)[idx], dtype=np.int64),
+                                      np.ascontiguousarray(mech.site_local[idx], dtype=float))
     return hit
 
 
-def site_jacobians(mech, data, sites):
-    """(X (K,3), J (K,3,nv)) for the listed sites. Needs joint Jacobians in data (computeJointJacobians)."""
-    pin.updateFramePlacements(mech.model, data)
-    fids, support = _site_set(mech, sites)
-    oMf, local = data.oMf, mech.site_local
-    X = np.array([oMf[f].translation if f >= 0 else local[s] for f, s in zip(fids, sites)]).reshape(len(sites), 3)
+def site_jacobians(mech, data, sites, q=None):
+    """(X (K,3), J (K,3,nv)) for the listed sites. Needs joint Jacobians in data (computeJointJacobians)
+    at q. Positions: from Pinocchio's frame placements for a few sites; with q given and more than
+    GATHER_MAX sites, from one compiled forward-kinematics pass (data_free.Context.site_positions_at;
+    same numbers to round-off) instead of one frame read per site."""
+    fids, support, jid, local = _site_set(mech, sites)
+    if q is not None and len(sites) > GATHER_MAX:
+        from .data_free import context  # data_free imports this module
+        X = context(mech).site_positions_at(q, jid, local)
+    else:
+        pin.updateFramePlacements(mech.model, data)
+        oMf, loc = data.oMf, mech.site_local
+        X = np.array([oMf[f].translation if f >= 0 else loc[s] for f, s in zip(fids, sites)]).reshape(len(sites), 3)
     return X, _point_jacobians(data.J.reshape(6, mech.nv), X, support)
 
 
@@ -91,7 +104,7 @@ def compute(mech, data, q, v, extra_sites=()) -> Kinematics:
             s2 = sites + [s for s in dict.fromkeys(extra_sites) if s not in mech.jac_row]
             hit = mech.site_cache[key] = (s2, {s: k for k, s in enumerate(s2)})
         sites, row = hit
-    X, J = site_jacobians(mech, data, sites)
+    X, J = site_jacobians(mech, data, sites, q)
     return Kinematics(M=data.M.reshape(nv, nv), nle=data.nle.reshape(nv), sites=sites, row=row, X=X, J=J)
 
 

@@ -476,6 +476,18 @@ def _bias_kernel(parents, idx_v, nv_j, St, ov, v, R, p, c_local, Z):
             Z[j, a] = Z[par, a] + cr[a] + cw[a]
 
 
+@njit
+def planar_placements(joints, idx_q, q, jR, jp):
+    """Joint transforms of planar joints: rotation about z by (cos, sin) = q[2:4], translation (q0, q1, 0)."""
+    for j in joints:
+        i = idx_q[j]
+        c, s = q[i + 2], q[i + 3]
+        jR[j, 0, 0], jR[j, 0, 1], jR[j, 0, 2] = c, -s, 0.0
+        jR[j, 1, 0], jR[j, 1, 1], jR[j, 1, 2] = s, c, 0.0
+        jR[j, 2, 0], jR[j, 2, 1], jR[j, 2, 2] = 0.0, 0.0, 1.0
+        jp[j, 0], jp[j, 1], jp[j, 2] = q[i], q[i + 1], 0.0
+
+
 def update_kinematics(topo: Topology, ws: Workspace, q: np.ndarray, v: np.ndarray | None = None) -> Workspace:
     """Fill ``ws`` for configuration ``q`` (and velocity ``v``): oMi, world motion subspaces
     (= Pinocchio's data.J), world spatial inertias, and with ``v`` the body twists J v and the
