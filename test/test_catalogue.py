@@ -314,8 +314,8 @@ def energy_run(name, h, T=0.5, *overrides):
 
 @pytest.mark.parametrize("name", CONSERVATIVE)
 def test_energy_error_is_first_order(name):
-    """No input, no dissipation: linearly implicit Euler with explicit gravity/Coriolis (Eq. 2) does not
-    conserve energy exactly; its energy error is O(h) and does not grow beyond that: over 0.5 s,
+    """No input, no dissipation: linearly implicit Euler with explicit gravity and explicit (default) or
+    linearised (IMPLICIT_CORIOLIS scenes) Coriolis forces (Eq. 2) does not conserve energy exactly; its energy error is O(h) and does not grow beyond that: over 0.5 s,
     max |E - E0| at h = 1e-3 is below 1 % of the energy scale (largest kinetic energy or range of
     potential energy), and error(h = 1e-3) <= 0.6 error(h = 2e-3) (first order)."""
     E1, s1 = energy_run(name, 2e-3)
