@@ -15,6 +15,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from .recursive import njit
+
 
 @dataclass
 class Constraints:
@@ -47,6 +49,19 @@ def loop_rows(mech, X, J):
     A, B = mech.loop_rows_ab[:, 0], mech.loop_rows_ab[:, 1]
     S = mech.loop_select
     return S @ (J[A] - J[B]).reshape(-1, J.shape[2]), S @ (X[A] - X[B]).reshape(-1)
+
+
+@njit
+def _loop_G(J, ab, S):
+    """Loop rows S (J_a - J_b) (rows, nv) of loop_rows without the residual, in one compiled call."""
+    L, nv = ab.shape[0], J.shape[2]
+    D = np.empty((3 * L, nv))
+    for l in range(L):
+        a, b = ab[l, 0], ab[l, 1]
+        for r in range(3):
+            for c in range(nv):
+                D[3 * l + r, c] = J[a, r, c] - J[b, r, c]
+    return S @ D
 
 
 @dataclass
@@ -115,7 +130,7 @@ def build(mech, kin, q, prescribed_joints: dict, prescribed_sites: dict, h: floa
     G = np.empty((lay.m, mech.ndof))
     g = np.empty(lay.m)
     if lay.loop_rows.stop:
-        G_loop, _ = loop_rows(mech, kin.X, kin.J)
+        G_loop = _loop_G(kin.J, mech.loop_rows_ab, mech.loop_select)
         G[lay.loop_rows] = G_loop if T is None else G_loop @ T
         g[lay.loop_rows] = 0.0
     if prescribed_joints:

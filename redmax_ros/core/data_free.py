@@ -221,8 +221,8 @@ class Context:
         return q
 
     def loop_phi_at(self, q: np.ndarray) -> np.ndarray:
-        """Loop residuals phi (rows,) [m] at q from the joint placements alone: forward kinematics,
-        loop-site positions and phi = S (x_a - x_b) in one compiled call (the inner loop of
+        """(phi (rows,) [m], max|phi|) of the loops at q from the joint placements alone: forward
+        kinematics, loop-site positions and phi = S (x_a - x_b) in one compiled call (the inner loop of
         :func:`project_chord`). Leaves placements of q in the workspace (the fk cache is reset)."""
         q = self._fallback_placements(q)
         topo, ws = self.topo, self.ws
@@ -284,7 +284,11 @@ def _loop_phi_kernel(parents, kind, idx_q, idx_v, nv_j, axis, pitch, place_R, pl
             xa = p[ja, r] + R[ja, r, 0] * oa[0] + R[ja, r, 1] * oa[1] + R[ja, r, 2] * oa[2]
             xb = p[jb, r] + R[jb, r, 0] * ob[0] + R[jb, r, 1] * ob[1] + R[jb, r, 2] * ob[2]
             d[3 * l + r] = xa - xb
-    return S @ d
+    phi = S @ d
+    err = 0.0
+    for r in range(phi.shape[0]):
+        err = max(err, abs(phi[r]))
+    return phi, err
 
 
 @njit
@@ -656,8 +660,7 @@ def project_chord(ctx: Context, q, G, hold_dofs=(), tol=TOL, max_iter=8):
         return project(ctx, q, hold_dofs, tol)
     pad = np.zeros(len(hold))
     for _ in range(max_iter):
-        phi = ctx.loop_phi_at(q)
-        err = float(np.abs(phi).max())
+        phi, err = ctx.loop_phi_at(q)
         if err < tol:
             return q, err
         y = np.asarray(llt.solve(np.concatenate([phi, pad]) if len(hold) else phi)).reshape(-1)

@@ -110,7 +110,15 @@ class Mechanism:
         return G
 
     def held_dofs(self, prescribed_joints) -> list:
-        """Hyper-reduced DOFs moved by the prescribed joints (kept fixed by loop stabilization)."""
+        """Hyper-reduced DOFs moved by the prescribed joints (kept fixed by loop stabilization; cached
+        per set of joints)."""
+        key = ("held", *prescribed_joints)
+        hit = self.layout_cache.get(key)
+        if hit is None:
+            hit = self.layout_cache[key] = self._held_dofs(prescribed_joints)
+        return hit
+
+    def _held_dofs(self, prescribed_joints) -> list:
         held = set()
         for name in prescribed_joints:
             j = self.joint_index[name]
