@@ -245,3 +245,23 @@ def kkt_solve_lu(A, b, G, g, C, lo, hi):
             ok = False
             break
     return 0, v, lam, S, ratio, viol, ok
+
+
+@njit
+def kkt_residual(A, b, v, G, lam, C, mu):
+    """Relative residual |A v - b + G^T lam + C^T mu| / |b| of the KKT stationarity equation (one
+    compiled call; C may have zero rows)."""
+    n = A.shape[0]
+    r = -b.copy()
+    for i in range(n):
+        s = 0.0
+        for k in range(n):
+            s += A[i, k] * v[k]
+        r[i] += s
+    for j in range(G.shape[0]):
+        for i in range(n):
+            r[i] += G[j, i] * lam[j]
+    for j in range(C.shape[0]):
+        for i in range(n):
+            r[i] += C[j, i] * mu[j]
+    return np.sqrt((r @ r) / max(b @ b, 1e-300))

@@ -9,8 +9,6 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-import math
-
 import eigenpy
 import numpy as np
 import proxsuite
@@ -18,7 +16,7 @@ import proxsuite
 from .constraints import Constraints
 from .errors import StepError
 from .forces import LinearSystem
-from .kkt import SMALL_N, kkt_solve, kkt_solve_lu
+from .kkt import SMALL_N, kkt_residual, kkt_solve, kkt_solve_lu
 
 _SUCCESS = eigenpy.ComputationInfo.Success
 
@@ -38,13 +36,9 @@ class Solution:
     def residual(self) -> float:
         """Relative residual |A v - b + G^T lam + C^T mu| / |b| of the KKT stationarity equation
         (computed on demand: the direct solve makes it round-off by construction)."""
-        A, b, c = self.system.A, self.system.b, self.cons
-        r = A @ self.v - b
-        if c.m:
-            r += c.G.T @ self.lam
-        if len(self.mu):
-            r += c.C.T @ self.mu
-        return math.sqrt(float(r @ r) / max(float(b @ b), 1e-300))
+        c = self.cons
+        C = c.C if len(self.mu) else _NO_ROWS
+        return kkt_residual(self.system.A, self.system.b, self.v, c.G, self.lam, C, self.mu)
 
 
 def _cholesky(A, what):
