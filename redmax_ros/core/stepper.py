@@ -33,7 +33,7 @@ class State:
     t: float  # s
     q: np.ndarray  # (nq,) Pinocchio configuration
     v: np.ndarray  # (ndof,) hyper-reduced velocity qdot_R (= qdot_r without couplings)
-    friction_cache: dict | None = None  # warm start of the friction impulses (staggered.py)
+    friction_cache: np.ndarray | None = None  # warm start of the friction impulses (staggered.py)
 
 
 @dataclass
