@@ -17,31 +17,21 @@ Cholesky inverse of A, S^-1 and P (n = DOFs, m = bilateral rows).
 """
 from __future__ import annotations
 
-import math
 
 import numpy as np
 from numba import njit
+
+from .kkt import _cholesky
 
 
 @njit(cache=True, nogil=True)
 def spd_inverse(A):
     """Inverse of a symmetric positive definite matrix through its Cholesky factor (A = L L^T,
-    A^-1 = L^-T L^-1); ok = False when A is not positive definite."""
+    A^-1 = L^-T L^-1; the factorisation is kkt._cholesky); ok = False when A is not positive definite."""
     n = A.shape[0]
     L = np.zeros((n, n))
-    for j in range(n):
-        s = A[j, j]
-        for k in range(j):
-            s -= L[j, k] * L[j, k]
-        if not s > 0.0:
-            return L, False
-        d = math.sqrt(s)
-        L[j, j] = d
-        for i in range(j + 1, n):
-            s = A[i, j]
-            for k in range(j):
-                s -= L[i, k] * L[j, k]
-            L[i, j] = s / d
+    if not _cholesky(A, L):
+        return L, False
     Li = np.zeros((n, n))
     for j in range(n):
         Li[j, j] = 1.0 / L[j, j]
