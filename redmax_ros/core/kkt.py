@@ -62,6 +62,46 @@ def _chol_solve(L, x):
 
 
 @njit
+def _rows_minus(G, v, g, out):
+    """out = G v - g."""
+    for r in range(G.shape[0]):
+        s = -g[r]
+        for k in range(G.shape[1]):
+            s += G[r, k] * v[k]
+        out[r] = s
+
+
+@njit
+def _correct(G, g, Y, lam, v):
+    """v <- v - Y lam (qdot+ of the Schur complement); returns max|G v - g| afterwards."""
+    n, m = Y.shape
+    for k in range(n):
+        s = 0.0
+        for r in range(m):
+            s += Y[k, r] * lam[r]
+        v[k] -= s
+    viol = 0.0
+    for r in range(m):
+        s = -g[r]
+        for k in range(n):
+            s += G[r, k] * v[k]
+        viol = max(viol, abs(s))
+    return viol
+
+
+@njit
+def _limits_ok(C, v, lo, hi):
+    """lo - 1e-12 <= C v <= hi + 1e-12 (no QP needed for the unilateral rows of Eq. 5)."""
+    for r in range(C.shape[0]):
+        s = 0.0
+        for k in range(C.shape[1]):
+            s += C[r, k] * v[k]
+        if s < lo[r] - 1e-12 or s > hi[r] + 1e-12:
+            return False
+    return True
+
+
+@njit
 def kkt_solve(A, b, G, g, C, lo, hi):
     """Returns (status, qdot+ (n,), lam (m,), S (m,m), pivot ratio, max|G qdot+ - g|, limits_ok).
 
@@ -100,31 +140,10 @@ def kkt_solve(A, b, G, g, C, lo, hi):
             dmin = min(dmin, d)
             dmax = max(dmax, d)
         ratio = dmin / dmax
-        for r in range(m):
-            s = -g[r]
-            for k in range(n):
-                s += G[r, k] * v[k]
-            lam[r] = s
+        _rows_minus(G, v, g, lam)
         _chol_solve(LS, lam)
-        for k in range(n):
-            s = 0.0
-            for r in range(m):
-                s += Y[k, r] * lam[r]
-            v[k] -= s
-        for r in range(m):
-            s = -g[r]
-            for k in range(n):
-                s += G[r, k] * v[k]
-            viol = max(viol, abs(s))
-    ok = True
-    for r in range(C.shape[0]):
-        s = 0.0
-        for k in range(n):
-            s += C[r, k] * v[k]
-        if s < lo[r] - 1e-12 or s > hi[r] + 1e-12:
-            ok = False
-            break
-    return 0, v, lam, S, ratio, viol, ok
+        viol = _correct(G, g, Y, lam, v)
+    return 0, v, lam, S, ratio, viol, _limits_ok(C, v, lo, hi)
 
 
 # ------------------------------------------------------------------------------------------------
@@ -220,31 +239,10 @@ def kkt_solve_lu(A, b, G, g, C, lo, hi):
         if not ok:
             return 2, v, lam, S, 0.0, 0.0, False
         ratio = np.sqrt(umin / umax)
-        for r in range(m):
-            s = -g[r]
-            for k in range(n):
-                s += G[r, k] * v[k]
-            lam[r] = s
+        _rows_minus(G, v, g, lam)
         _lu_solve(LUS, pivS, lam)
-        for k in range(n):
-            s = 0.0
-            for r in range(m):
-                s += Y[k, r] * lam[r]
-            v[k] -= s
-        for r in range(m):
-            s = -g[r]
-            for k in range(n):
-                s += G[r, k] * v[k]
-            viol = max(viol, abs(s))
-    ok = True
-    for r in range(C.shape[0]):
-        s = 0.0
-        for k in range(n):
-            s += C[r, k] * v[k]
-        if s < lo[r] - 1e-12 or s > hi[r] + 1e-12:
-            ok = False
-            break
-    return 0, v, lam, S, ratio, viol, ok
+        viol = _correct(G, g, Y, lam, v)
+    return 0, v, lam, S, ratio, viol, _limits_ok(C, v, lo, hi)
 
 
 @njit
