@@ -79,18 +79,20 @@ def solve_direct(sys: LinearSystem, cons: Constraints, qp_eps: float = 1e-10) ->
                 _check_rank(S, cons.labels)
             lam = np.asarray(lls.solve(cons.G @ v - cons.g)).reshape(cons.m)
             v = v - Y @ lam
-        viol = float(np.abs(cons.G @ v - cons.g).max()) if cons.m else 0.0
-        limits_ok = True
-        if cons.C is not None:
-            Cv = cons.C @ v
-            limits_ok = not ((Cv < cons.lo - 1e-12).any() or (Cv > cons.hi + 1e-12).any())
-    mu = _EMPTY if cons.C is None else np.zeros(len(cons.lo))
-    solver, iters = "direct", 1
-    if not limits_ok:
-        v, lam, mu, iters = _solve_qp(A, b, cons, qp_eps)
-        solver = "qp"
-        viol = float(np.abs(cons.G @ v - cons.g).max()) if cons.m else 0.0
-    return Solution(v, lam, mu, iters, solver, sys, cons, viol)
+        viol, limits_ok = _violation_and_limits(cons, v)
+    if limits_ok:
+        return Solution(v, lam, _EMPTY if cons.C is None else np.zeros(len(cons.lo)), 1, "direct", sys, cons, viol)
+    v, lam, mu, iters = _solve_qp(A, b, cons, qp_eps)
+    return Solution(v, lam, mu, iters, "qp", sys, cons, _violation_and_limits(cons, v)[0])
+
+
+def _violation_and_limits(cons, v):
+    """(max|G v - g|, whether lo - 1e-12 <= C v <= hi + 1e-12) for the NumPy paths."""
+    viol = float(np.abs(cons.G @ v - cons.g).max()) if cons.m else 0.0
+    if cons.C is None:
+        return viol, True
+    Cv = cons.C @ v
+    return viol, not ((Cv < cons.lo - 1e-12).any() or (Cv > cons.hi + 1e-12).any())
 
 
 _EMPTY = np.zeros(0)
@@ -162,18 +164,11 @@ def _solve_direct_lu(sys: LinearSystem, cons: Constraints, qp_eps: float) -> Sol
                 _check_rank_nonsymmetric(S, cons.labels)
             lam = np.linalg.solve(S, cons.G @ v - cons.g)
             v = v - Y @ lam
-        viol = float(np.abs(cons.G @ v - cons.g).max()) if cons.m else 0.0
-        limits_ok = True
-        if cons.C is not None:
-            Cv = cons.C @ v
-            limits_ok = not ((Cv < cons.lo - 1e-12).any() or (Cv > cons.hi + 1e-12).any())
-    mu = _EMPTY if cons.C is None else np.zeros(len(cons.lo))
-    solver, iters = "direct", 1
-    if not limits_ok:
-        v, lam, mu, iters = _solve_qp_nonsymmetric(A, b, cons, qp_eps, v)
-        solver = "qp"
-        viol = float(np.abs(cons.G @ v - cons.g).max()) if cons.m else 0.0
-    return Solution(v, lam, mu, iters, solver, sys, cons, viol)
+        viol, limits_ok = _violation_and_limits(cons, v)
+    if limits_ok:
+        return Solution(v, lam, _EMPTY if cons.C is None else np.zeros(len(cons.lo)), 1, "direct", sys, cons, viol)
+    v, lam, mu, iters = _solve_qp_nonsymmetric(A, b, cons, qp_eps, v)
+    return Solution(v, lam, mu, iters, "qp", sys, cons, _violation_and_limits(cons, v)[0])
 
 
 def _check_rank_nonsymmetric(S, labels):
