@@ -163,3 +163,25 @@ def test_logged_commands_equal_sent(run, decode):
     diags = decode(_mcap_file(run), "/diagnostics")
     assert diags and all(math.isfinite(float(kv.value)) for kv in diags[-1].status[0].values
                          if kv.key == "real_time_factor")
+
+
+def test_logged_clock_and_solver_stats_follow_joint_states(run):
+    """Every logged step has its joint_states, /clock and solver_stats, in this order with one log
+    time (the node builds these records in one piece when logging; cdr.StepRecords)."""
+    from mcap.reader import make_reader
+    from mcap_ros2.decoder import DecoderFactory
+
+    ns = f"/sim{PID}"
+    want = (f"{ns}/joint_states", "/clock", f"{ns}/solver_stats")
+    with open(_mcap_file(run), "rb") as f:
+        reader = make_reader(f, decoder_factories=[DecoderFactory()])
+        msgs = [(c.topic, m.log_time, d) for _, c, m, d in reader.iter_decoded_messages(topics=list(want),
+                                                                                       log_time_order=False)]
+    stepped = [i for i, (tp, _, d) in enumerate(msgs) if tp == want[0] and _stamp_ns(d.header.stamp) > 0]
+    assert len(stepped) > 300
+    for i in stepped:
+        (_, t0, js), (tc, t1, clk), (ts, t2, st) = msgs[i:i + 3]
+        assert (tc, ts) == want[1:] and t0 == t1 == t2
+        stamp = _stamp_ns(js.header.stamp)
+        assert _stamp_ns(clk.clock) == stamp and _stamp_ns(st.header.stamp) == stamp
+        assert st.step == stamp // 1_000_000 and st.solver and math.isfinite(st.residual)

@@ -92,3 +92,48 @@ def test_joint_state_encoder_fast_and_buffer_paths_agree():
     wide = np.stack([e, e]).T  # (5, 2): column 0 is a strided view of e
     assert enc.encode(0.25, q, v, wide[:, 0]) == ref
     assert enc.encode(0.25, q, v, e.astype(np.float32)) == enc._encode_buffer(0.25, q, v, e.astype(np.float32))
+
+
+def test_step_records_equal_write_many(tmp_path):
+    """cdr.StepRecords (the node's per-step log records when logging) hands over exactly the bytes
+    write_many would: same records, sequence numbers continuing across both, one log time per
+    step; the /clock and solver_stats slices are the encoders' messages."""
+    from mcap.reader import make_reader
+
+    from redmax_ros.logging.mcap_log import McapLogger
+    from redmax_ros.node.cdr import StepRecords
+
+    names = ["elbow", "wrist[0]", "wrist[1]"]
+    topics = ("/ns/joint_states", "/clock", "/ns/solver_stats")
+    types = ("sensor_msgs/msg/JointState", "rosgraph_msgs/msg/Clock", "redmax_msgs/msg/SolverStats")
+    js_enc, stats_enc = JointStateEncoder(names), SolverStatsEncoder("world")
+    rng = np.random.default_rng(3)
+    steps = []
+    for k in range(1, 41):
+        solver = "direct" if k < 30 else "pcg"  # a solver change mid-run: another layout
+        d = SimpleNamespace(E_kin=rng.normal(), E_pot=rng.normal(), E_spring=rng.normal(), E_total=rng.normal(),
+                            violation_pos=rng.random(), violation_vel=rng.random(), residual=rng.random(),
+                            iterations=int(k % 5), solver=solver, wall_time=rng.random())
+        steps.append((1000 + k, 0.001 * k, js_enc.encode(0.001 * k, *rng.normal(size=(3, 3))), k, d))
+
+    def expected(ns, t, js, k, d):
+        return [(topics[0], js), (topics[1], encode_clock(t)), (topics[2], stats_enc.encode(t, k, d))]
+
+    lg = McapLogger(tmp_path / "a", "a")
+    for tp, ty in zip(topics, types):
+        lg.add_topic(tp, ty)
+    rec = StepRecords(lg, *topics, stats_enc)
+    for i, (ns, t, js, k, d) in enumerate(steps):
+        if i % 3 == 1:
+            lg.write_many(expected(ns, t, js, k, d), log_time_ns=ns)
+            continue
+        blob = rec.build(ns, t, js, k, d)
+        c, s = rec.clock_at(len(js)), rec.stats_at(len(js))
+        assert blob[c:c + 12] == encode_clock(t) and blob[s:] == stats_enc.encode(t, k, d)
+        lg.write_records(blob, 3)
+    lg.close()
+    assert lg.error is None and lg.written == lg.handed_over == 120
+    with open(lg.files[0], "rb") as f:
+        got = [(c.topic, m.sequence, m.log_time, m.publish_time, m.data) for _, c, m in make_reader(f).iter_messages()]
+    want = [(tp, k, ns, ns, data) for ns, t, js, k, d in steps for tp, data in expected(ns, t, js, k, d)]
+    assert got == want

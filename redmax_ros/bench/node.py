@@ -503,7 +503,6 @@ def bench_logging_inprocess(scene, dt, rounds, window, writers=("process", "thre
     # this condition the writer's own cost shows, against "off" the whole price of logging.
     loggers["off+stats"] = None
     conds = list(loggers)
-    stats_wanted = node._stats_wanted
     rows = {c: [] for c in conds}
     try:
         _wait_for(lambda: node.pub_js.get_subscription_count() > 0, 30, "the subscriber")
@@ -514,7 +513,7 @@ def bench_logging_inprocess(scene, dt, rounds, window, writers=("process", "thre
             order = conds[r % len(conds):] + conds[:r % len(conds)]
             for c in order:
                 node.logger_mcap = loggers[c]
-                node._stats_wanted = (lambda: True) if c == "off+stats" else stats_wanted
+                node._stats_forced = c == "off+stats"
                 time.sleep(0.3)
                 k0, t0, p0 = e.step_index, time.perf_counter(), time.process_time()
                 w0 = _cpu_seconds(f"/proc/{child}/stat") if child else 0.0
@@ -527,7 +526,7 @@ def bench_logging_inprocess(scene, dt, rounds, window, writers=("process", "thre
                                 "load": _load()})
     finally:
         node.logger_mcap = None
-        node._stats_wanted = stats_wanted
+        node._stats_forced = False
         stop.set()
         th.join(5)
         node.close()

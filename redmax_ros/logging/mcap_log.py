@@ -161,6 +161,7 @@ MAGIC = b"\x89MCAP0\r\n"
 _OP_HEADER, _OP_FOOTER, _OP_SCHEMA, _OP_CHANNEL, _OP_MESSAGE, _OP_CHUNK = 0x01, 0x02, 0x03, 0x04, 0x05, 0x06
 _OP_MESSAGE_INDEX, _OP_CHUNK_INDEX, _OP_STATISTICS, _OP_SUMMARY_OFFSET, _OP_DATA_END = 0x07, 0x08, 0x0B, 0x0E, 0x0F
 _MESSAGE_HEAD = struct.Struct("<BQHIQQ")  # opcode, record length, channel id, sequence, log time, publish time
+MESSAGE_HEAD, OP_MESSAGE = _MESSAGE_HEAD, _OP_MESSAGE  # for callers building records (McapLogger.write_records)
 _RECORD_HEAD = struct.Struct("<BQ")
 _CHANNEL_TIME = struct.Struct("<H4xQ")  # channel id and log time of a Message record's content
 
@@ -628,6 +629,25 @@ class McapLogger:
                 buf += head(_OP_MESSAGE, 22 + len(data), t.index + 1, seq, log_time_ns, log_time_ns)
                 buf += data
                 self.handed_over += 1
+
+    def handle(self, topic: str):
+        """The logger's record of a logged topic (None if not logged), for callers that build
+        Message records themselves (``write_records``): channel id = ``handle.index + 1``, and the
+        caller advances ``handle.seq`` (``(seq + 1) & 0xFFFFFFFF``) for every record it builds, so
+        it must be the topic's only writer."""
+        return self._topics.get(topic)
+
+    def write_records(self, records, count: int):
+        """Hand over ``count`` finished MCAP Message records (``MESSAGE_HEAD`` + CDR each, built
+        with ``handle``) in one piece: one lock, one append. Writer process only (the thread
+        writer takes messages, not records)."""
+        if self._closed or self._failed:
+            return
+        if self.writer == "thread":
+            raise ValueError("write_records needs writer='process'")
+        with self._lock:
+            self._buf += records
+            self.handed_over += count
 
     def flush(self, timeout=10.0) -> bool:
         """Block until everything handed over so far is written and the open chunk finalized."""

@@ -41,7 +41,7 @@ from redmax_msgs.srv import (DescribeScene, GetSimulationState, LoadScene, Relea
 from redmax_ros.core import SceneError
 
 from . import engine as eng
-from .cdr import JointStateEncoder, SolverStatsEncoder, encode_clock
+from .cdr import JointStateEncoder, SolverStatsEncoder, StepRecords, encode_clock
 from .convert import StateMessages, description_msg, diagnostics_msg, markers_msg, point_prescriptions_msg
 from .convert import prescriptions_msg, time_msg
 from .sender import Sender
@@ -262,6 +262,8 @@ class RedmaxNode(Node):
         self._sender = Sender(context_ok=self.context.ok, on_error=self._publish_error)
         self.msgs = None
         self.stats_enc = SolverStatsEncoder(self.frame_id)
+        self._step_records = None  # (logger, cdr.StepRecords or None when not applicable)
+        self._stats_forced = False  # build solver_stats every step even for nobody (benchmark)
         self.engine = eng.Engine(
             self, p["scene"], overrides,
             initial_state=eng.PLAYING if p["mode"] == "free_run" else eng.PAUSED,
@@ -418,35 +420,65 @@ class RedmaxNode(Node):
         """One published step: the messages are serialized once (joint_states, /clock and
         solver_stats by the fast CDR encoders, test_node_cdr.py checks them against rclpy's
         serializer), logged together (one lock, one log time), then published in this order.
-        joint_states and /clock (volatile) are not even encoded while nobody subscribes and they
-        are not logged: such a message could reach nobody (the sender would drop it)."""
+        Each topic's subscriber count is read once: a message on one of these volatile topics is
+        encoded only if it is logged or has a subscriber, and handed to DDS only with a
+        subscriber (without one it could reach nobody). solver_stats is built only when logged
+        or subscribed (its KKT residual is computed for it). When all three are logged by the
+        writer process and no point forces go out, the log records are built in one piece
+        (cdr.StepRecords: the same bytes as write_many would hand over)."""
         lg = self.logger_mcap
+        njs = self.pub_js.handle.get_subscription_count()
+        nclock = self.pub_clock.handle.get_subscription_count()
+        nstats = self.pub_stats.handle.get_subscription_count()
+        if lg is not None and diag is not None and not (site_forces or self._last_pf_nonempty):
+            rec = self._step_records
+            if rec is None or rec[0] is not lg:
+                rec = self._step_records = (lg, self._make_step_records(lg))
+            rec = rec[1]
+            if rec is not None:
+                js = self.js_enc.encode(t, self.msgs.info.positions(q), v, effort)
+                blob = rec.build(time.time_ns(), t, js, step_index, diag)
+                lg.write_records(blob, 3)
+                send = self._sender.send
+                if njs:
+                    send(self.pub_js, js, False, njs)
+                if nclock:
+                    i = rec.clock_at(len(js))
+                    send(self.pub_clock, blob[i:i + 12], False, nclock)
+                if nstats:
+                    send(self.pub_stats, blob[rec.stats_at(len(js)):], False, nstats)
+                self._sender.wake()
+                return
         out = []
+        names = self._topic_names
         pub = self.pub_js
-        if (lg is not None and lg.logs(self._topic_names[pub])) or pub.handle.get_subscription_count():
-            out.append((pub, self.js_enc.encode(t, self.msgs.info.positions(q), v, effort)))
+        if njs or (lg is not None and lg.logs(names[pub])):
+            out.append((pub, self.js_enc.encode(t, self.msgs.info.positions(q), v, effort), njs))
         pub = self.pub_clock
-        if (lg is not None and lg.logs(self._topic_names[pub])) or pub.handle.get_subscription_count():
-            out.append((pub, encode_clock(t)))
+        if nclock or (lg is not None and lg.logs(names[pub])):
+            out.append((pub, encode_clock(t), nclock))
         if site_forces or self._last_pf_nonempty:
-            out.append((self.pub_pf, serialize_message(self.msgs.point_forces(t, site_forces))))
+            out.append((self.pub_pf, serialize_message(self.msgs.point_forces(t, site_forces)), None))
             self._last_pf_nonempty = bool(site_forces)
-        if diag is not None and self._stats_wanted():
-            out.append((self.pub_stats, self.stats_enc.encode(t, step_index, diag)))
+        pub = self.pub_stats
+        if diag is not None and (nstats or self._stats_forced or (lg is not None and lg.logs(names[pub]))):
+            out.append((pub, self.stats_enc.encode(t, step_index, diag), nstats))
         if lg is not None and out:
-            names = self._topic_names
-            lg.write_many([(names[p], data) for p, data in out])
+            lg.write_many([(names[p], data) for p, data, _ in out])
         send = self._sender.send
-        for p, data in out:
-            send(p, data, False)
+        for p, data, n in out:
+            if n is None or n:
+                send(p, data, False, n)
         self._sender.wake()
 
-    def _stats_wanted(self):
-        """solver_stats costs ~25 us a step (the KKT residual is evaluated for it): built only while
-        someone subscribes or it is logged."""
-        lg = self.logger_mcap
-        return (lg is not None and lg.logs(self._topic_names[self.pub_stats])) or \
-            self.pub_stats.handle.get_subscription_count() > 0
+    def _make_step_records(self, lg):
+        """cdr.StepRecords for ``lg``, or None when that path does not apply (the thread writer, or
+        one of joint_states, /clock, solver_stats not logged)."""
+        names = self._topic_names
+        topics = (names[self.pub_js], names[self.pub_clock], names[self.pub_stats])
+        if getattr(lg, "writer", None) != "process" or not all(lg.logs(x) for x in topics):
+            return None
+        return StepRecords(lg, *topics, self.stats_enc)
 
     def markers(self, t, poses, springs):
         self._send(self.pub_markers, markers_msg(t, poses, springs, self.frame_id))

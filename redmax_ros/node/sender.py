@@ -142,12 +142,13 @@ class Sender:
     def threaded(self) -> bool:
         return self._thread is not None
 
-    def send(self, pub, data: bytes, wake=True):
+    def send(self, pub, data: bytes, wake=True, count=None):
         """Hand over one serialized message. ``wake=False`` leaves the publisher thread asleep
         (the caller sends more right away and wakes it with the last one: one GIL hand-over per
-        step instead of one per message)."""
+        step instead of one per message). ``count``: the topic's subscriber count as the caller
+        has just read it (the direct mode then does not read it again)."""
         if self.mode == "direct" and not self._q:
-            return self._publish_direct(pub, data)
+            return self._publish_direct(pub, data, count)
         if self.mode == "thread" and self._nobody_listens(pub):
             return None
         if self.mode != "thread" or self._stop or getattr(self._local, "inline", False):
@@ -166,16 +167,18 @@ class Sender:
         elif wake and not self._wake.is_set():  # appended before the check: the consumer clears, then drains
             self._wake.set()
 
-    def _publish_direct(self, pub, data):
+    def _publish_direct(self, pub, data, n=None):
         """Publish in the calling thread through ctypes: the GIL is released for a write to a
         topic with subscribers (other Python threads run meanwhile; a write that blocks on a
-        slow reader does not freeze them), kept for one without."""
+        slow reader does not freeze them), kept for one without. ``n``: subscriber count if the
+        caller just read it."""
         fn, held, get_err, reset_err = self._rcl
         info = self._info.get(pub)
         if info is None:
             info = self._describe(pub)
         handle, ptr, volatile = info
-        n = handle.get_subscription_count()
+        if n is None:
+            n = handle.get_subscription_count()
         if n == 0 and volatile:
             return None  # nobody could ever receive it (see _nobody_listens)
         if not isinstance(data, bytes):
