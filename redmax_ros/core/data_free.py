@@ -25,7 +25,6 @@ test/test_matrix_free.py checks each piece against it.
 """
 from __future__ import annotations
 
-import eigenpy
 import numpy as np
 import pinocchio as pin
 
@@ -34,6 +33,7 @@ from .energy import spring_energy
 from .errors import SceneError
 from .forces import joint_displacement, spring_forces
 from .recursive import njit
+from .kkt import _chol_solve, _cholesky
 from .stabilization import check_loop_rank
 
 PIN_DATA_MAX_NV = 100  # above this the direct pipeline's pin.Data is not created (>~50 MB, grows as nv^3)
@@ -653,19 +653,77 @@ def project_chord(ctx: Context, q, G, hold_dofs=(), tol=TOL, max_iter=8):
     """Chord-Newton projection reusing the step's loop rows G (hyper-reduced), as
     stabilization.project_chord: each iteration costs one O(n) forward kinematics."""
     mech = ctx.mech
-    hold = _hold_rows(mech, hold_dofs)
-    K = np.vstack([G, hold]) if len(hold) else G
-    llt = eigenpy.LLT(K @ K.T)
-    if llt.info() != eigenpy.ComputationInfo.Success:
+    held = _held_array(mech, hold_dofs)
+    G = np.ascontiguousarray(G)
+    L, ok = _chord_factor(G, held)
+    if not ok:
         return project(ctx, q, hold_dofs, tol)
-    pad = np.zeros(len(hold))
+    T = _NO_T if mech.T is None else mech.T
     for _ in range(max_iter):
         phi, err = ctx.loop_phi_at(q)
         if err < tol:
             return q, err
-        y = np.asarray(llt.solve(np.concatenate([phi, pad]) if len(hold) else phi)).reshape(-1)
-        q = pin.integrate(mech.model, q, mech.to_reduced(K.T @ (-y)))
+        q = pin.integrate(mech.model, q, _chord_step(L, G, held, phi, T))
     return project(ctx, q, hold_dofs, tol)
+
+
+_NO_T = np.zeros((0, 0))
+
+
+def _held_array(mech, hold_dofs):
+    key = ("held array", *hold_dofs)
+    a = mech.layout_cache.get(key)
+    if a is None:
+        a = mech.layout_cache[key] = np.asarray(list(hold_dofs), dtype=np.int64)
+    return a
+
+
+@njit
+def _chord_factor(G, held):
+    """Cholesky factor of K K^T, K = [G; H] (H selects the held hyper-reduced DOFs):
+    K K^T = [[G G^T, G[:, held]], [G[:, held]^T, I]]."""
+    m, n, k = G.shape[0], G.shape[1], held.shape[0]
+    KK = np.zeros((m + k, m + k))
+    for r in range(m):
+        for c in range(r + 1):
+            s = 0.0
+            for i in range(n):
+                s += G[r, i] * G[c, i]
+            KK[r, c] = s
+            KK[c, r] = s
+        for j in range(k):
+            KK[r, m + j] = G[r, held[j]]
+            KK[m + j, r] = G[r, held[j]]
+    for j in range(k):
+        KK[m + j, m + j] = 1.0
+    L = np.empty((m + k, m + k))
+    ok = _cholesky(KK, L)
+    return L, ok
+
+
+@njit
+def _chord_step(L, G, held, phi, T):
+    """Least-norm correction dq = -K^T (K K^T)^-1 [phi; 0] (held DOFs fixed), mapped to reduced
+    coordinates by J_rR = T (empty T: none)."""
+    m, n, k = G.shape[0], G.shape[1], held.shape[0]
+    y = np.zeros(m + k)
+    y[:m] = phi
+    _chol_solve(L, y)
+    dq = np.zeros(n)
+    for r in range(m):
+        for i in range(n):
+            dq[i] -= G[r, i] * y[r]
+    for j in range(k):
+        dq[held[j]] -= y[m + j]
+    if T.shape[0] == 0:
+        return dq
+    out = np.zeros(T.shape[0])
+    for i in range(T.shape[0]):
+        s = 0.0
+        for c in range(n):
+            s += T[i, c] * dq[c]
+        out[i] = s
+    return out
 
 
 def assemble_loops(mech, q):
