@@ -72,6 +72,18 @@ def _rows_minus(G, v, g, out):
 
 
 @njit
+def max_row_residual(G, v, g):
+    """max|G v - g| (0 without rows) [m/s, rad/s]: the velocity-level violation of the bilateral rows."""
+    viol = 0.0
+    for r in range(G.shape[0]):
+        s = -g[r]
+        for k in range(G.shape[1]):
+            s += G[r, k] * v[k]
+        viol = max(viol, abs(s))
+    return viol
+
+
+@njit
 def _correct(G, g, Y, lam, v):
     """v <- v - Y lam (qdot+ of the Schur complement); returns max|G v - g| afterwards."""
     n, m = Y.shape
@@ -80,13 +92,7 @@ def _correct(G, g, Y, lam, v):
         for r in range(m):
             s += Y[k, r] * lam[r]
         v[k] -= s
-    viol = 0.0
-    for r in range(m):
-        s = -g[r]
-        for k in range(n):
-            s += G[r, k] * v[k]
-        viol = max(viol, abs(s))
-    return viol
+    return max_row_residual(G, v, g)
 
 
 @njit

@@ -16,7 +16,7 @@ import proxsuite
 from .constraints import Constraints
 from .errors import StepError
 from .forces import LinearSystem
-from .kkt import SMALL_N, kkt_residual, kkt_solve, kkt_solve_lu
+from .kkt import SMALL_N, kkt_residual, kkt_solve, kkt_solve_lu, max_row_residual
 
 _SUCCESS = eigenpy.ComputationInfo.Success
 
@@ -88,7 +88,7 @@ def solve_direct(sys: LinearSystem, cons: Constraints, qp_eps: float = 1e-10) ->
 
 def _violation_and_limits(cons, v):
     """(max|G v - g|, whether lo - 1e-12 <= C v <= hi + 1e-12) for the NumPy paths."""
-    viol = float(np.abs(cons.G @ v - cons.g).max()) if cons.m else 0.0
+    viol = max_row_residual(cons.G, v, cons.g)
     if cons.C is None:
         return viol, True
     Cv = cons.C @ v

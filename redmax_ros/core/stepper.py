@@ -23,6 +23,7 @@ import pinocchio as pin
 from . import constraints, forces, kinematics, stabilization, staggered
 from .energy import energies
 from .errors import StepError
+from .kkt import max_row_residual
 from .solve import solve_direct
 
 MAX_SPEED = 1e6  # |qdot| above this (rad/s or m/s) is reported as divergence
@@ -130,7 +131,7 @@ def step(mech, data, state: State, cmd: Commands, h: float) -> tuple:
     if len(mech.loop_ab):
         q_new, viol_pos = stabilization.project_chord(mech, data, q_new, cons.G[cons.loop_rows],
                                                       mech.held_dofs(cmd.joint_velocities))
-        if not math.isfinite(q_new.sum()):
+        if not math.isfinite(q_new @ q_new):
             raise StepError("non-finite configuration after loop stabilization")
     v_hyper = sol.v
     if ext is not None:  # catalogue: spline/exp joint coordinates and carriers, linear joint constraints
@@ -150,7 +151,7 @@ def step(mech, data, state: State, cmd: Commands, h: float) -> tuple:
     ek, ep, es = energies(mech, data, q_new, v_new)
     if ext is not None or not len(mech.loop_ab):  # else: max|phi| at q_new from the projection
         viol_pos = stabilization.loop_violation(mech, data)
-    viol_vel = sol.violation if fric is None else (float(np.abs(cons.G @ sol.v - cons.g).max()) if cons.m else 0.0)
+    viol_vel = sol.violation if fric is None else max_row_residual(cons.G, sol.v, cons.g)
     if not math.isfinite(ek + ep + es):
         raise StepError("non-finite energy after the step")
     diag = Diagnostics(ek, ep, es, ek + ep + es, viol_pos, viol_vel, sol.iterations, sol.solver,
