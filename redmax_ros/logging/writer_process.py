@@ -7,8 +7,10 @@ close), and writes them with :class:`redmax_ros.logging.mcap_log._FileSession`. 
 new file), ``written`` (messages written so far, at most every 0.2 s), ``flushed`` (a flush
 request is done), ``error``, and finally ``closed``.
 
-It ignores SIGINT, SIGTERM and SIGHUP: a Ctrl-C in the terminal or a stop signal to the process
-group must not cut the file short while the node drains; the file is finished on the close frame
+It runs at a lower scheduling priority (nice +10, ``REDMAX_LOG_NICE``): when the cores are
+busy, the simulation and the node's DDS threads go first; the writer catches up (nothing is
+dropped: records wait in the pipe and the node's buffer). It ignores SIGINT, SIGTERM and SIGHUP:
+a Ctrl-C in the terminal or a stop signal to the process group must not cut the file short while the node drains; the file is finished on the close frame
 or when stdin reaches EOF (the node exited, however it exited).
 """
 from __future__ import annotations
@@ -23,12 +25,18 @@ import time
 from redmax_ros.logging.mcap_log import _FRAME, K_CLOSE, K_FLUSH, K_MESSAGE, K_TOPIC, _FileSession, _Topic
 
 REPORT_EVERY = 0.2  # s between 'written' reports
+NICE = 10  # scheduling priority increment: on a busy machine the simulation goes first (REDMAX_LOG_NICE)
 
 
 def main(argv=None) -> int:
     argv = sys.argv[1:] if argv is None else argv
     for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
         signal.signal(sig, signal.SIG_IGN)
+    try:  # lower priority: the writer has slack (records wait in the pipe and the node's buffer,
+        # nothing is dropped), the simulation thread and the node's DDS threads have none
+        os.nice(int(os.environ.get("REDMAX_LOG_NICE", NICE)))
+    except (OSError, ValueError, AttributeError):
+        pass
     status_fd = os.dup(1)
     os.dup2(2, 1)  # stray prints go to stderr, never into the status stream
     sys.stdout = sys.stderr
