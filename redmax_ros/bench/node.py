@@ -23,7 +23,7 @@ message) so the client measures the node rather than its own decoding.
     joint_states every step, a raw subscriber in another process), switched per window between:
     off; logging with the writer process (the default); logging with the same MCAP writer on a
     thread of this interpreter (writer='thread'); off but solver_stats built every step as if
-    subscribed (logging records solver_stats, whose KKT residual costs ~20 us a step, so this
+    subscribed (logging records solver_stats, whose KKT residual is computed for it, so this
     separates the writer's cost from the cost of producing what it records). Order rotated each
     round; medians of steps/s, of per-round ratios, of process CPU per step and of the writer
     process's CPU per step.
@@ -498,9 +498,10 @@ def bench_logging_inprocess(scene, dt, rounds, window, writers=("process", "thre
     th.start()
     sub = subprocess.Popen([sys.executable, "-m", "redmax_ros.bench.node", "_raw_subscriber", ns],
                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    # "off+stats": not logging, but solver_stats built and published every step as if someone
-    # subscribed. Logging records solver_stats, whose KKT residual costs ~20 us a step; against
-    # this condition the writer's own cost shows, against "off" the whole price of logging.
+    # "off+stats": not logging, but solver_stats built every step as if someone subscribed
+    # (RedmaxNode._stats_forced). Logging records solver_stats, whose KKT residual is computed for
+    # it; against this condition the writer's own cost shows, against "off" the whole price of
+    # logging.
     loggers["off+stats"] = None
     conds = list(loggers)
     rows = {c: [] for c in conds}
