@@ -235,14 +235,7 @@ def _reaction_kernel(parents, idx_v, nv_j, St, I, ov, Z, g, acc0, Ax, E0, E, R, 
                 t += I[j, r, k] * ov[j, k]
             F0[j, r] = s - E0[j, r]
             hm[r] = t
-        v0, v1, v2, w0, w1, w2 = ov[j, 0], ov[j, 1], ov[j, 2], ov[j, 3], ov[j, 4], ov[j, 5]
-        f0, f1, f2, n0, n1, n2 = hm[0], hm[1], hm[2], hm[3], hm[4], hm[5]
-        F0[j, 0] += w1 * f2 - w2 * f1
-        F0[j, 1] += w2 * f0 - w0 * f2
-        F0[j, 2] += w0 * f1 - w1 * f0
-        F0[j, 3] += v1 * f2 - v2 * f1 + w1 * n2 - w2 * n1
-        F0[j, 4] += v2 * f0 - v0 * f2 + w2 * n0 - w0 * n2
-        F0[j, 5] += v0 * f1 - v1 * f0 + w0 * n1 - w1 * n0
+        rc.add_motion_cross_force(ov[j], hm, F0[j])  # F0 += v x* h (gyroscopic/bias wrench)
         for r in range(6):
             for col in range(nx):
                 FX[j, r, col] = -FX[j, r, col]

@@ -366,15 +366,7 @@ def _nle_wrench_kernel(I, ov, acc, g, W):
                 t += I[j, r, c] * ov[j, c]
             W[j, r] = s
             hm[r] = t
-        v0, v1, v2, w0, w1, w2 = ov[j, 0], ov[j, 1], ov[j, 2], ov[j, 3], ov[j, 4], ov[j, 5]
-        f0, f1, f2, n0, n1, n2 = hm[0], hm[1], hm[2], hm[3], hm[4], hm[5]
-        # m x* f = (w x f, v x f + w x n)
-        W[j, 0] += w1 * f2 - w2 * f1
-        W[j, 1] += w2 * f0 - w0 * f2
-        W[j, 2] += w0 * f1 - w1 * f0
-        W[j, 3] += v1 * f2 - v2 * f1 + w1 * n2 - w2 * n1
-        W[j, 4] += v2 * f0 - v0 * f2 + w2 * n0 - w0 * n2
-        W[j, 5] += v0 * f1 - v1 * f0 + w0 * n1 - w1 * n0
+        rc.add_motion_cross_force(ov[j], hm, W[j])  # W += v x* h (gyroscopic/bias wrench)
     for r in range(6):
         W[0, r] = 0.0
 

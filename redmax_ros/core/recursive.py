@@ -414,6 +414,20 @@ def _jtw_kernel(parents, idx_v, nv_j, St, W, F, x):
 
 
 @njit
+def add_motion_cross_force(v, f, out):
+    """out += v x* f for a twist v = (linear, angular) and a wrench f = (force, torque), both at the
+    world origin: (w x f, v x f + w x n) (Featherstone's cross product for forces)."""
+    v0, v1, v2, w0, w1, w2 = v[0], v[1], v[2], v[3], v[4], v[5]
+    f0, f1, f2, n0, n1, n2 = f[0], f[1], f[2], f[3], f[4], f[5]
+    out[0] += w1 * f2 - w2 * f1
+    out[1] += w2 * f0 - w0 * f2
+    out[2] += w0 * f1 - w1 * f0
+    out[3] += v1 * f2 - v2 * f1 + w1 * n2 - w2 * n1
+    out[4] += v2 * f0 - v0 * f2 + w2 * n0 - w0 * n2
+    out[5] += v0 * f1 - v1 * f0 + w0 * n1 - w1 * n0
+
+
+@njit
 def _motion_cross(m, u, out):
     """out = m x u for twists m = (v, w), u = (v', w'): (w x v' + v x w', w x w')."""
     v0, v1, v2, w0, w1, w2 = m[0], m[1], m[2], m[3], m[4], m[5]
