@@ -57,15 +57,9 @@ def solve_direct(sys: LinearSystem, cons: Constraints, qp_eps: float = 1e-10) ->
     A, b = sys.A, sys.b
     n = len(b)
     if n <= SMALL_N:
-        C = _NO_ROWS if cons.C is None else cons.C
-        status, v, lam, S, ratio, viol, limits_ok = kkt_solve(
-            A, b, cons.G, cons.g, C, _EMPTY if cons.C is None else cons.lo, _EMPTY if cons.C is None else cons.hi)
-        if status == 1:
-            raise StepError("the LHS matrix of Eq. (2) is not positive definite (Cholesky failed)")
-        if status == 2 or ratio <= 1e-6:  # singular or nearly so: name the rows
-            _check_rank(S, cons.labels)
-            if status == 2:
-                raise StepError("constraints are redundant or conflicting (Schur complement not positive definite)")
+        v, lam, viol, limits_ok = _small_kkt(kkt_solve, A, b, cons, _check_rank,
+                                             "the LHS matrix of Eq. (2) is not positive definite (Cholesky failed)",
+                                             "Schur complement not positive definite")
     else:
         llt = _cholesky(A, "the LHS matrix of Eq. (2)")
         v = np.asarray(llt.solve(b)).reshape(n)  # eigenpy may return (1,1) / 1-D shapes for n == 1
@@ -97,6 +91,22 @@ def _violation_and_limits(cons, v):
 
 _EMPTY = np.zeros(0)
 _NO_ROWS = np.zeros((0, 0))
+
+
+def _small_kkt(kernel, A, b, cons, check_rank, lhs_failure, schur_failure):
+    """(qdot+, lam, max|G qdot+ - g|, limits_ok) of a small system by one compiled kernel (kkt.kkt_solve
+    or kkt.kkt_solve_lu); StepError naming the failure, near-singular rows named by ``check_rank``."""
+    no_limits = cons.C is None
+    status, v, lam, S, ratio, viol, limits_ok = kernel(
+        A, b, cons.G, cons.g, _NO_ROWS if no_limits else cons.C, _EMPTY if no_limits else cons.lo,
+        _EMPTY if no_limits else cons.hi)
+    if status == 1:
+        raise StepError(lhs_failure)
+    if status == 2 or ratio <= 1e-6:  # singular or nearly so: name the rows
+        check_rank(S, cons.labels)
+        if status == 2:
+            raise StepError(f"constraints are redundant or conflicting ({schur_failure})")
+    return v, lam, viol, limits_ok
 
 
 def _check_rank(S, labels):
@@ -140,15 +150,10 @@ def _solve_direct_lu(sys: LinearSystem, cons: Constraints, qp_eps: float) -> Sol
     A, b = sys.A, sys.b
     n = len(b)
     if n <= SMALL_N:
-        C = _NO_ROWS if cons.C is None else cons.C
-        status, v, lam, S, ratio, viol, limits_ok = kkt_solve_lu(
-            A, b, cons.G, cons.g, C, _EMPTY if cons.C is None else cons.lo, _EMPTY if cons.C is None else cons.hi)
-        if status == 1:
-            raise StepError("the LHS matrix of Eq. (2) (with the implicit Coriolis term) is singular (LU failed)")
-        if status == 2 or ratio <= 1e-6:
-            _check_rank_nonsymmetric(S, cons.labels)
-            if status == 2:
-                raise StepError("constraints are redundant or conflicting (Schur complement singular)")
+        v, lam, viol, limits_ok = _small_kkt(
+            kkt_solve_lu, A, b, cons, _check_rank_nonsymmetric,
+            "the LHS matrix of Eq. (2) (with the implicit Coriolis term) is singular (LU failed)",
+            "Schur complement singular")
     else:
         rhs = np.column_stack([b, cons.G.T]) if cons.m else b[:, None]
         try:
