@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .core import CommandError, SceneError, Simulator, StepError
+from redmax_ros.core import CommandError, SceneError, Simulator, StepError
 
 
 def parse_args(argv=None):
@@ -107,8 +107,8 @@ def run(sim: Simulator, n_steps: int, quiet=False):
 
 
 def initial_row(sim: Simulator) -> np.ndarray:
-    from .core import data_free
-    from .core.energy import energies
+    from redmax_ros.core.dynamics import data_free
+    from redmax_ros.core.dynamics.energy import energies
     m = sim.mech
     v = sim.joint_velocities()
     if m.nv > data_free.PIN_DATA_MAX_NV:  # no pin.Data for large models (memory ~ nv^3)

@@ -14,11 +14,11 @@ import pytest
 import yaml
 
 from redmax_ros.core import SceneError, Simulator
-from redmax_ros.core import joints as jt
-from redmax_ros.core.joint_maps import joint_kinematics
-from redmax_ros.core.mesh import Mesh, mass_properties, read_obj
-from redmax_ros.core.scene import list_scenes, scene_from_dict
-from redmax_ros.core.spline_joints import SplineCurve, SplineSurface
+from redmax_ros.core.geometry import joints as jt
+from redmax_ros.core.model.joint_maps import joint_kinematics
+from redmax_ros.core.geometry.mesh import Mesh, mass_properties, read_obj
+from redmax_ros.core.scene.loader import list_scenes, scene_from_dict
+from redmax_ros.core.geometry.spline_joints import SplineCurve, SplineSurface
 
 CAT = Path(__file__).resolve().parents[1] / "scenes" / "catalogue"
 RNG = np.random.default_rng(7)
@@ -299,7 +299,7 @@ def test_catalogue_scenes_listed():
 
 def energy_run(name, h, T=0.5, *overrides):
     """(total energy E(t_k) including t_0, energy scale: max kinetic + range of potential energies)."""
-    from redmax_ros.core.energy import energies
+    from redmax_ros.core.dynamics.energy import energies
     sim = load(name, f"dt={h}", *overrides)
     m = sim.mech
     ek, ep, es = energies(m, m.model.createData(), sim.state.q, m.to_reduced(sim.state.v))
@@ -448,7 +448,7 @@ def test_energy_balance_with_input():
     ji = sim.mech.joint_index["pinion"]
     tq = sim.spec.catalogue.torques[0].torque[0]
     h = sim.dt
-    from redmax_ros.core.energy import energies
+    from redmax_ros.core.dynamics.energy import energies
     E0 = sum(energies(sim.mech, sim.mech.model.createData(), sim.state.q, sim.joint_velocities()))
     W, w, loss = 0.0, sim.joint_velocities()[ji.idx_v], []
     for k in range(3000):
@@ -640,8 +640,8 @@ def test_timed_joint_torque_integrates_exactly():
 
 
 def test_time_functions():
-    from redmax_ros.core import timefunctions as tf
-    from redmax_ros.core.scene import _Validator
+    from redmax_ros.core.scene import timefunctions as tf
+    from redmax_ros.core.scene.loader import _Validator
     v = _Validator("x.yaml", None)
     assert tf.parse(v, "e", "k", 2.5)(7.0) == 2.5
     assert tf.parse(v, "e", "k", {"type": "sine", "amplitude": 2, "frequency": 0.25})(1.0) == pytest.approx(2.0)
@@ -779,7 +779,7 @@ def test_euler_chart_conversion_all_charts():
     """Table 3 generalised (euler_charts.angles) recovers the angles of R for all 12 charts (R to 1e-14),
     the partner chart (abc <-> aba) is well conditioned where the home chart is singular, and Eq. 2.40
     maps the rates so that the body angular velocity is unchanged (1e-12)."""
-    from redmax_ros.core import euler_charts as ec
+    from redmax_ros.core.geometry import euler_charts as ec
     for chart in jt.EULER_CHARTS:
         p = ec.partner(chart)
         assert ec.partner(p) == chart and p[:2] == chart[:2] and ec.is_tait_bryan(p) != ec.is_tait_bryan(chart)
@@ -827,7 +827,7 @@ def test_spherical_euler_chart_switching_through_gimbal_lock():
     -1.4e-4, -6.2e-5 J, not monotone). The orientation agrees with the quaternion `spherical` joint (same
     integrator option) to O(h) at t = 1 s (rotation angle between them 1.3e-3, 6.2e-4, 3.1e-4 rad at
     h = 2e-3, 1e-3, 5e-4)."""
-    from redmax_ros.core import euler_charts as ec
+    from redmax_ros.core.geometry import euler_charts as ec
     sim = _switch_variant("switch", 1e-3)
     maps = sim.mech.extras.maps
     m = maps.euler[0]
@@ -897,7 +897,7 @@ def test_spline_joint_inside_a_loop():
     """A mapped joint in a closed loop: an arm pinned to the roller-coaster cart whose tip must stay on a
     horizontal plane (one loop row). The loop residual stays below 1e-8 and the carrier stays exactly on
     the curve (Q(s) to 1e-12) through the combined loop projection."""
-    from redmax_ros.core.kinematics import site_positions
+    from redmax_ros.core.dynamics.kinematics import site_positions
     d = raw("spline_curve")
     d["bodies"].append({"name": "arm", "shape": {"type": "box", "size": [0.02, 0.02, 0.3]}, "density": 1000})
     d["joints"].append({"name": "pin", "type": "revolute", "parent": "cart", "child": "arm", "axis": "y",
@@ -945,7 +945,7 @@ def test_composite_body_mass_properties_are_the_sum_of_parts():
     for p in d["bodies"][0]["parts"]:
         M = pin.SE3(pin.rpy.rpyToMatrix(np.array(p.get("rpy", [0, 0, 0]), float)), np.array(p.get("pos", [0, 0, 0]), float))
         if "shape" in p:
-            from redmax_ros.core.inertia import shape_inertia, shape_volume
+            from redmax_ros.core.geometry.inertia import shape_inertia, shape_volume
             mass = p["density"] * shape_volume(p["shape"])
             I = pin.Inertia(mass, np.zeros(3), shape_inertia(p["shape"], mass))
         else:
@@ -964,7 +964,7 @@ def test_composite_body_mass_properties_are_the_sum_of_parts():
     for _ in range(300):
         sim.step()
         des.step()
-    from redmax_ros.core.kinematics import site_positions
+    from redmax_ros.core.dynamics.kinematics import site_positions
     xa = site_positions(sim.mech, _fk(sim))
     xb = site_positions(des.mech, _fk(des))
     assert np.abs(xa - xb).max() < 1e-12 and np.abs(sim.state.q - des.state.q).max() < 1e-12

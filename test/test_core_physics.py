@@ -6,8 +6,10 @@ import pinocchio as pin
 import pytest
 
 from redmax_ros.core import Simulator
-from redmax_ros.core import baselines, forces, kinematics
-from redmax_ros.core.stepper import State
+from redmax_ros.core.step import baselines
+from redmax_ros.core.dynamics import forces
+from redmax_ros.core.dynamics import kinematics
+from redmax_ros.core.step.pipeline import State
 
 
 def run(sim, n):

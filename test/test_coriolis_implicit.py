@@ -8,9 +8,9 @@ import pinocchio as pin
 import pytest
 
 from redmax_ros.core import SceneError, Simulator
-from redmax_ros.core.constraints import Constraints
-from redmax_ros.core.forces import LinearSystem, coriolis_jacobian
-from redmax_ros.core.solve import solve_direct
+from redmax_ros.core.dynamics.constraints import Constraints
+from redmax_ros.core.dynamics.forces import LinearSystem, coriolis_jacobian
+from redmax_ros.core.solvers.direct import solve_direct
 
 IMPLICIT = "integrator={coriolis: implicit}"
 
@@ -61,7 +61,7 @@ def test_free_body_never_gains_energy(h):
 
 
 def _energy(sim):
-    from redmax_ros.core.energy import energies
+    from redmax_ros.core.dynamics.energy import energies
     m = sim.mech
     return sum(energies(m, m.model.createData(), sim.state.q, m.to_reduced(sim.state.v)))
 
@@ -82,7 +82,8 @@ def test_large_system_numpy_lu_path():
     KKT system to round-off (relative stationarity residual, prescribed rows) and agrees with a dense solve of
     the KKT matrix and with the kernel route (SMALL_N raised) to 1e-8 (the long chain's mass matrix is
     ill-conditioned: measured differences 2e-10)."""
-    from redmax_ros.core import kkt, solve
+    from redmax_ros.core.solvers import kkt
+    from redmax_ros.core.solvers import direct as solve
     sim = Simulator.load("chain", ["params.n=70", IMPLICIT])
     sim.step(3)
     names = list(sim.mech.joint_index)

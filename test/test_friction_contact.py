@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from redmax_ros.core import SceneError, Simulator
-from redmax_ros.core.scene import scene_from_dict
+from redmax_ros.core.scene.loader import scene_from_dict
 
 G = 9.81
 
@@ -202,8 +202,12 @@ def test_bisp_affine_map_matches_newton_euler_pass():
     """bisp.linear_alphas (the joint multipliers as an affine map of the staggered unknowns) equals the
     direct evaluation of Eq. (15)/(17) by one RNEA pass with all external forces (bisp.joint_alphas) at
     an arbitrary iterate x = [alpha; beta] of the walker in stance."""
-    from redmax_ros.core import bisp, constraints, forces, kinematics, staggered
-    from redmax_ros.core.contact import detect, loop_friction_rows
+    from redmax_ros.core.friction import bisp
+    from redmax_ros.core.dynamics import constraints
+    from redmax_ros.core.dynamics import forces
+    from redmax_ros.core.dynamics import kinematics
+    from redmax_ros.core.friction import staggered
+    from redmax_ros.core.friction.contact import detect, loop_friction_rows
 
     sim = Simulator.load("klann", overrides=["friction.joint_mu=0.4", "dt=0.002"])
     sim.step(150)
@@ -251,9 +255,12 @@ def test_compiled_setup_matches_numpy_reference():
     """The compiled per-step set-up of the staggered solve equals its NumPy/Pinocchio definition on the
     walker in stance: body frames (oMi, data.J), the stacked rows RX = [N; -T] and the condensation
     (P = A^-1 - A^-1 G^T S^-1 G A^-1, qdot_0, Delassus blocks, lambda = lambda_0 + LamX x)."""
-    from redmax_ros.core import bisp, constraints, forces, kinematics
-    from redmax_ros.core.condense import condense
-    from redmax_ros.core.contact import detect, loop_friction_rows, staggered_rows
+    from redmax_ros.core.friction import bisp
+    from redmax_ros.core.dynamics import constraints
+    from redmax_ros.core.dynamics import forces
+    from redmax_ros.core.dynamics import kinematics
+    from redmax_ros.core.friction.condense import condense
+    from redmax_ros.core.friction.contact import detect, loop_friction_rows, staggered_rows
 
     sim = Simulator.load("klann", overrides=["friction.joint_mu=0.4", "dt=0.002"])
     sim.step(150)

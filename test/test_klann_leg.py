@@ -12,8 +12,8 @@ import pinocchio as pin
 import pytest
 
 from redmax_ros.core import Simulator
-from redmax_ros.core.stabilization import loop_residual
-from redmax_ros.core.stepper import State
+from redmax_ros.core.dynamics.stabilization import loop_residual
+from redmax_ros.core.step.pipeline import State
 
 SCENE = "klann_leg"
 OMEGA = -2.0 * math.pi  # prescribed crank speed in the scene [rad/s] (1 rev/s)

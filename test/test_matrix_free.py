@@ -8,13 +8,13 @@ import numpy as np
 import pytest
 
 from redmax_ros.core import Simulator, StepError, list_scenes, load_scene
-from redmax_ros.core import recursive as rc
-from redmax_ros.core.data_free import PIN_DATA_MAX_NV, assemble_loops, context
+from redmax_ros.core.solvers import recursive as rc
+from redmax_ros.core.dynamics.data_free import PIN_DATA_MAX_NV, assemble_loops, context
 from redmax_ros.core.errors import SceneError
-from redmax_ros.core.matrix_free import AUTO_DIRECT_NV, step_matrix_free
-from redmax_ros.core.mechanism import compile_scene
-from redmax_ros.core.stepper import State
-from redmax_ros.core.stepper import step as direct_step
+from redmax_ros.core.step.matrix_free import AUTO_DIRECT_NV, step_matrix_free
+from redmax_ros.core.model.mechanism import compile_scene
+from redmax_ros.core.step.pipeline import State
+from redmax_ros.core.step.pipeline import step as direct_step
 
 SMALL = [s for s in list_scenes() if sum(j.nv for j in load_scene(s).joints) <= PIN_DATA_MAX_NV]
 EXTRA = [("bridge", ["params.variant=flexy"]), ("chain", ["params.n=8", "params.springs=4"]),
@@ -165,7 +165,7 @@ def test_universal_joint_kernel_matches_recursive_fallback():
 
 
 def test_data_free_loop_assembly_matches_pinocchio():
-    from redmax_ros.core.stabilization import assemble_loops as assemble_pin
+    from redmax_ros.core.dynamics.stabilization import assemble_loops as assemble_pin
     for name in ("fourbar", "klann_leg", "umbrella"):
         m = compile_scene(load_scene(name, ["params.ribs=2"] if name == "umbrella" else []))
         rng = np.random.default_rng(0)

@@ -5,7 +5,8 @@ import numpy as np
 import pinocchio as pin
 import pytest
 
-from redmax_ros.core import Simulator, baselines
+from redmax_ros.core import Simulator
+from redmax_ros.core.step import baselines
 
 try:
     import mujoco  # noqa: F401

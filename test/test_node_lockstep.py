@@ -167,7 +167,7 @@ def test_applied_torque_command(fresh):
 
 
 def test_prescribed_fingertip_follows_commanded_velocity(fresh):
-    from redmax_ros.core import kinematics
+    from redmax_ros.core.dynamics import kinematics
 
     vel = np.array([0.0, 0.02, 0.03])
     fresh.command_points(["index_tip"], [vel])

@@ -5,9 +5,9 @@ import pinocchio as pin
 import pytest
 
 from recursive_models import MODELS, chain, dense_mass, random_state
-from redmax_ros.core import recursive as rc
-from redmax_ros.core.pcg import MatrixFreeSystem, PointSprings, pcg, solve_loop_closure
-from redmax_ros.core.preconditioner import ProjectedBlockJacobi
+from redmax_ros.core.solvers import recursive as rc
+from redmax_ros.core.solvers.pcg import MatrixFreeSystem, PointSprings, pcg, solve_loop_closure
+from redmax_ros.core.solvers.preconditioner import ProjectedBlockJacobi
 
 H = 1e-2  # time step [s]
 

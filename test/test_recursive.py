@@ -4,7 +4,7 @@ import pinocchio as pin
 import pytest
 
 from recursive_models import MODELS, chain, dense_mass, fallback_joints, random_state
-from redmax_ros.core import recursive as rc
+from redmax_ros.core.solvers import recursive as rc
 
 TOL = 1e-12
 

@@ -14,7 +14,7 @@ import pytest
 
 from redmax_ros.bench import methods as M
 from redmax_ros.bench.accuracy import BLOWUP_ENERGY, VIOLATION_MAX, classify
-from redmax_ros.core import baselines
+from redmax_ros.core.step import baselines
 
 
 def _problem(scene, overrides, T, sample_dt=0.05):

@@ -24,7 +24,7 @@ import time
 import numpy as np
 import pinocchio as pin
 
-from ..core import baselines
+from redmax_ros.core.step import baselines
 from . import methods as M
 from .common import results_dir, write_json
 from .methods import Case, register_case
@@ -44,7 +44,7 @@ def _yaml_num(x) -> str:
 
 
 def _spring_lengths(mech, q):
-    from ..core.kinematics import site_positions
+    from redmax_ros.core.dynamics.kinematics import site_positions
     data = mech.model.createData()
     pin.forwardKinematics(mech.model, data, q)
     X = site_positions(mech, data)
@@ -90,12 +90,12 @@ register_case(Case("hand", "hybrid", "hand", ["params.limits=false"], T=1.0, hs=
 def _maybe_bridge():
     """bridge (small), when the scene has landed."""
     try:
-        from ..core import Simulator
+        from redmax_ros.core import Simulator
         Simulator.load("bridge", ["params.n_deck=8"])
         ov = ["params.n_deck=8"]
     except Exception:  # noqa: BLE001 - not there yet: the chart says so
         try:
-            from ..core import Simulator
+            from redmax_ros.core import Simulator
             Simulator.load("bridge")
             ov = []
         except Exception:  # noqa: BLE001

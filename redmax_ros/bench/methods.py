@@ -28,10 +28,11 @@ from typing import Callable
 import numpy as np
 import pinocchio as pin
 
-from ..core import Simulator, baselines
-from ..core.errors import StepError
-from ..core.kinematics import site_jacobians, site_positions
-from ..core.stepper import State
+from redmax_ros.core import Simulator
+from redmax_ros.core.step import baselines
+from redmax_ros.core.errors import StepError
+from redmax_ros.core.dynamics.kinematics import site_jacobians, site_positions
+from redmax_ros.core.step.pipeline import State
 
 MAX_SPEED = 1e6  # |v| above this is a blow-up (same limit as the stepper's)
 LOOP_KP, LOOP_KD = 100.0, 20.0  # Pinocchio's Baumgarte corrector for the loop baselines [1/s^2, 1/s]

@@ -14,9 +14,9 @@ import time
 import numpy as np
 import pinocchio as pin
 
-from redmax_ros.core import recursive as rc
-from redmax_ros.core.pcg import MatrixFreeSystem, PointSprings
-from redmax_ros.core.preconditioner import ProjectedBlockJacobi
+from redmax_ros.core.solvers import recursive as rc
+from redmax_ros.core.solvers.pcg import MatrixFreeSystem, PointSprings
+from redmax_ros.core.solvers.preconditioner import ProjectedBlockJacobi
 
 H = 1e-3  # time step [s]
 

@@ -32,9 +32,9 @@ import time
 
 import numpy as np
 
-from ..core import Simulator
-from ..core.data_free import PIN_DATA_MAX_NV
-from ..core.matrix_free import DataFreeBackend, DirectBackend
+from redmax_ros.core import Simulator
+from redmax_ros.core.dynamics.data_free import PIN_DATA_MAX_NV
+from redmax_ros.core.step.matrix_free import DataFreeBackend, DirectBackend
 from .common import results_dir, write_json
 
 # scene -> (label, scene file, overrides per size level, Table 2 scene time [s], paper DOF)

@@ -17,7 +17,7 @@ from __future__ import annotations
 import numpy as np
 import pinocchio as pin
 
-from redmax_ros.core.staggered import _Anderson, _box_qp, _loop_kernel
+from redmax_ros.core.friction.staggered import Anderson, box_qp, loop_kernel
 
 
 def _skew(a):
@@ -153,7 +153,7 @@ class MaximalSP:
         kmax = fm.L.shape[1]
         if self.compiled and fm.bound_mu is not None:
             # the joint wrenches are linear in lambda = lambda0 + Lam beta: alpha = a0 + Mx beta, then the
-            # same compiled staggered loop as the reduced solver (staggered._loop_kernel, no contact rows)
+            # same compiled staggered loop as the reduced solver (staggered.loop_kernel, no contact rows)
             lam0 = Sinv @ (Y.T @ b_ - g)
             Lam = -Sinv @ (Y.T @ Tr.T)
             Q = np.zeros((len(fm.fj_names), 6, len(g)))
@@ -170,13 +170,13 @@ class MaximalSP:
             a0 = (HLQ @ lam0).reshape(-1)
             Mx = np.ascontiguousarray((HLQ @ Lam).reshape(-1, nf))
             e0, e2_ = np.zeros(0), np.zeros((0, nf))
-            _, beta, _, _, it, _, _ = _loop_kernel(
+            _, beta, _, _, it, _, _ = loop_kernel(
                 np.zeros((0, 0)), e2_, np.zeros((nf, 0)), e0, e0, W, Tr @ v0, e0, a0, Mx, fm.bound_mu, kmax,
                 True, e0, wT, st.tol, st.max_iter, st.anderson, e0, np.ascontiguousarray(beta))
             self.iterations.append(it)
             self._finish(beta, v0, PT, h)
             return
-        acc = _Anderson(st.anderson)
+        acc = Anderson(st.anderson)
         prev = None
         for it in range(1, st.max_iter + 1):
             r_ = b_ - Tr.T @ beta
@@ -198,7 +198,7 @@ class MaximalSP:
             prev = bound
             c = Tr @ v0  # slip velocity without friction (joint reactions are in v0 through G)
             b_in = beta
-            beta = _box_qp(W, -c, -bound, bound, beta, 0.1 * st.tol, st.qp)
+            beta = box_qp(W, -c, -bound, bound, beta, 0.1 * st.tol, st.qp)
             if st.anderson:
                 beta = acc.update(b_in, beta, bound)
         self.iterations.append(it)

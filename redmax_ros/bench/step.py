@@ -13,8 +13,12 @@ import time
 
 import numpy as np
 
-from ..core import Simulator
-from ..core import baselines, constraints, forces, kinematics, stepper
+from redmax_ros.core import Simulator
+from redmax_ros.core.step import baselines
+from redmax_ros.core.dynamics import constraints
+from redmax_ros.core.dynamics import forces
+from redmax_ros.core.dynamics import kinematics
+from redmax_ros.core.step import pipeline as stepper
 from .common import best_rate, results_dir, write_json
 
 TIPS = ["index_tip", "middle_tip", "ring_tip", "little_tip", "thumb_tip"]

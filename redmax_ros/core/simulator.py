@@ -10,13 +10,15 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .errors import CommandError, StepError
-from .mechanism import Mechanism, compile_scene
-from .scene import SceneSpec, load_scene
-from .dof_positions import DofPositions
-from .data_free import PIN_DATA_MAX_NV, all_site_positions, body_poses
-from .matrix_free import make_backend
-from .stepper import Commands, State, StepResult
+from redmax_ros.core.errors import CommandError, StepError
+from redmax_ros.core.model.mechanism import Mechanism, compile_scene
+from redmax_ros.core.scene.loader import SceneSpec, load_scene
+from redmax_ros.core.model.dof_positions import DofPositions
+from redmax_ros.core.dynamics.data_free import PIN_DATA_MAX_NV, all_site_positions, body_poses
+from redmax_ros.core.step.matrix_free import make_backend
+from redmax_ros.core.step.pipeline import Commands, State, StepResult
+import pinocchio as pin
+from redmax_ros.core.dynamics.kinematics import site_positions
 
 
 _AXES = {"x": (1.0, 0.0, 0.0), "y": (0.0, 1.0, 0.0), "z": (0.0, 0.0, 1.0)}
@@ -239,7 +241,6 @@ class Simulator:
 
     def body_poses(self) -> dict:
         """Body frames in the world: name -> (position (3,) [m], quaternion xyzw (4,))."""
-        import pinocchio as pin
         m = self.mech
         if m.nv > PIN_DATA_MAX_NV:
             return body_poses(m, self.state.q)
@@ -253,8 +254,6 @@ class Simulator:
 
     def spring_segments(self) -> list:
         """(spring name, end a (3,), end b (3,)) world frame [m]."""
-        import pinocchio as pin
-        from .kinematics import site_positions
         m = self.mech
         if m.nv > PIN_DATA_MAX_NV:
             x = all_site_positions(m, self.state.q)

@@ -160,7 +160,7 @@ class SceneInfo:
                     self.dof_index[f"{j}[{k}]"] = (j, k)
         # joint_states positions, one per velocity DOF (core/dof_positions.py): q itself when nq == nv;
         # quaternion rotations (spherical, free, free3d) as roll, pitch, yaw; planar as x, y, angle
-        from redmax_ros.core.dof_positions import DofPositions
+        from redmax_ros.core.model.dof_positions import DofPositions
         self.positions = DofPositions.from_description(d)
 
 

@@ -25,7 +25,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from redmax_ros.core import CommandError, SceneError, Simulator, StepError
-from redmax_ros.core.stepper import State
+from redmax_ros.core.step.pipeline import State
 
 from .convert import CommandRejected, SceneInfo, joint_command, point_command
 from .pacing import Pacer, RateMeter, decimation

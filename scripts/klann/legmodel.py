@@ -39,9 +39,9 @@ def leg_dict(mirror=False):
 def solve_phase(mirror, psi, omega):
     """Joint angles (crank = psi) on the assembled branch reached continuously from the published pose,
     and loop-consistent joint velocities for crank speed omega."""
-    from redmax_ros.core.scene import scene_from_dict
-    from redmax_ros.core.mechanism import compile_scene
-    from redmax_ros.core.stabilization import project, loop_residual
+    from redmax_ros.core.scene.loader import scene_from_dict
+    from redmax_ros.core.model.mechanism import compile_scene
+    from redmax_ros.core.dynamics.stabilization import project, loop_residual
     m = compile_scene(scene_from_dict(leg_dict(mirror)))
     d = m.model.createData(); q = m.q0.copy(); ci = m.joint_index['crank'].idx_q
     n = max(1, int(np.ceil(abs(psi - q[ci]) / 0.01)))

@@ -1,0 +1,137 @@
+"""Condensation of the bilateral rows for the staggered solve (staggered.py), compiled (numba).
+
+The step's linear system A qdot = b (Eq. 2) with the bilateral rows G qdot = g (loop closures,
+prescriptions; Eq. 5-7) is condensed once per step (the dual / Schur-complement form of the QPs of
+Eq. 11-12 and 17c/18, whose equality rows are eliminated):
+    Y = A^-1 G^T,  S = G Y,  P = A^-1 - Y S^-1 Y^T,  qdot_0 = P b + Y S^-1 g,
+so that an impulse RX^T x of the staggered unknowns x = [alpha_U; beta] (RX = [U; -T]: ground normals
+and limit rows U, friction rows T) moves the velocity by PX x, PX = P RX^T, and the contact and
+friction QPs see the Delassus blocks of WX = RX P RX^T. The multipliers of the bilateral rows are
+lambda = lambda_0 + LamX x (lambda_0 = S^-1 (Y^T b - g), LamX = S^-1 Y^T RX^T): the external constraint
+forces of §5.3 that enter the BISP joint reactions.
+
+Structure used: G and RX are sparse (a joint friction row r e_j has one or two nonzeros after the
+coupling matrix, ground and loop rows only the DOFs of their supporting chains), so every product
+with them runs over their nonzeros (O(nnz n) instead of O(rows n^2)); the dense work left is the
+Cholesky inverse of A, S^-1 and P (n = DOFs, m = bilateral rows).
+"""
+from __future__ import annotations
+
+
+import numpy as np
+from numba import njit
+
+from redmax_ros.core.linalg import cholesky
+
+
+@njit(cache=True, nogil=True)
+def spd_inverse(A):
+    """Inverse of a symmetric positive definite matrix through its Cholesky factor (A = L L^T,
+    A^-1 = L^-T L^-1; the factorisation is kkt._cholesky); ok = False when A is not positive definite."""
+    n = A.shape[0]
+    L = np.zeros((n, n))
+    if not cholesky(A, L):
+        return L, False
+    Li = np.zeros((n, n))
+    for j in range(n):
+        Li[j, j] = 1.0 / L[j, j]
+        for i in range(j + 1, n):
+            s = 0.0
+            for k in range(j, i):
+                s -= L[i, k] * Li[k, j]
+            Li[i, j] = s / L[i, i]
+    return np.ascontiguousarray(Li.T) @ Li, True
+
+
+@njit(cache=True, nogil=True)
+def _pattern(R):
+    """Row-wise nonzero pattern of a dense matrix (CSR pointers and column indices)."""
+    rows, cols = R.shape
+    ptr = np.zeros(rows + 1, dtype=np.int64)
+    idx = np.empty(rows * cols, dtype=np.int64)
+    k = 0
+    for i in range(rows):
+        for c in range(cols):
+            if R[i, c] != 0.0:
+                idx[k] = c
+                k += 1
+        ptr[i + 1] = k
+    return ptr, idx
+
+
+@njit(cache=True, nogil=True)
+def _sparse_left(R, ptr, idx, B):
+    """R @ B over the nonzeros of R (R (r,n) with pattern ptr/idx, B (n,k))."""
+    out = np.zeros((R.shape[0], B.shape[1]))
+    for i in range(R.shape[0]):
+        for q in range(ptr[i], ptr[i + 1]):
+            c = idx[q]
+            rc = R[i, c]
+            for j in range(B.shape[1]):
+                out[i, j] += rc * B[c, j]
+    return out
+
+
+@njit(cache=True, nogil=True)
+def _sparse_right_t(B, R, ptr, idx):
+    """B @ R^T over the nonzeros of R (B (k,n), R (r,n) with pattern ptr/idx) -> (k, r)."""
+    out = np.zeros((B.shape[0], R.shape[0]))
+    for j in range(R.shape[0]):
+        for q in range(ptr[j], ptr[j + 1]):
+            c = idx[q]
+            rc = R[j, c]
+            for i in range(B.shape[0]):
+                out[i, j] += B[i, c] * rc
+    return out
+
+
+@njit(cache=True, nogil=True)
+def condense(A, b, G, g, RX, nu):
+    """Returns (status, qdot_0, PX, W_U, X_UT, X_TU, W_T, U qdot_0, T qdot_0, diag W_U, diag W_T,
+    lambda_0, LamX) for RX = [U (nu rows); -T] (module docstring); X_UT = U P T^T.
+    status: 0 ok, 1 A not positive definite, 2 G A^-1 G^T not positive definite (redundant rows)."""
+    n, m, nx = len(b), G.shape[0], RX.shape[0]
+    nf = nx - nu
+    Ainv, ok = spd_inverse(A)
+    status = 0 if ok else 1
+    GA = np.zeros((m, n))  # G A^-1 = Y^T
+    Sinv = np.zeros((m, m))
+    P = Ainv
+    v0 = np.zeros(n)
+    lam0 = np.zeros(m)
+    LamX = np.zeros((m, nx))
+    if ok and m:
+        gptr, gidx = _pattern(G)
+        GA = _sparse_left(G, gptr, gidx, Ainv)
+        Sinv, ok = spd_inverse(_sparse_right_t(GA, G, gptr, gidx))
+        if ok:
+            SG = Sinv @ GA  # S^-1 Y^T
+            P = Ainv - np.ascontiguousarray(GA.T) @ SG
+            v0 = P @ b + (g @ SG)
+            lam0 = Sinv @ (GA @ b - g)
+        else:
+            status = 2
+    elif ok:
+        v0 = Ainv @ b
+    P = 0.5 * (P + P.T)
+    PX = np.zeros((n, nx))
+    WX = np.zeros((nx, nx))
+    Xv0 = np.zeros(nx)
+    if nx and status == 0:
+        rptr, ridx = _pattern(RX)
+        RXP = _sparse_left(RX, rptr, ridx, P)  # RX P = PX^T
+        PX = np.ascontiguousarray(RXP.T)
+        WX = _sparse_right_t(RXP, RX, rptr, ridx)
+        Xv0 = RX @ v0
+        if m:
+            LamX = Sinv @ np.ascontiguousarray(_sparse_right_t(GA, RX, rptr, ridx))  # S^-1 Y^T RX^T
+    W_U = np.ascontiguousarray(WX[:nu, :nu])
+    X_UT = np.ascontiguousarray(-WX[:nu, nu:])
+    X_TU = np.ascontiguousarray(X_UT.T)
+    W_T = np.ascontiguousarray(WX[nu:, nu:])
+    wU, wT = np.zeros(nu), np.zeros(nf)
+    for i in range(nu):
+        wU[i] = max(W_U[i, i], 0.0)
+    for i in range(nf):
+        wT[i] = max(W_T[i, i], 0.0)
+    return status, v0, PX, W_U, X_UT, X_TU, W_T, Xv0[:nu].copy(), -Xv0[nu:], wU, wT, lam0, LamX

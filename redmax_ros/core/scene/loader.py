@@ -1,0 +1,606 @@
+"""Scene files: YAML -> validated :class:`SceneSpec` (pure data, SI units).
+
+Schema: docs/scenes.md. Every problem raises :class:`SceneError` naming the file, the entry and
+what is wrong. Parametric scenes name a builder (``builder: chain``) whose output is a scene dict
+of the same schema; YAML lists beside the builder are appended to the builder's.
+"""
+from __future__ import annotations
+
+import copy
+import math
+import os
+from pathlib import Path
+
+import numpy as np
+import pinocchio as pin
+import yaml
+
+from redmax_ros.core.errors import SceneError
+from redmax_ros.core.geometry.inertia import shape_inertia, shape_volume
+from redmax_ros.core.scene import bodies, catalogue_schema, contact_schema
+from redmax_ros.core.scene import builders, builders_friction, builders_large  # noqa: F401  (register the shipped builders)
+from redmax_ros.core.scene.registry import BUILDERS
+from redmax_ros.core.scene.spec import (CORE_JOINT_TYPES, WORLD, BodySpec, CouplingSpec, JointSpec, LoopSpec, SceneSpec, SiteSpec,
+                                        SpringSpec, WrenchSpec, numeric, numeric_deep)
+
+JOINT_TYPES = {**CORE_JOINT_TYPES, **catalogue_schema.TYPES}  # notes §2.5 catalogue (joints.py, joint_maps.py; composite: per joint)
+SHAPES = {"box": ("size",), "sphere": ("radius",), "cylinder": ("radius", "length"), "capsule": ("radius", "length")}
+AXES = {"x": (1.0, 0.0, 0.0), "y": (0.0, 1.0, 0.0), "z": (0.0, 0.0, 1.0)}
+
+
+def _scenes_dir() -> Path:
+    """Where shipped scenes live: $REDMAX_SCENES_DIR, the source tree (scenes/ beside the package),
+    or an install prefix's share/redmax_ros/scenes (colcon/pip install: <prefix>/lib/python3.X/
+    site-packages/redmax_ros/core/scene/loader.py)."""
+    env = os.environ.get("REDMAX_SCENES_DIR")
+    if env:
+        return Path(env)
+    here = Path(__file__).resolve()
+    source = here.parents[3] / "scenes"
+    if source.is_dir():
+        return source
+    for parent in here.parents:
+        cand = parent / "share" / "redmax_ros" / "scenes"
+        if cand.is_dir():
+            return cand
+    return source
+
+
+SCENES_DIR = _scenes_dir()
+
+
+# ----------------------------------------------------------------------------------------------
+# entry points
+
+
+def resolve_scene_path(name_or_path: str) -> Path:
+    """A scene name from ``scenes/`` (``hand``, ``catalogue/gear``) or a path to a YAML file."""
+    p = Path(name_or_path)
+    if p.suffix in (".yaml", ".yml") and p.exists():
+        return p.resolve()
+    for cand in (SCENES_DIR / f"{name_or_path}.yaml", SCENES_DIR / name_or_path):
+        if cand.is_file():
+            return cand
+    known = ", ".join(list_scenes())
+    raise SceneError(str(name_or_path), "", f"no such scene file or scene name (known scenes: {known})")
+
+
+def list_scenes() -> list:
+    """Names of the scenes shipped in ``scenes/``."""
+    return sorted(str(p.relative_to(SCENES_DIR).with_suffix("")) for p in SCENES_DIR.rglob("*.yaml"))
+
+
+def load_scene(name_or_path: str, overrides=()) -> SceneSpec:
+    """Read, expand (builder), override (``key=value``) and validate a scene."""
+    path = resolve_scene_path(name_or_path)
+    src = str(path)
+    try:
+        raw = yaml.safe_load(path.read_text())
+    except yaml.YAMLError as e:
+        raise SceneError(src, "", f"not valid YAML: {e}") from None
+    if not isinstance(raw, dict):
+        raise SceneError(src, "", "top level must be a mapping")
+    raw.setdefault("name", path.stem)
+    return scene_from_dict(raw, src, overrides, base_dir=path.parent)
+
+
+def scene_from_dict(raw: dict, source: str = "<dict>", overrides=(), base_dir: Path | None = None) -> SceneSpec:
+    """Validate a scene given as a dict (the parsed YAML)."""
+    raw = copy.deepcopy(raw)
+    ov = [_parse_override(source, o) for o in overrides]
+    # Builder parameters first (they shape the model), everything else after expansion.
+    for keys, val in ov:
+        if keys[0] in ("params", "builder"):
+            _apply_override(source, raw, keys, val, create=True)
+    if "builder" in raw:
+        raw = _expand_builder(raw, source)
+    for keys, val in ov:
+        if keys[0] not in ("params", "builder"):
+            _apply_override(source, raw, keys, val, create=len(keys) == 1)
+    return _Validator(source, base_dir).scene(raw)
+
+
+# ----------------------------------------------------------------------------------------------
+# overrides: "dt=0.002", "params.n=20", "joints.elbow.q0=0.3", "springs.0.stiffness=10"
+
+
+def _parse_override(source, text):
+    if not isinstance(text, str) or "=" not in text:
+        raise SceneError(source, f"override {text!r}", "expected key=value")
+    key, _, val = text.partition("=")
+    keys = [k for k in key.strip().split(".") if k]
+    if not keys:
+        raise SceneError(source, f"override {text!r}", "empty key")
+    try:
+        value = yaml.safe_load(val)
+    except yaml.YAMLError as e:
+        raise SceneError(source, f"override {text!r}", f"value is not valid YAML: {e}") from None
+    return keys, value
+
+
+def _apply_override(source, raw, keys, value, create):
+    node = raw
+    path = []
+    for i, k in enumerate(keys):
+        last = i == len(keys) - 1
+        path.append(k)
+        where = f"override '{'.'.join(keys)}'"
+        if isinstance(node, list):
+            idx = None
+            if k.isdigit() and int(k) < len(node):
+                idx = int(k)
+            else:
+                names = [e.get("name") if isinstance(e, dict) else None for e in node]
+                if k in names:
+                    idx = names.index(k)
+            if idx is None:
+                raise SceneError(source, where, f"no entry named '{k}' in '{'.'.join(path[:-1])}'")
+            if last:
+                node[idx] = value
+            else:
+                node = node[idx]
+        elif isinstance(node, dict):
+            if last:
+                if k not in node and not (create or i > 0):
+                    raise SceneError(source, where, f"unknown key '{k}'")
+                node[k] = value
+            else:
+                if k not in node:
+                    if create or k == "params":
+                        node[k] = {}
+                    else:
+                        raise SceneError(source, where, f"unknown key '{'.'.join(path)}'")
+                node = node[k]
+        else:
+            raise SceneError(source, where, f"'{'.'.join(path[:-1])}' is not a mapping or list")
+
+
+def _expand_builder(raw, source):
+    name = raw.pop("builder")
+    if name not in BUILDERS:
+        raise SceneError(source, "builder", f"unknown builder '{name}' (known: {', '.join(sorted(BUILDERS))})")
+    params = raw.pop("params", {}) or {}
+    if not isinstance(params, dict):
+        raise SceneError(source, "params", "must be a mapping")
+    params = {k: numeric_deep(v) for k, v in params.items()}  # '1e3' (YAML 1.1 string) -> 1000.0
+    try:
+        built = BUILDERS[name](dict(params))
+    except SceneError:
+        raise
+    except (TypeError, ValueError, KeyError) as e:
+        raise SceneError(source, f"params of builder '{name}'", str(e)) from None
+    for key, val in raw.items():
+        if isinstance(val, list) and isinstance(built.get(key), list):
+            built[key] = built[key] + val
+        elif isinstance(val, dict) and isinstance(built.get(key), dict):
+            built[key] = {**built[key], **val}
+        else:
+            built[key] = val
+    built["params"] = params
+    return built
+
+
+# ----------------------------------------------------------------------------------------------
+# validation
+
+
+class _Validator:
+    """Turns the raw dict into a SceneSpec, naming the entry of every problem."""
+
+    def __init__(self, source: str, base_dir: Path | None):
+        self.src = source
+        self.base_dir = base_dir
+
+    def err(self, entry, problem):
+        raise SceneError(self.src, entry, problem)
+
+    # -- scalars and vectors
+    def number(self, entry, key, value, *, positive=False, nonneg=False):
+        value = numeric(value)
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            self.err(entry, f"'{key}' must be a number, got {value!r}")
+        v = float(value)
+        if not math.isfinite(v):
+            self.err(entry, f"'{key}' must be finite, got {value!r}")
+        if positive and v <= 0:
+            self.err(entry, f"'{key}' must be positive, got {v}")
+        if nonneg and v < 0:
+            self.err(entry, f"'{key}' must be non-negative, got {v}")
+        return v
+
+    def vector(self, entry, key, value, n, *, allow_scalar=False, allow_inf=False):
+        if allow_scalar and isinstance(value, (int, float)) and not isinstance(value, bool):
+            value = [value] * n
+        if isinstance(value, (int, float)) and n == 1 and not isinstance(value, bool):
+            value = [value]
+        if not isinstance(value, (list, tuple)):
+            self.err(entry, f"'{key}' must be a list of {n} numbers, got {value!r}")
+        if len(value) != n:
+            self.err(entry, f"'{key}' must have {n} values, got {len(value)}")
+        out = []
+        for x in value:
+            x = numeric(x)
+            if isinstance(x, bool) or not isinstance(x, (int, float)):
+                self.err(entry, f"'{key}' must contain numbers, got {x!r}")
+            if not allow_inf and not math.isfinite(float(x)):
+                self.err(entry, f"'{key}' must be finite, got {x!r}")
+            if math.isnan(float(x)):
+                self.err(entry, f"'{key}' must not be NaN")
+            out.append(float(x))
+        return np.array(out)
+
+    def keys(self, entry, d, allowed, required=()):
+        if not isinstance(d, dict):
+            self.err(entry, f"must be a mapping, got {d!r}")
+        for k in required:
+            if k not in d:
+                self.err(entry, f"missing '{k}'")
+        unknown = sorted(set(d) - set(allowed))
+        if unknown:
+            self.err(entry, f"unknown key(s) {unknown} (allowed: {sorted(allowed)})")
+
+    def entries(self, raw, key):
+        val = raw.get(key, []) or []
+        if not isinstance(val, list):
+            self.err(key, "must be a list")
+        seen = {}
+        out = []
+        for i, e in enumerate(val):
+            entry = f"{key}[{i}]"
+            if not isinstance(e, dict):
+                self.err(entry, "must be a mapping")
+            name = e.get("name")
+            if not isinstance(name, str) or not name:
+                self.err(entry, "missing 'name' (a non-empty string)")
+            entry = f"{key}[{i}] '{name}'"
+            if name in seen:
+                self.err(entry, f"duplicate name '{name}' (also {key}[{seen[name]}])")
+            seen[name] = i
+            out.append((entry, e))
+        return out
+
+    # -- sections
+    def scene(self, raw) -> SceneSpec:
+        top = {"name", "description", "units", "gravity", "dt", "duration", "bodies", "joints", "sites", "springs",
+               "wrenches", "loops", "couplings", "prescribable", "prescribed", "urdf", "params", "solver",
+               "integrator"}
+        top |= contact_schema.TOP_KEYS | catalogue_schema.TOP_KEYS
+        self.keys("scene", raw, top)
+        if raw.get("units", "SI") != "SI":
+            self.err("units", f"only SI units are supported, got {raw.get('units')!r}")
+        spec = SceneSpec(
+            name=str(raw.get("name", "scene")),
+            source=self.src,
+            gravity=self.vector("gravity", "gravity", raw.get("gravity", [0.0, 0.0, -9.81]), 3),
+            dt=self.number("dt", "dt", raw.get("dt", 1e-3), positive=True),
+            duration=self.number("duration", "duration", raw.get("duration", 5.0), positive=True),
+            description=str(raw.get("description", "")),
+            solver=str(raw.get("solver", "direct")),
+            raw=raw,
+        )
+        if spec.solver not in ("direct", "pcg", "auto"):
+            self.err("solver", f"unknown solver '{spec.solver}' (direct, pcg, auto)")
+        if "urdf" in raw:
+            self.urdf(spec, raw["urdf"])
+        spec.bodies = [self.body(e, d) for e, d in self.entries(raw, "bodies")]
+        spec.joints = [self.joint(e, d) for e, d in self.entries(raw, "joints")]
+        if spec.urdf and (spec.bodies or spec.joints):
+            self.err("urdf", "a URDF scene takes its bodies and joints from the URDF; remove 'bodies'/'joints'")
+        if not spec.urdf:
+            self.tree(spec)
+        body_names = self.body_names(spec)
+        spec.sites = [self.site(e, d, body_names) for e, d in self.entries(raw, "sites")]
+        site_names = {s.name for s in spec.sites}
+        spec.springs = [self.spring(e, d, site_names) for e, d in self.entries(raw, "springs")]
+        spec.wrenches = [self.wrench(e, d, body_names) for e, d in self.entries(raw, "wrenches")]
+        spec.loops = [self.loop(e, d, site_names) for e, d in self.entries(raw, "loops")]
+        spec.couplings = [self.coupling(e, d, spec) for e, d in self.entries(raw, "couplings")]
+        self.prescriptions(spec, raw, site_names)
+        spec.friction = contact_schema.parse(self, raw, spec, body_names)
+        spec.catalogue = catalogue_schema.parse(self, raw, spec, body_names)
+        self.integrator(spec, raw.get("integrator"))
+        return spec
+
+    def integrator(self, spec, d):
+        """``integrator: {coriolis: explicit | implicit}`` (docs/scenes.md, "Integrator")."""
+        if d is None:
+            return
+        if not isinstance(d, dict):
+            self.err("integrator", f"must be a mapping such as {{coriolis: implicit}}, got {d!r}")
+        self.keys("integrator", d, {"coriolis"})
+        c = d.get("coriolis", "explicit")
+        if c not in ("explicit", "implicit"):
+            self.err("integrator.coriolis", f"unknown value {c!r} (explicit, implicit)")
+        if c == "implicit":
+            if spec.solver != "direct":
+                self.err("integrator.coriolis", f"'implicit' needs solver: direct (the Pinocchio pipeline); "
+                         f"solver '{spec.solver}' does not support it")
+            if spec.friction is not None:
+                self.err("integrator.coriolis", "'implicit' is not supported with contact or joint friction "
+                         "(the staggered solve needs a symmetric LHS); use coriolis: explicit")
+        spec.coriolis = c
+
+    def urdf(self, spec, d):
+        if isinstance(d, str):
+            d = {"file": d}
+        self.keys("urdf", d, {"file", "fixed_base"}, required=("file",))
+        p = Path(d["file"])
+        if not p.is_absolute() and self.base_dir is not None:
+            p = self.base_dir / p
+        if not p.is_file():
+            self.err("urdf", f"file not found: {p}")
+        spec.urdf = str(p)
+        spec.urdf_fixed_base = bool(d.get("fixed_base", True))
+
+    def body(self, entry, d) -> BodySpec:
+        if bodies.handles(d):  # composite (parts) and mesh bodies
+            return bodies.validate_body(self, entry, d, self.base_dir)
+        self.keys(entry, d, {"name", "shape", "density", "mass", "com", "inertia", "damping", "rgba"})
+        shape = d.get("shape")
+        if shape is not None:
+            self.keys(f"{entry} shape", shape, {"type", "size", "radius", "length"}, required=("type",))
+            if shape["type"] not in SHAPES:
+                self.err(entry, f"unknown shape type '{shape['type']}' (known: {', '.join(SHAPES)})")
+            shape = dict(shape)
+            for k in SHAPES[shape["type"]]:
+                if k not in shape:
+                    self.err(entry, f"shape '{shape['type']}' needs '{k}'")
+                if k == "size":
+                    shape[k] = self.vector(entry, "shape.size", shape[k], 3)
+                    if np.any(shape[k] <= 0):
+                        self.err(entry, f"shape.size must be positive, got {shape[k].tolist()}")
+                    shape[k] = shape[k].tolist()
+                else:
+                    shape[k] = self.number(entry, f"shape.{k}", shape[k], positive=True)
+        if "mass" in d and "density" in d:
+            self.err(entry, "give either 'mass' or 'density', not both")
+        if "mass" in d:
+            mass = self.number(entry, "mass", d["mass"])
+            if mass <= 0:
+                self.err(entry, f"mass must be positive, got {mass}")
+        elif "density" in d:
+            rho = self.number(entry, "density", d["density"])
+            if rho <= 0:
+                self.err(entry, f"density must be positive, got {rho}")
+            if shape is None:
+                self.err(entry, "'density' needs a 'shape'")
+            mass = rho * shape_volume(shape)
+        else:
+            self.err(entry, "needs 'mass' or 'density'")
+        com = self.vector(entry, "com", d.get("com", [0, 0, 0]), 3)
+        if "inertia" in d:
+            I = d["inertia"]
+            if isinstance(I, list) and len(I) == 3 and all(isinstance(r, list) for r in I):
+                I = np.array([self.vector(entry, "inertia", r, 3) for r in I])
+            else:
+                v = self.vector(entry, "inertia ([ixx, iyy, izz, ixy, ixz, iyz])", I, 6)
+                I = np.array([[v[0], v[3], v[4]], [v[3], v[1], v[5]], [v[4], v[5], v[2]]])
+            if not np.allclose(I, I.T):
+                self.err(entry, "inertia must be symmetric")
+        elif shape is not None:
+            I = shape_inertia(shape, mass)
+        else:
+            self.err(entry, "needs 'inertia' or a 'shape' to compute it from")
+        ev = np.linalg.eigvalsh(I)
+        if ev[0] <= 0:
+            self.err(entry, f"inertia is not positive definite (eigenvalues {np.round(ev, 12).tolist()})")
+        if ev[2] > ev[0] + ev[1] + 1e-12 * ev[2]:
+            self.err(entry, f"inertia violates the triangle inequality (eigenvalues {ev.tolist()})")
+        damping = self.number(entry, "damping", d.get("damping", 0.0), nonneg=True)
+        rgba = tuple(self.vector(entry, "rgba", d.get("rgba", [0.7, 0.7, 0.75, 1.0]), 4))
+        return BodySpec(d["name"], mass, com, I, shape, damping, rgba)
+
+    def joint(self, entry, d) -> JointSpec:
+        if d.get("type") in catalogue_schema.TYPES:  # notes §2.5 catalogue joints
+            return catalogue_schema.validate_joint(self, entry, d, self.base_dir)
+        allowed = {"name", "type", "parent", "child", "placement", "body_placement", "axis", "axes", "q0", "v0",
+                   "limits", "stiffness", "rest", "damping", "armature", "torque", "friction"}
+        self.keys(entry, d, allowed, required=("type", "parent", "child"))
+        jt = d["type"]
+        if jt not in JOINT_TYPES:
+            self.err(entry, f"unknown joint type '{jt}' (known: {', '.join(JOINT_TYPES)})")
+        nv, nq0 = JOINT_TYPES[jt]
+        for k in ("parent", "child"):
+            if not isinstance(d[k], str):
+                self.err(entry, f"'{k}' must be a body name")
+        axes = np.zeros((0, 3))
+        if jt in ("revolute", "prismatic"):
+            axes = self.axis(entry, "axis", d.get("axis", "z"))[None, :]
+        elif jt == "universal":
+            ax = d.get("axes", ["x", "y"])
+            if not isinstance(ax, list) or len(ax) != 2:
+                self.err(entry, "'axes' of a universal joint must be a list of 2 axes")
+            axes = np.array([self.axis(entry, "axes", a) for a in ax])
+            if abs(axes[0] @ axes[1]) > 1e-9:
+                self.err(entry, "the two axes of a universal joint must be orthogonal")
+        elif "axis" in d or "axes" in d:
+            self.err(entry, f"a {jt} joint takes no axis")
+        placement = self.pose(entry, "placement", d.get("placement", {}))
+        body_placement = self.pose(entry, "body_placement", d.get("body_placement", {}))
+        q0 = self.vector(entry, "q0", d.get("q0", [0.0] * nq0), nq0, allow_scalar=nq0 == 1)
+        v0 = self.vector(entry, "v0", d.get("v0", [0.0] * nv), nv, allow_scalar=nv == 1)
+        lower = np.full(nv, -np.inf)
+        upper = np.full(nv, np.inf)
+        if "limits" in d:
+            lim = d["limits"]
+            self.keys(f"{entry} limits", lim, {"lower", "upper"})
+            if jt not in ("revolute", "prismatic", "universal"):
+                self.err(entry, f"limits are supported on revolute, prismatic and universal joints, not {jt}")
+            lower = self.vector(entry, "limits.lower", lim.get("lower", -np.inf), nv, allow_scalar=True, allow_inf=True)
+            upper = self.vector(entry, "limits.upper", lim.get("upper", np.inf), nv, allow_scalar=True, allow_inf=True)
+            if np.any(lower >= upper):
+                self.err(entry, f"limits.lower must be below limits.upper ({lower.tolist()} vs {upper.tolist()})")
+        def per_dof(key, default=0.0, nonneg=True):
+            v = self.vector(entry, key, d.get(key, default), nv, allow_scalar=True)
+            if nonneg and np.any(v < 0):
+                self.err(entry, f"'{key}' must be non-negative, got {v.tolist()}")
+            return v
+        rest = self.vector(entry, "rest", d.get("rest", [0.0] * nq0), nq0, allow_scalar=nq0 == 1)
+        return JointSpec(d["name"], jt, d["parent"], d["child"], placement, body_placement, axes, q0, v0, lower, upper,
+                         per_dof("stiffness"), rest, per_dof("damping"), per_dof("armature"),
+                         per_dof("torque", nonneg=False))
+
+    def axis(self, entry, key, a):
+        if isinstance(a, str):
+            sign = -1.0 if a.startswith("-") else 1.0
+            if a.lstrip("+-") not in AXES:
+                self.err(entry, f"'{key}' must be x, y, z or a 3-vector, got {a!r}")
+            return sign * np.array(AXES[a.lstrip("+-")])
+        v = self.vector(entry, key, a, 3)
+        n = np.linalg.norm(v)
+        if n < 1e-12:
+            self.err(entry, f"'{key}' must not be the zero vector")
+        return v / n
+
+    def pose(self, entry, key, d):
+        self.keys(f"{entry} {key}", d, {"pos", "rpy"})
+        return (self.vector(entry, f"{key}.pos", d.get("pos", [0, 0, 0]), 3),
+                self.vector(entry, f"{key}.rpy", d.get("rpy", [0, 0, 0]), 3))
+
+    def tree(self, spec):
+        bodies = {b.name for b in spec.bodies}
+        if WORLD in bodies:
+            self.err("bodies", "'world' is reserved")
+        parent_of = {}
+        for i, j in enumerate(spec.joints):
+            entry = f"joints[{i}] '{j.name}'"
+            if j.parent != WORLD and j.parent not in bodies:
+                self.err(entry, f"unknown parent body '{j.parent}'")
+            if j.child not in bodies:
+                self.err(entry, f"unknown child body '{j.child}'")
+            if j.child in parent_of:
+                self.err(entry, f"body '{j.child}' already has parent joint '{parent_of[j.child].name}'; "
+                                "close kinematic loops with a 'loops' constraint")
+            parent_of[j.child] = j
+        for b in spec.bodies:
+            if b.name not in parent_of:
+                self.err(f"bodies '{b.name}'", "no joint attaches this body (add a joint with it as child)")
+        # cycles: walk up from every body; must reach the world (bodies known to reach it are
+        # remembered, so a long chain costs O(n), not O(n^2) walks with O(n) membership tests)
+        reaches = {WORLD}
+        for b in spec.bodies:
+            seen, cur = {}, b.name  # dict: ordered, O(1) membership
+            while cur not in reaches:
+                if cur in seen:
+                    path = list(seen)
+                    cyc = " -> ".join(path[path.index(cur):] + [cur])
+                    self.err(f"joints '{parent_of[cur].name}'", f"the joints form a cycle ({cyc}); use a loop constraint")
+                seen[cur] = None
+                cur = parent_of[cur].parent
+            reaches.update(seen)
+        # Depth-first order, children in file order: Pinocchio needs each joint after its parent AND
+        # every subtree's DOFs contiguous (CRBA's sparsity pattern relies on it).
+        children = {}
+        for j in spec.joints:
+            children.setdefault(j.parent, []).append(j)
+        ordered, stack = [], list(reversed(children.get(WORLD, [])))
+        while stack:
+            j = stack.pop()
+            ordered.append(j)
+            stack.extend(reversed(children.get(j.child, [])))
+        spec.joints[:] = ordered
+
+    def body_names(self, spec):
+        if spec.urdf:
+            model = pin.buildModelFromUrdf(spec.urdf)
+            return {f.name for f in model.frames if f.type == pin.FrameType.BODY} | {WORLD}
+        return {b.name for b in spec.bodies} | {WORLD}
+
+    def site(self, entry, d, bodies) -> SiteSpec:
+        self.keys(entry, d, {"name", "body", "pos"}, required=("body",))
+        if d["body"] not in bodies:
+            self.err(entry, f"unknown body '{d['body']}'")
+        return SiteSpec(d["name"], d["body"], self.vector(entry, "pos", d.get("pos", [0, 0, 0]), 3))
+
+    def site_ref(self, entry, key, d, sites):
+        if key not in d:
+            self.err(entry, f"missing '{key}' (a site name)")
+        if d[key] not in sites:
+            self.err(entry, f"unknown site '{d[key]}' in '{key}'")
+        return d[key]
+
+    def spring(self, entry, d, sites) -> SpringSpec:
+        self.keys(entry, d, {"name", "a", "b", "stiffness", "damping", "rest_length"})
+        a, b = self.site_ref(entry, "a", d, sites), self.site_ref(entry, "b", d, sites)
+        if a == b:
+            self.err(entry, "a spring needs two different sites")
+        rl = d.get("rest_length")
+        return SpringSpec(d["name"], a, b, self.number(entry, "stiffness", d.get("stiffness", 0.0), nonneg=True),
+                          self.number(entry, "damping", d.get("damping", 0.0), nonneg=True),
+                          None if rl is None else self.number(entry, "rest_length", rl, nonneg=True))
+
+    def wrench(self, entry, d, bodies) -> WrenchSpec:
+        self.keys(entry, d, {"name", "body", "force", "torque"}, required=("body",))
+        if d["body"] not in bodies or d["body"] == WORLD:
+            self.err(entry, f"unknown body '{d['body']}'")
+        return WrenchSpec(d["name"], d["body"], self.vector(entry, "force", d.get("force", [0, 0, 0]), 3),
+                          self.vector(entry, "torque", d.get("torque", [0, 0, 0]), 3))
+
+    def loop(self, entry, d, sites) -> LoopSpec:
+        self.keys(entry, d, {"name", "a", "b", "rows", "axis", "friction"})
+        a, b = self.site_ref(entry, "a", d, sites), self.site_ref(entry, "b", d, sites)
+        rows = d.get("rows", ["x", "y", "z"])
+        if not isinstance(rows, list) or not rows or len(rows) > 3:
+            self.err(entry, "'rows' must list 1-3 world directions (x, y, z or unit vectors)")
+        axes = np.array([self.axis(entry, "rows", r) for r in rows])
+        if np.linalg.matrix_rank(axes) < len(rows):
+            self.err(entry, "'rows' must be linearly independent directions")
+        return LoopSpec(d["name"], a, b, axes)
+
+    def coupling(self, entry, d, spec) -> CouplingSpec:
+        self.keys(entry, d, {"name", "joints", "ratios"}, required=("joints", "ratios"))
+        joints = d["joints"]
+        known = {j.name: j for j in spec.joints}
+        if not isinstance(joints, list) or len(joints) < 2:
+            self.err(entry, "'joints' must list at least two joints")
+        for j in joints:
+            if not spec.urdf and j not in known:
+                self.err(entry, f"unknown joint '{j}'")
+            if not spec.urdf and known[j].nv != 1:
+                self.err(entry, f"joint '{j}' must have one DOF to be coupled (it has {known[j].nv})")
+        if len(set(joints)) != len(joints):
+            self.err(entry, "a joint appears twice")
+        ratios = self.vector(entry, "ratios", d["ratios"], len(joints))
+        if np.any(ratios == 0):
+            self.err(entry, "ratios must be non-zero")
+        return CouplingSpec(d["name"], list(joints), ratios)
+
+    def prescriptions(self, spec, raw, sites):
+        joint_names = [j.name for j in spec.joints if j.type != "fixed"]
+        p = raw.get("prescribable")
+        if p is not None:
+            self.keys("prescribable", p, {"joints", "sites"})
+            if "joints" in p:
+                for j in p["joints"]:
+                    if not spec.urdf and j not in joint_names:
+                        self.err("prescribable.joints", f"unknown joint '{j}'")
+                spec.prescribable_joints = list(p["joints"])
+            if "sites" in p:
+                for s in p["sites"]:
+                    if s not in sites:
+                        self.err("prescribable.sites", f"unknown site '{s}'")
+                spec.prescribable_sites = list(p["sites"])
+        pr = raw.get("prescribed") or {}
+        self.keys("prescribed", pr, {"joints", "sites"})
+        nv_of = {j.name: j.nv for j in spec.joints}
+        for name, val in (pr.get("joints") or {}).items():
+            if not spec.urdf and name not in joint_names:
+                self.err("prescribed.joints", f"unknown joint '{name}'")
+            n = nv_of.get(name, 1)
+            spec.prescribed_joints[name] = self.vector(f"prescribed.joints.{name}", "velocity", val, n, allow_scalar=n == 1)
+        for name, val in (pr.get("sites") or {}).items():
+            entry = f"prescribed.sites.{name}"
+            if name not in sites:
+                self.err("prescribed.sites", f"unknown site '{name}'")
+            if isinstance(val, dict):  # {velocity: [vx, vy, vz], axes: [x, z]}
+                self.keys(entry, val, {"velocity", "axes"}, required=("velocity",))
+                if "axes" in val:
+                    ax = val["axes"]
+                    if not isinstance(ax, list) or not 1 <= len(ax) <= 3:
+                        self.err(entry, "'axes' must list 1-3 world directions")
+                    P = np.array([self.axis(entry, "axes", a) for a in ax])
+                    if np.linalg.matrix_rank(P) < len(P):
+                        self.err(entry, "'axes' must be linearly independent")
+                    spec.prescribed_site_axes[name] = P
+                val = val["velocity"]
+            spec.prescribed_sites[name] = self.vector(entry, "velocity", val, 3)
