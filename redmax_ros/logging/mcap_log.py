@@ -24,6 +24,8 @@ and :func:`recover` (``python -m redmax_ros.logging.mcap_log recover in.mcap out
 """
 from __future__ import annotations
 
+import argparse
+import fcntl
 import json
 import os
 import queue
@@ -37,6 +39,8 @@ import zlib
 from array import array
 from pathlib import Path
 
+from mcap.records import Channel, Header, Message, Schema
+from mcap.stream_reader import StreamReader
 from mcap.writer import Writer
 
 __all__ = ["McapLogger", "message_definition", "qos_profiles_yaml", "recover"]
@@ -188,10 +192,10 @@ class _McapFile:
         self.chunk_size = chunk_size
         self.compression = compression  # "zstd", "lz4" or ""
         if compression == "zstd":
-            import zstandard
+            import zstandard  # optional: zstd compression (the default); lz4 and none work without it
             self._compress = zstandard.ZstdCompressor(level=1).compress
         elif compression == "lz4":
-            import lz4.frame
+            import lz4.frame  # optional: only for compression="lz4"
             self._compress = lz4.frame.compress
         else:
             self._compress = None
@@ -366,7 +370,7 @@ class _McapFile:
 # ------------------------------------------------------------------------------------------------
 # the file side: one MCAP file after another (used by the writer process, or by a thread)
 
-class _Topic:
+class Topic:
     __slots__ = ("topic", "type_name", "definition", "qos_yaml", "index", "seq")
 
     def __init__(self, topic, type_name, definition, qos_yaml, index):
@@ -379,7 +383,7 @@ class _Topic:
                            "qos": self.qos_yaml, "index": self.index}).encode()
 
     @classmethod
-    def from_json(cls, data) -> "_Topic":
+    def from_json(cls, data) -> "Topic":
         d = json.loads(bytes(data))
         return cls(d["topic"], d["type"], d["definition"], d["qos"], int(d["index"]))
 
@@ -387,7 +391,7 @@ class _Topic:
 _COMPRESSION = {"zstd": "zstd", "lz4": "lz4", "none": "", "": ""}
 
 
-class _FileSession:
+class FileSession:
     """Writes messages into ``<directory>/<basename>_<i>.mcap``, i = 0, 1, ...: schemas and channels
     registered in every file, chunks finalized at ``chunk_size`` and at least every
     ``flush_interval`` s (:meth:`tick`), rollover by size (checked at chunk granularity) or age.
@@ -405,7 +409,7 @@ class _FileSession:
         self.flush_interval = float(flush_interval)
         self.on_open = on_open
         self.files: list[Path] = []
-        self.topics: dict[int, _Topic] = {}
+        self.topics: dict[int, Topic] = {}
         self.seq: dict[int, int] = {}
         self.written = 0
         self.f = self.w = None
@@ -423,7 +427,7 @@ class _FileSession:
         if self.on_open is not None:
             self.on_open(path)
 
-    def _channel(self, t: _Topic) -> int:
+    def _channel(self, t: Topic) -> int:
         cid = self.chans.get(t.index)
         if cid is None:
             sid = self.w.add_schema(t.type_name, "ros2msg", t.definition.encode())
@@ -433,7 +437,7 @@ class _FileSession:
             self.chans[t.index] = cid
         return cid
 
-    def register(self, t: _Topic):
+    def register(self, t: Topic):
         """Channels exist in the file even before their first message."""
         self.topics[t.index] = t
         self._channel(t)
@@ -502,7 +506,7 @@ class _FileSession:
 # Message records (channel id = topic index + 1, per-topic sequence, log and publish time), which
 # the writer process copies into chunks as they are; control records use opcodes MCAP reserves
 # for private use (>= 0x80): a topic registration (JSON), a flush request (u64 token), close.
-_FRAME = struct.Struct("<BQ")
+FRAME = struct.Struct("<BQ")
 K_MESSAGE = _OP_MESSAGE
 K_TOPIC, K_FLUSH, K_CLOSE = 0x81, 0x83, 0x84
 
@@ -551,7 +555,7 @@ class McapLogger:
                         "max_duration": float(max_duration), "chunk_size": int(chunk_size),
                         "compression": compression, "flush_interval": float(flush_interval)}
         self.files: list[Path] = []
-        self._topics: dict[str, _Topic] = {}
+        self._topics: dict[str, Topic] = {}
         self._lock = threading.Lock()
         self._closed = False
         self._failed = False
@@ -575,13 +579,13 @@ class McapLogger:
                 if self._topics[topic].type_name != type_name:
                     raise ValueError(f"topic {topic} already logged with type {self._topics[topic].type_name}")
                 return True
-            t = _Topic(topic, type_name, definition, qos_profiles_yaml(qos_profiles or [{}]), len(self._topics))
+            t = Topic(topic, type_name, definition, qos_profiles_yaml(qos_profiles or [{}]), len(self._topics))
             self._topics[topic] = t
             if self.writer == "thread":
                 self._q.put((_REGISTER, t))
             else:
                 payload = t.to_json()
-                self._buf += _FRAME.pack(K_TOPIC, len(payload))
+                self._buf += FRAME.pack(K_TOPIC, len(payload))
                 self._buf += payload
         if self.writer != "thread":
             self._wake.set()
@@ -661,7 +665,7 @@ class McapLogger:
             self._token += 1
             token = self._token
             self._flush_waiters[token] = ev
-            self._buf += _FRAME.pack(K_FLUSH, 8) + struct.pack("<Q", token)
+            self._buf += FRAME.pack(K_FLUSH, 8) + struct.pack("<Q", token)
         self._wake.set()
         return ev.wait(timeout) or self._failed
 
@@ -676,7 +680,7 @@ class McapLogger:
             self.written = self._session.written if self._session is not None else self.written
             return
         with self._lock:
-            self._buf += _FRAME.pack(K_CLOSE, 0)
+            self._buf += FRAME.pack(K_CLOSE, 0)
             self._closing = True
         self._wake.set()
         self._sender.join(timeout)
@@ -724,9 +728,8 @@ class McapLogger:
             [sys.executable, "-m", "redmax_ros.logging.writer_process", json.dumps(self._config)],
             stdin=subprocess.PIPE, stdout=subprocess.PIPE, close_fds=True, env=env)
         try:  # a larger pipe absorbs bursts without blocking the sender (Linux; best effort)
-            import fcntl
             fcntl.fcntl(self._proc.stdin.fileno(), getattr(fcntl, "F_SETPIPE_SZ", 1031), 1 << 20)
-        except (OSError, ImportError):
+        except OSError:
             pass
         self._opened = threading.Event()
         self._reader = threading.Thread(target=self._read_status, name="mcap-status", daemon=True)
@@ -792,7 +795,7 @@ class McapLogger:
     # ------------------------------------------------------------------ thread backend (previous design)
     def _start_thread(self):
         self._q: queue.SimpleQueue = queue.SimpleQueue()
-        self._session = _FileSession(**self._config)
+        self._session = FileSession(**self._config)
         self.files = self._session.files
         self._thread = threading.Thread(target=self._run, name="mcap-logger", daemon=True)
         self._thread.start()
@@ -831,9 +834,6 @@ class McapLogger:
 def recover(src, dst) -> int:
     """Copy every readable record of a (possibly truncated) MCAP file into a valid new file.
     Returns the number of messages recovered. Messages in the unfinished last chunk are lost."""
-    from mcap.records import Channel, Header, Message, Schema
-    from mcap.stream_reader import StreamReader
-
     n = 0
     with open(src, "rb") as fin, open(dst, "wb") as fout:
         w = None
@@ -862,8 +862,6 @@ def recover(src, dst) -> int:
 
 
 def _main(argv=None):
-    import argparse
-
     ap = argparse.ArgumentParser(prog="python -m redmax_ros.logging.mcap_log")
     sub = ap.add_subparsers(dest="cmd", required=True)
     r = sub.add_parser("recover", help="rewrite the readable part of a truncated MCAP file")

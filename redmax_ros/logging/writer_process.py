@@ -3,7 +3,7 @@
 Started by the logger as ``python -m redmax_ros.logging.writer_process '<json config>'``. Reads
 records from stdin shaped like MCAP records (``[opcode u8][length u64][content]``): Message
 records ready to be copied into chunks, and control records (topic registration, flush request,
-close), and writes them with :class:`redmax_ros.logging.mcap_log._FileSession`. Reports JSON lines on stdout: ``opened`` (a
+close), and writes them with :class:`redmax_ros.logging.mcap_log.FileSession`. Reports JSON lines on stdout: ``opened`` (a
 new file), ``written`` (messages written so far, at most every 0.2 s), ``flushed`` (a flush
 request is done), ``error``, and finally ``closed``.
 
@@ -22,7 +22,7 @@ import signal
 import sys
 import time
 
-from redmax_ros.logging.mcap_log import _FRAME, K_CLOSE, K_FLUSH, K_MESSAGE, K_TOPIC, _FileSession, _Topic
+from redmax_ros.logging.mcap_log import FRAME, K_CLOSE, K_FLUSH, K_MESSAGE, K_TOPIC, FileSession, Topic
 
 REPORT_EVERY = 0.2  # s between 'written' reports
 NICE = 10  # scheduling priority increment: on a busy machine the simulation goes first (REDMAX_LOG_NICE)
@@ -46,7 +46,7 @@ def main(argv=None) -> int:
 
     cfg = json.loads(argv[0])
     try:
-        sess = _FileSession(**cfg, on_open=lambda path: report(opened=str(path)))
+        sess = FileSession(**cfg, on_open=lambda path: report(opened=str(path)))
     except BaseException as e:
         report(error=f"cannot open the MCAP file: {type(e).__name__}: {e}")
         return 1
@@ -69,14 +69,14 @@ def main(argv=None) -> int:
                 pos = sess.add_records(buf, pos, n)  # the bulk: ready-made Message records
                 if n - pos < 9:
                     break
-                kind, length = _FRAME.unpack_from(buf, pos)
+                kind, length = FRAME.unpack_from(buf, pos)
                 end = pos + 9 + length
                 if end > n:
                     break
                 if kind == K_MESSAGE:  # complete but not taken by add_records: cannot happen
                     raise RuntimeError("message record left unconsumed")
                 if kind == K_TOPIC:
-                    sess.register(_Topic.from_json(buf[pos + 9:end]))
+                    sess.register(Topic.from_json(buf[pos + 9:end]))
                 elif kind == K_FLUSH:
                     sess.flush()
                     report(flushed=int.from_bytes(buf[pos + 9:end], "little"), written=sess.written)

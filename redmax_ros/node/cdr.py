@@ -11,6 +11,10 @@ from __future__ import annotations
 import struct
 
 import numpy as np
+from rclpy.serialization import serialize_message
+from sensor_msgs.msg import JointState
+
+from redmax_ros.logging.mcap_log import MESSAGE_HEAD, OP_MESSAGE
 
 ENCAPSULATION = b"\x00\x01\x00\x00"  # CDR_LE
 
@@ -119,8 +123,6 @@ class JointStateEncoder:
 
     def _encode_buffer(self, t, position, velocity, effort) -> bytes:
         if self.n == 0:  # Fast CDR pads empty double sequences lazily: let rclpy do this rare case
-            from rclpy.serialization import serialize_message
-            from sensor_msgs.msg import JointState
             m = JointState()
             m.header.stamp.sec, m.header.stamp.nanosec = _split_time(t)
             m.header.frame_id = self.frame_id
@@ -206,8 +208,6 @@ class StepRecords:
     solver_stats CDR (to the end) start in the result."""
 
     def __init__(self, logger, js_topic, clock_topic, stats_topic, stats_enc):
-        from redmax_ros.logging.mcap_log import MESSAGE_HEAD, OP_MESSAGE
-
         self.logger = logger
         self.handles = tuple(logger.handle(t) for t in (js_topic, clock_topic, stats_topic))
         if any(h is None for h in self.handles):

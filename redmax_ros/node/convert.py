@@ -20,6 +20,8 @@ from visualization_msgs.msg import Marker, MarkerArray
 from redmax_msgs.msg import Coupling as CouplingMsg
 from redmax_msgs.msg import PointForces, PointVelocityCommand, SceneDescription, SolverStats
 
+from redmax_ros.core import DofPositions
+
 WORLD_FRAMES = ("", "world")
 
 
@@ -158,9 +160,8 @@ class SceneInfo:
             else:
                 for k in range(nv):
                     self.dof_index[f"{j}[{k}]"] = (j, k)
-        # joint_states positions, one per velocity DOF (core/dof_positions.py): q itself when nq == nv;
-        # quaternion rotations (spherical, free, free3d) as roll, pitch, yaw; planar as x, y, angle
-        from redmax_ros.core.model.dof_positions import DofPositions
+        # joint_states positions, one per velocity DOF (core/model/dof_positions.py): q itself when
+        # nq == nv; quaternion rotations (spherical, free, free3d) as roll, pitch, yaw; planar as x, y, angle
         self.positions = DofPositions.from_description(d)
 
 

@@ -24,8 +24,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from redmax_ros.core import CommandError, SceneError, Simulator, StepError
-from redmax_ros.core.step.pipeline import State
+from redmax_ros.core import CommandError, SceneError, Simulator, State, StepError
 
 from .convert import CommandRejected, SceneInfo, joint_command, point_command
 from .pacing import Pacer, RateMeter, decimation
@@ -345,6 +344,11 @@ class Engine:
 
     def configure(self, **kw) -> Outcome:
         return self.call(self._configure, kw)
+
+    def configure_async(self, **kw) -> Future:
+        """``configure`` without waiting for it: queued after everything submitted before (the
+        node's parameter callback)."""
+        return self.submit(self._configure, kw)
 
     # ------------------------------------------------------------------ job bodies (sim thread)
     def _reject(self, text):

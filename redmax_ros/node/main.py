@@ -33,14 +33,21 @@ from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import JointState
 from visualization_msgs.msg import MarkerArray
 
+try:  # optional: an rclpy without the EventsExecutor serves everything from the node's executor
+    from rclpy.experimental import EventsExecutor
+except ImportError:
+    EventsExecutor = None
+
 from redmax_msgs.action import SimulateSteps
 from redmax_msgs.msg import PointForces, PointVelocityCommand, Result, SimulationState, SolverStats
 from redmax_msgs.srv import (DescribeScene, GetSimulationState, LoadScene, ReleaseCommands, ResetSimulation,
                              SetSimulationState, StepSimulation)
 
 from redmax_ros.core import SceneError
+from redmax_ros.logging.mcap_log import McapLogger
 
 from . import engine as eng
+from . import step_server
 from .cdr import JointStateEncoder, SolverStatsEncoder, StepRecords, encode_clock
 from .convert import StateMessages, description_msg, diagnostics_msg, markers_msg, point_prescriptions_msg
 from .convert import prescriptions_msg, time_msg
@@ -66,7 +73,8 @@ MODES = ("free_run", "lockstep")
 SOLVERS = ("", "direct", "pcg", "auto")
 
 
-def _qos_dict(q: QoSProfile) -> dict:
+def qos_dict(q: QoSProfile) -> dict:
+    """``q`` as a dict for ``logging.mcap_log.qos_profiles_yaml``."""
     return {
         "history": "keep_last" if q.history == HistoryPolicy.KEEP_LAST else "keep_all",
         "depth": q.depth,
@@ -75,7 +83,8 @@ def _qos_dict(q: QoSProfile) -> dict:
     }
 
 
-def _type_name(cls) -> str:
+def type_name(cls) -> str:
+    """``pkg/msg/Type`` of a message class."""
     return f"{cls.__module__.split('.')[0]}/msg/{cls.__name__}"
 
 
@@ -158,10 +167,8 @@ class _StepHelper:
     no executor). Same interface as _EventsHelper."""
 
     def __init__(self, main: "RedmaxNode", name: str):
-        from .step_server import StepServer
-
         self.node = _helper_node(main, "step")
-        self.server = StepServer(self.node, name, main._step_request, on_error=main._publish_error)
+        self.server = step_server.StepServer(self.node, name, main._step_request, on_error=main._publish_error)
 
     def start(self):
         self.server.start()
@@ -180,8 +187,6 @@ class _EventsHelper:
     thread of its own."""
 
     def __init__(self, main: Node, suffix: str):
-        from rclpy.experimental import EventsExecutor
-
         self.node = _helper_node(main, suffix)
         self.executor = EventsExecutor(context=main.context)
         self._context = main.context
@@ -329,11 +334,7 @@ class RedmaxNode(Node):
         run at load ~3); ``REDMAX_STEP_SERVER=events`` (or no librcl reachable through ctypes)
         spins it with an EventsExecutor as before. ``REDMAX_EVENTS_EXECUTOR=0`` (or an rclpy
         without the EventsExecutor) serves everything from this node and its executor."""
-        try:
-            from rclpy.experimental import EventsExecutor  # noqa: F401
-            events = os.environ.get("REDMAX_EVENTS_EXECUTOR", "1") != "0"
-        except ImportError:
-            events = False
+        events = EventsExecutor is not None and os.environ.get("REDMAX_EVENTS_EXECUTOR", "1") != "0"
         if not events:
             group = MutuallyExclusiveCallbackGroup()
             for short, (cls, cb) in self._inputs.items():
@@ -343,8 +344,6 @@ class RedmaxNode(Node):
         commands = _EventsHelper(self, "commands")
         for short, (cls, cb) in self._inputs.items():
             self._subscribe(commands.node, self._topic_by_short[short], cls, cb, None)
-        from . import step_server
-
         step_name = self.resolve_service_name("step_simulation")
         if os.environ.get("REDMAX_STEP_SERVER", "raw") != "events" and step_server.available():
             step = _StepHelper(self, step_name)
@@ -362,8 +361,6 @@ class RedmaxNode(Node):
         return sub
 
     def _start_logging(self, p):
-        from redmax_ros.logging.mcap_log import McapLogger
-
         name = "".join(c if c.isalnum() or c in "-_" else "_" for c in self.engine.info.name)
         stamp = time.strftime("%Y%m%d_%H%M%S")
         directory = os.path.join(p["log_path"], f"{name}_{stamp}")
@@ -374,7 +371,7 @@ class RedmaxNode(Node):
         self.logger_mcap = McapLogger(directory, name, max_bytes=p["log_max_bytes"],
                                       max_duration=p["log_max_duration"], topics=list(p["log_topics"] or []))
         for topic, (cls, qos, *_) in list(self._pubs.items()) + list(self._subs.items()):
-            self.logger_mcap.add_topic(topic, _type_name(cls), [_qos_dict(qos)])
+            self.logger_mcap.add_topic(topic, type_name(cls), [qos_dict(qos)])
 
     def _send(self, pub, msg):
         self._send_bytes(pub, serialize_message(msg))
@@ -408,7 +405,7 @@ class RedmaxNode(Node):
     def _apply_parameters(self, params):
         kw = {prm.name: prm.value for prm in params if prm.name in RUNTIME}
         if kw and hasattr(self, "engine"):
-            self.engine.submit(self.engine._configure, kw)
+            self.engine.configure_async(**kw)
 
     # ------------------------------------------------------------------ engine sink (simulation thread)
     def scene_loaded(self, info):

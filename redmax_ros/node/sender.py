@@ -37,6 +37,9 @@ import os
 import threading
 import time
 
+import rclpy  # noqa: F401  (loads librcl and librcutils, which load_library then finds)
+from rclpy.qos import DurabilityPolicy
+
 
 class _Allocator(ctypes.Structure):  # rcutils_allocator_t
     _fields_ = [(name, ctypes.c_void_p) for name in ("allocate", "deallocate", "reallocate", "zero_allocate",
@@ -54,7 +57,9 @@ class _ErrorString(ctypes.Structure):  # rcutils_error_string_t
     _fields_ = [("str", ctypes.c_char * 1024)]
 
 
-def _load(name):
+def load_library(name):
+    """The shared library ``name`` (e.g. ``librcl.so``) as a ``ctypes.CDLL``, as this process has
+    loaded it (rclpy loads librcl), or None."""
     try:
         return ctypes.CDLL(name)  # already loaded by rclpy: found by its soname
     except OSError:
@@ -73,9 +78,7 @@ def _load(name):
 def _rcl_publish():
     """(rcl_publish_serialized_message releasing the GIL, the same holding the GIL,
     rcutils_get_error_string, rcutils_reset_error) or None."""
-    import rclpy  # noqa: F401  (loads librcl)
-
-    rcl, rcutils = _load("librcl.so"), _load("librcutils.so")
+    rcl, rcutils = load_library("librcl.so"), load_library("librcutils.so")
     if rcl is None or rcutils is None:
         return None
     try:
@@ -265,8 +268,6 @@ class Sender:
         self._thread = None
 
     def _describe(self, pub):
-        from rclpy.qos import DurabilityPolicy
-
         handle = pub.handle
         volatile = getattr(pub, "qos_profile", None) is not None and \
             pub.qos_profile.durability == DurabilityPolicy.VOLATILE

@@ -24,7 +24,11 @@ from __future__ import annotations
 import ctypes
 import threading
 
-from .sender import _load
+from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy  # loads librcl (for load_library)
+
+from redmax_msgs.srv import StepSimulation
+
+from .sender import load_library
 
 RCL_RET_OK = 0
 RCL_RET_SERVICE_TAKE_FAILED = 601
@@ -60,9 +64,7 @@ _RCL = None
 def _rcl():
     global _RCL
     if _RCL is None:
-        import rclpy  # noqa: F401  (loads librcl)
-
-        rcl = _load("librcl.so")
+        rcl = load_library("librcl.so")
         fns = None
         if rcl is not None:
             try:
@@ -91,10 +93,6 @@ class StepServer:
     from a thread of its own. ``on_error(text)`` reports a failed take/send (never raises)."""
 
     def __init__(self, node, name, handler, on_error=None):
-        from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
-
-        from redmax_msgs.srv import StepSimulation
-
         fns = _rcl()
         if fns is None:
             raise RuntimeError("librcl not found through ctypes")
