@@ -107,14 +107,8 @@ def run(sim: Simulator, n_steps: int, quiet=False):
 
 
 def initial_row(sim: Simulator) -> np.ndarray:
-    from redmax_ros.core.dynamics import data_free
-    from redmax_ros.core.dynamics.energy import energies
-    m = sim.mech
     v = sim.joint_velocities()
-    if m.nv > data_free.PIN_DATA_MAX_NV:  # no pin.Data for large models (memory ~ nv^3)
-        ek, ep, es = data_free.energies(data_free.context(m), sim.state.q, v)
-    else:
-        ek, ep, es = energies(m, m.model.createData(), sim.state.q, v)
+    ek, ep, es = sim.energies()
     return np.concatenate([[sim.time], sim.state.q, v, [ek, ep, es, ek + ep + es, 0.0]])
 
 

@@ -206,13 +206,13 @@ def test_mapped_joint_carrier_rows_are_S(scene):
     joint (FreeFlyer: body twist; Spherical: angular part), and its pose is exactly Q(g) after steps."""
     sim = load(scene)
     sim.step(200)
-    m = sim.mech
-    mj = m.extras.maps.items[0]
+    ws = sim.workspace  # the live J_rR and joint-map state of the stepping workspace
+    mj = ws.extras.maps.items[0]
     g = sim.state.q[mj.gq]
     Q, S, _ = joint_kinematics(mj.spec, g, np.zeros(mj.k))
     rows = S[3:] if scene == "spherical_exp" else S
-    cols = [int(np.flatnonzero(m.T[i])[0]) for i in range(mj.gv.start, mj.gv.stop)]
-    assert np.abs(m.T[mj.cv][:, cols] - rows).max() < 1e-14
+    cols = [int(np.flatnonzero(ws.T[i])[0]) for i in range(mj.gv.start, mj.gv.stop)]
+    assert np.abs(ws.T[mj.cv][:, cols] - rows).max() < 1e-14
     qc = sim.state.q[mj.cq]
     Mc = pin.SE3(pin.Quaternion(qc).matrix(), np.zeros(3)) if scene == "spherical_exp" else pin.XYZQUATToSE3(qc)
     assert np.abs(Mc.homogeneous - Q.homogeneous).max() < 1e-12
@@ -221,7 +221,7 @@ def test_mapped_joint_carrier_rows_are_S(scene):
 def _record(sim, n):
     """J_rR and the reduced velocity the simulator reports before stepping, then n steps of (q, qdot_R,
     reduced velocity, total energy), as one array each."""
-    T0, v0 = sim.mech.T.copy(), sim.joint_velocities()
+    T0, v0 = sim.workspace.T.copy(), sim.joint_velocities()
     rows = []
     for _ in range(n):
         r = sim.step()
@@ -232,7 +232,7 @@ def _record(sim, n):
 @pytest.mark.parametrize("scene", ["spherical_exp", "spline_curve", "spline_surface", "spherical_euler_switch"])
 def test_reset_restores_configuration_dependent_J_rR(scene):
     """Simulator.reset() after a run restores exactly the initial behaviour of a coordinate-map joint:
-    J_rR (mech.T, refreshed in place by every step) and the reported joint velocities before the first
+    J_rR (the workspace's T, refreshed in place by every step) and the reported joint velocities before the first
     step, and the following 300-step trajectory, are bitwise those of a fresh load. set_state() to the
     initial state does the same. (Before the fix, reset left T at the last configuration: the reported
     initial velocities were off by up to 2.2 rad/s on spherical_exp.)"""
@@ -299,10 +299,8 @@ def test_catalogue_scenes_listed():
 
 def energy_run(name, h, T=0.5, *overrides):
     """(total energy E(t_k) including t_0, energy scale: max kinetic + range of potential energies)."""
-    from redmax_ros.core.dynamics.energy import energies
     sim = load(name, f"dt={h}", *overrides)
-    m = sim.mech
-    ek, ep, es = energies(m, m.model.createData(), sim.state.q, m.to_reduced(sim.state.v))
+    ek, ep, es = sim.energies()
     E, K, P = [ek + ep + es], [ek], [ep + es]
     for _ in range(int(round(T / h))):
         d = sim.step().diagnostics
@@ -448,8 +446,7 @@ def test_energy_balance_with_input():
     ji = sim.mech.joint_index["pinion"]
     tq = sim.spec.catalogue.torques[0].torque[0]
     h = sim.dt
-    from redmax_ros.core.dynamics.energy import energies
-    E0 = sum(energies(sim.mech, sim.mech.model.createData(), sim.state.q, sim.joint_velocities()))
+    E0 = sum(sim.energies())
     W, w, loss = 0.0, sim.joint_velocities()[ji.idx_v], []
     for k in range(3000):
         E = sim.step().diagnostics.E_total
@@ -468,7 +465,7 @@ def test_energy_balance_with_input():
 def centroidal(sim):
     m = sim.mech
     d = m.model.createData()
-    q, v = sim.state.q, m.to_reduced(sim.state.v)
+    q, v = sim.state.q, sim.joint_velocities()
     pin.computeCentroidalMomentum(m.model, d, q, v)
     c, hg = d.com[0], d.hg
     return np.concatenate([hg.linear, hg.angular + np.cross(c, hg.linear)])  # about the world origin
@@ -687,14 +684,15 @@ def _reduced_rk4_reference(sim, T, h):
     """RK4 of the mapped joint's exact reduced ODE: M_R(g) gdd = -S^T (nle(q(g), S gd) + M Sdot gd)
     (Pinocchio M and nle of the carrier model), as an independent check of Eq. 2.89's Jdot_rR term."""
     m = sim.mech
-    mj = m.extras.maps.items[0]
+    maps = sim.workspace.extras.maps
+    mj = maps.items[0]
     d = m.model.createData()
     q0 = sim.state.q.copy()
 
     def f(g, gd):
         q = q0.copy()
         q[mj.gq] = g
-        m.extras.maps.sync(q)
+        maps.sync(q)
         Q, S, Sd = joint_kinematics(mj.spec, g, gd)
         S, Sd = (S[3:], Sd[3:]) if mj.spec.type == "spherical_exp" else (S, Sd)
         v = np.zeros(m.nv)
@@ -706,7 +704,7 @@ def _reduced_rk4_reference(sim, T, h):
         Mc = M[mj.cv, mj.cv]
         return np.linalg.solve(S.T @ Mc @ S, -S.T @ (nle[mj.cv] + Mc @ (Sd @ gd)))
 
-    g, gd = q0[mj.gq].copy(), m.to_reduced(sim.state.v)[mj.gv].copy()
+    g, gd = q0[mj.gq].copy(), sim.joint_velocities()[mj.gv].copy()
     for _ in range(int(round(T / h))):
         k1 = (gd, f(g, gd))
         k2 = (gd + h / 2 * k1[1], f(g + h / 2 * k1[0], gd + h / 2 * k1[1]))
@@ -829,7 +827,7 @@ def test_spherical_euler_chart_switching_through_gimbal_lock():
     h = 2e-3, 1e-3, 5e-4)."""
     from redmax_ros.core.geometry import euler_charts as ec
     sim = _switch_variant("switch", 1e-3)
-    maps = sim.mech.extras.maps
+    maps = sim.workspace.extras.maps
     m = maps.euler[0]
     jumps = []
     orig = maps.switch_charts

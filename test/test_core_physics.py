@@ -9,7 +9,7 @@ from redmax_ros.core import Simulator
 from redmax_ros.core.step import baselines
 from redmax_ros.core.dynamics import forces
 from redmax_ros.core.dynamics import kinematics
-from redmax_ros.core.step.pipeline import State
+from redmax_ros.core import State, Workspace
 
 
 def run(sim, n):
@@ -54,8 +54,8 @@ def test_pendulum_small_amplitude_period():
 
 def _reference_rk4(sim, T, h, every):
     """RK4 on pin.aba at step h; returns {t: q} every ``every`` steps."""
-    mech, data = sim.mech, sim.mech.model.createData()
-    q, v = sim.state.q.copy(), mech.to_reduced(sim.state.v).copy()
+    mech, data = sim.mech, Workspace(sim.mech, pin_data=True)
+    q, v = sim.state.q.copy(), sim.joint_velocities()
     out = {}
     for k in range(1, int(round(T / h)) + 1):
         q, v = baselines.rk4(mech, data, q, v, h)
@@ -88,7 +88,7 @@ def test_velocity_update_approaches_aba():
     """(v_{k+1} - v_k)/h -> pin.aba(q, v, tau) as h -> 0, with error O(h) (joint springs and dampers
     are implicit in Eq. 2, so the difference is first order in h)."""
     sim0 = Simulator.load("chain", ["params.n=5", "params.joint_damping=0.05", "params.joint_stiffness=2.0"])
-    mech, data = sim0.mech, sim0.mech.model.createData()
+    mech, data = sim0.mech, Workspace(sim0.mech, pin_data=True)
     rng = np.random.default_rng(1)  # own generator: independent of which tests ran before
     q = rng.uniform(-1.0, 1.0, mech.nq)  # revolute chain: q is Euclidean
     v = rng.normal(size=mech.nv)
@@ -133,14 +133,14 @@ def test_stiff_springs_stable_where_explicit_diverges():
     """mass_springs with k = 1e6 N/m at h = 1e-2: our step stays bounded and its total energy never
     increases (no damping); semi-implicit Euler on pin.aba at the same h diverges."""
     sim = Simulator.load("mass_springs", ["params.k=1e6", "dt=0.01"])
-    E0 = baselines.mechanical_energy(sim.mech, sim.mech.model.createData(), sim.mech.q0, sim.mech.v0)
+    E0 = baselines.mechanical_energy(sim.mech, Workspace(sim.mech, pin_data=True), sim.mech.q0, sim.mech.v0)
     _, ds = run(sim, 500)
     E = np.concatenate([[E0], [d.E_total for d in ds]])
     assert np.all(np.isfinite(E))
     assert np.all(np.diff(E) <= 1e-12 * np.abs(E).max()), np.diff(E).max()
     assert np.abs(sim.joint_velocities()).max() < 100
 
-    mech, data = sim.mech, sim.mech.model.createData()
+    mech, data = sim.mech, Workspace(sim.mech, pin_data=True)
     q, v = mech.q0.copy(), mech.to_reduced(mech.v0).copy()
     E_start = baselines.mechanical_energy(mech, data, q, v)
     diverged = False
@@ -181,7 +181,7 @@ def test_free_body_without_gravity_keeps_momentum():
     data = mech.model.createData()
 
     def momentum():
-        q, v = sim.state.q, mech.to_reduced(sim.state.v)
+        q, v = sim.state.q, sim.joint_velocities()
         pin.forwardKinematics(mech.model, data, q, v)
         h = data.oMi[1].act(mech.model.inertias[1] * data.v[1])
         return np.concatenate([h.linear, h.angular])

@@ -212,26 +212,28 @@ def test_bisp_affine_map_matches_newton_euler_pass():
     sim = Simulator.load("klann", overrides=["friction.joint_mu=0.4", "dt=0.002"])
     sim.step(150)
     m, data, st, h = sim.mech, sim.data, sim.state, sim.dt
-    fm = m.friction
-    v_r = m.to_reduced(st.v)
-    kin = kinematics.compute(m, data, st.q, v_r, [])
-    system = forces.assemble(m, data, kin, st.q, v_r, m.torque0.copy(), h)
-    cons = constraints.build(m, kin, st.q, sim.commands.joint_velocities, {}, h)
+    fm, ws = m.friction, sim.workspace
+    work = ws.friction
+    v_r = sim.joint_velocities()
+    kin = kinematics.compute(m, ws, st.q, v_r, [])
+    system = forces.assemble(m, ws, kin, st.q, v_r, m.torque0.copy(), h)
+    cons = constraints.build(m, ws, constraints.loop_rows_of(m, kin.J), None, st.q, sim.commands.joint_velocities,
+                             {}, h)
     A, b = system.A, system.b
     Ainv = np.linalg.inv(A)
     Y = Ainv @ cons.G.T
     Sinv = np.linalg.inv(cons.G @ Y)
     P = Ainv - Y @ Sinv @ Y.T
     v0 = P @ b + Y @ (Sinv @ cons.g)
-    ws, _ = bisp.body_frames(fm, st.q, v_r)
-    cs = detect(m, fm, ws, h)
+    bisp.body_frames(fm, work, st.q, v_r)
+    cs = detect(m, fm, work, h)
     assert cs is not None and len(cs.keys) >= 2
     U = cs.N
-    Tr = np.vstack([cs.T, fm.rows_fixed, loop_friction_rows(m, fm, ws)])
+    Tr = np.vstack([cs.T, fm.rows_fixed, loop_friction_rows(m, fm, work)])
     nu, nf, nc = len(U), len(Tr), len(cs.keys)
     RX = np.vstack([U, -Tr])
     lam0, LamX = Sinv @ (Y.T @ b - cons.g), Sinv @ (Y.T @ RX.T)
-    a0, Mx = bisp.linear_alphas(m, fm, kin, st.q, v_r, h, v0, P @ RX.T, lam0, LamX, cs, nu, nf, cons)
+    a0, Mx = bisp.linear_alphas(m, fm, work, kin, st.q, v_r, h, v0, P @ RX.T, lam0, LamX, cs, nu, nf, cons)
     ext = bisp.ExternalForces(m, data)
     fx_static = bisp.static_external(m, kin, ext, data).copy()
     rng = np.random.default_rng(1)
@@ -246,7 +248,7 @@ def test_bisp_affine_map_matches_newton_euler_pass():
     loop_force = np.zeros((len(fm.loop_index), 3))
     staggered._loop_external(m, fm, kin, ext, fx, lam[cons.loop_rows], beta[2 * nc + len(fm.rows_fixed):], h,
                              loop_force)
-    direct = bisp.joint_alphas(m, fm, data, st.q, v_r, m.to_reduced(v), h, fx, loop_force).reshape(-1)
+    direct = bisp.joint_alphas(m, fm, work, data, st.q, v_r, ws.to_reduced(v), h, fx, loop_force).reshape(-1)
     affine = a0 + Mx @ x
     assert np.abs(affine - direct).max() < 1e-9 * max(1.0, np.abs(direct).max())
 
@@ -265,20 +267,22 @@ def test_compiled_setup_matches_numpy_reference():
     sim = Simulator.load("klann", overrides=["friction.joint_mu=0.4", "dt=0.002"])
     sim.step(150)
     m, data, st, h = sim.mech, sim.data, sim.state, sim.dt
-    fm = m.friction
-    v_r = m.to_reduced(st.v)
-    kin = kinematics.compute(m, data, st.q, v_r, [])
-    system = forces.assemble(m, data, kin, st.q, v_r, m.torque0.copy(), h)
-    cons = constraints.build(m, kin, st.q, sim.commands.joint_velocities, {}, h)
-    ws, _ = bisp.body_frames(fm, st.q, v_r)
+    fm, ws = m.friction, sim.workspace
+    work = ws.friction
+    v_r = sim.joint_velocities()
+    kin = kinematics.compute(m, ws, st.q, v_r, [])
+    system = forces.assemble(m, ws, kin, st.q, v_r, m.torque0.copy(), h)
+    cons = constraints.build(m, ws, constraints.loop_rows_of(m, kin.J), None, st.q, sim.commands.joint_velocities,
+                             {}, h)
+    rws, _ = bisp.body_frames(fm, work, st.q, v_r)
     for j in range(m.model.njoints):
-        assert np.abs(ws.R[j] - data.oMi[j].rotation).max() < 1e-12
-        assert np.abs(ws.p[j] - data.oMi[j].translation).max() < 1e-12
-    assert np.abs(ws.St.T - data.J).max() < 1e-12
-    cs, RX, lo_U, nu = staggered_rows(m, fm, ws, h, cons)
-    ref = detect(m, fm, ws, h)
+        assert np.abs(rws.R[j] - data.oMi[j].rotation).max() < 1e-12
+        assert np.abs(rws.p[j] - data.oMi[j].translation).max() < 1e-12
+    assert np.abs(rws.St.T - data.J).max() < 1e-12
+    cs, RX, lo_U, nu = staggered_rows(m, fm, work, h, cons)
+    ref = detect(m, fm, work, h)
     assert nu == len(ref.gap) >= 2 and np.array_equal(lo_U, ref.lo)
-    U, Tr = ref.N, np.vstack([ref.T, fm.rows_fixed, loop_friction_rows(m, fm, ws)])
+    U, Tr = ref.N, np.vstack([ref.T, fm.rows_fixed, loop_friction_rows(m, fm, work)])
     assert np.abs(RX - np.vstack([U, -Tr])).max() < 1e-12
     A, b, G, g = system.A, system.b, cons.G, cons.g
     status, v0, PX, W_U, X_UT, X_TU, W_T, U_v0, T_v0, wU, wT, lam0, LamX = condense(A, b, G, g, RX, nu)
@@ -319,7 +323,7 @@ def test_sphere_lands_without_bouncing_and_rolls_at_five_sevenths():
     assert zs.min() > 0.05 - 1e-5 and abs(zs[-1] - 0.05) < 1e-5
     data = sim.mech.model.createData()
     import pinocchio as pin
-    pin.forwardKinematics(sim.mech.model, data, sim.state.q, sim.mech.to_reduced(sim.state.v))
+    pin.forwardKinematics(sim.mech.model, data, sim.state.q, sim.joint_velocities())
     vw = data.oMi[1].rotation @ data.v[1].linear
     assert abs(vw[0] - 0.3 * 5 / 7) < 1e-3
 

@@ -13,7 +13,7 @@ import pytest
 
 from redmax_ros.core import Simulator
 from redmax_ros.core.dynamics.stabilization import loop_residual
-from redmax_ros.core.step.pipeline import State
+from redmax_ros.core import State
 
 SCENE = "klann_leg"
 OMEGA = -2.0 * math.pi  # prescribed crank speed in the scene [rad/s] (1 rev/s)
@@ -75,7 +75,7 @@ def test_loads_with_five_joints_and_one_dof():
     # 2 loops x 2 independent rows: 5 - 4 = 1 DOF, at the start and anywhere along the cycle
     m = sim.mech
     data = m.model.createData()
-    phi, G = loop_residual(m, data, sim.state.q)
+    phi, G = loop_residual(sim.workspace.tree, sim.state.q)
     assert np.abs(phi).max() < 1e-10
     assert G.shape == (4, 5) and np.linalg.matrix_rank(G, tol=1e-9) == 4
     # the scene's q0 = 0 is the published pose: assembly moved it by well under a milliradian
@@ -190,7 +190,7 @@ def test_walker_scene_loads_loops_close_and_falls_freely():
     assert [c.name for c in d.couplings] == ["crank_shaft"]
     m = sim.mech
     data = m.model.createData()
-    phi, G = loop_residual(m, data, sim.state.q)
+    phi, G = loop_residual(sim.workspace.tree, sim.state.q)
     assert np.abs(phi).max() < 1e-10
     assert G.shape == (24, 28) and np.linalg.matrix_rank(G, tol=1e-9) == 24  # mobility 28 - 24 = 4
     assert np.abs(G @ sim.state.v).max() < 1e-4  # v0 is (to its rounding) loop-consistent

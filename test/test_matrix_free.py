@@ -1,5 +1,6 @@
 """Matrix-free step (PCG + Projected Block Jacobi Preconditioner, Eq. (2)-(4), Alg. 1) and the
-data-free direct solver, against the Pinocchio direct pipeline (stepper.step) on the shipped scenes.
+data-free direct solver (step.backends.DataFreeBackend), against the Pinocchio pipeline
+(step.backends.DirectBackend) on the shipped scenes.
 
 PCG solves are compared at rtol = 1e-10 (a relative residual of 1e-6, the default, gives a
 solution error of up to cond(P^-1 A) x 1e-6); the default rtol is checked for its residual.
@@ -7,14 +8,13 @@ solution error of up to cond(P^-1 A) x 1e-6); the default rtol is checked for it
 import numpy as np
 import pytest
 
-from redmax_ros.core import Simulator, StepError, list_scenes, load_scene
+import pinocchio as pin
+
+from redmax_ros.core import SceneError, Simulator, State, StepError, compile_scene, list_scenes, load_scene
+from redmax_ros.core.dynamics.stabilization import assemble_loops
+from redmax_ros.core.dynamics.tree_kinematics import PIN_DATA_MAX_NV, Context
 from redmax_ros.core.solvers import recursive as rc
-from redmax_ros.core.dynamics.data_free import PIN_DATA_MAX_NV, assemble_loops, context
-from redmax_ros.core.errors import SceneError
-from redmax_ros.core.step.matrix_free import AUTO_DIRECT_NV, step_matrix_free
-from redmax_ros.core.model.mechanism import compile_scene
-from redmax_ros.core.step.pipeline import State
-from redmax_ros.core.step.pipeline import step as direct_step
+from redmax_ros.core.step.backends import AUTO_DIRECT_NV, DataFreeBackend, DirectBackend
 
 SMALL = [s for s in list_scenes() if sum(j.nv for j in load_scene(s).joints) <= PIN_DATA_MAX_NV]
 EXTRA = [("bridge", ["params.variant=flexy"]), ("chain", ["params.n=8", "params.springs=4"]),
@@ -44,16 +44,17 @@ def _compare(name, overrides, warm=15, prepare=None, want=None):
         prepare(sim)
     sim.step(warm)
     m, cmd, h = sim.mech, sim.commands, sim.dt
-    data = m.model.createData()
+    direct = DirectBackend(m)
     for _ in range(300):
         st = sim.state
-        _, ref = direct_step(m, data, st, cmd, h)
+        _, ref = direct.step(st, cmd, h)
         if want is None or ref.diagnostics.solver == want:
             break
         sim.step()
-    ctx = context(m)
-    _, dense = step_matrix_free(m, ctx, st, cmd, h, "direct")
-    _, it = step_matrix_free(m, ctx, st, cmd, h, "pcg", rtol=1e-10)
+    _, dense = DataFreeBackend(m, "direct").step(st, cmd, h)
+    pcg = DataFreeBackend(m, "pcg", rtol=1e-10)
+    _, it = pcg.step(st, cmd, h)
+    sim.pcg_stats = pcg.workspace.tree.last_stats
     scale_v = max(np.abs(ref.v).max(), 1e-3)
     for res, tol_v in ((dense, 1e-9), (it, 1e-6)):
         d = res.diagnostics
@@ -91,7 +92,7 @@ def test_hybrid_prescriptions_couplings_limits_equal_direct():
     out = _compare("hand", [], warm=30, prepare=prepare, want="qp")
     _, ref, it = out
     assert ref.diagnostics.solver == "qp"  # a joint limit is active
-    assert context(out[0].mech).last_stats.get("active_limits", 0) >= 1
+    assert out[0].pcg_stats.get("active_limits", 0) >= 1
 
 
 def test_default_rtol_residual_and_warm_start():
@@ -101,7 +102,7 @@ def test_default_rtol_residual_and_warm_start():
     d = r.diagnostics
     assert d.solver == "pcg" and d.residual < 1e-5
     assert d.iterations < r0.diagnostics.iterations  # warm starts (velocity, previous Z) pay off
-    stats = sim.backend.ctx.last_stats
+    stats = sim.backend.workspace.tree.last_stats
     assert len(stats["solves"]) == 1 + 24  # Eq. (4): one RHS solve + one per loop row (8 loops x 3)
 
 
@@ -110,7 +111,7 @@ def test_bridge_rigid_pcg_converges_in_at_most_two_iterations():
     diagonal over bodies and Alg. 1 is the exact inverse of the LHS (the paper's single iteration)."""
     for overrides in ([], ["params.scale=2"]):
         sim = Simulator.load("bridge", overrides, solver="pcg")
-        ctx = sim.backend.ctx
+        ctx = sim.backend.workspace.tree
         for _ in range(15):
             r = sim.step()
             assert r.diagnostics.solver == "pcg"
@@ -118,7 +119,7 @@ def test_bridge_rigid_pcg_converges_in_at_most_two_iterations():
         # also from a cold start (no warm start at all)
         m, st = sim.mech, sim.state
         ctx.z_cache = None
-        _, r = step_matrix_free(m, ctx, State(st.t, st.q, np.zeros_like(st.v)), sim.commands, sim.dt, "pcg")
+        _, r = sim.backend.step(State(st.t, st.q, np.zeros_like(st.v)), sim.commands, sim.dt)
         assert max(ctx.last_stats["solves"]) <= 2
 
 
@@ -126,10 +127,10 @@ def test_pcg_fallback_to_direct_is_reported_and_correct():
     sim = Simulator.load("bridge", ["params.variant=flexy"], solver="direct")
     sim.step(10)
     m, st, cmd, h = sim.mech, sim.state, sim.commands, sim.dt
-    _, ref = direct_step(m, sim.data, st, cmd, h)
-    ctx = context(m)
-    ctx.z_cache = None
-    _, r = step_matrix_free(m, ctx, st, cmd, h, "pcg", rtol=1e-12, max_iter=1)
+    _, ref = sim.backend.step(st, cmd, h)
+    pcg = DataFreeBackend(m, "pcg", rtol=1e-12, max_iter=1)
+    ctx = pcg.workspace.tree
+    _, r = pcg.step(st, cmd, h)
     assert r.diagnostics.solver == "pcg->direct"
     assert "did not reach" in ctx.last_stats["fallback"]
     assert _rel(r.v, ref.v) < 1e-9
@@ -146,14 +147,14 @@ def test_step_error_leaves_state_unchanged():
         sim.step()
     assert np.array_equal(sim.state.q, q) and np.array_equal(sim.state.v, v) and sim.time == t
     with pytest.raises(StepError, match="time step"):
-        step_matrix_free(sim.mech, None, sim.state, sim.commands, -1.0)
+        sim.backend.step(sim.state, sim.commands, -1.0)
 
 
 def test_universal_joint_kernel_matches_recursive_fallback():
     sim = Simulator.load("umbrella", ["params.ribs=2"], solver="pcg")
     sim.step(3)
     m = sim.mech
-    ctx = context(m)
+    ctx = sim.workspace.tree
     rng = np.random.default_rng(3)
     v = rng.normal(size=m.nv)
     ctx.invalidate()
@@ -164,14 +165,36 @@ def test_universal_joint_kernel_matches_recursive_fallback():
     assert np.abs(rc.bias_acceleration(ctx.topo, ws) - rc.bias_acceleration(ctx.topo, ref)).max() < 1e-12
 
 
+def _assemble_loops_pinocchio(m, q, tol=1e-12, max_iter=100):
+    """Reference loop assembly on Pinocchio's pin.Data: least-norm Newton on phi = S (x_a - x_b) with the
+    frame Jacobians (the Pinocchio implementation the data-free one replaced)."""
+    data = m.model.createData()
+    S, ab = m.loop_select, m.loop_ab
+    fid = lambda s: int(m.site_fid[s])  # noqa: E731
+    for _ in range(max_iter):
+        pin.computeJointJacobians(m.model, data, q)
+        pin.updateFramePlacements(m.model, data)
+        X, J = [], []
+        for a, b in ab:
+            xa, xb = (data.oMf[fid(s)].translation if fid(s) >= 0 else m.site_local[s] for s in (a, b))
+            Ja, Jb = (pin.getFrameJacobian(m.model, data, fid(s), pin.LOCAL_WORLD_ALIGNED)[:3] if fid(s) >= 0
+                      else np.zeros((3, m.nv)) for s in (a, b))
+            X.append(xa - xb)
+            J.append(Ja - Jb)
+        phi, G = S @ np.concatenate(X), S @ np.vstack(J)
+        if np.abs(phi).max() < tol:
+            break
+        q = pin.integrate(m.model, q, m.to_reduced(np.linalg.lstsq(G if m.T is None else G @ m.T, -phi, rcond=None)[0]))
+    return q
+
+
 def test_data_free_loop_assembly_matches_pinocchio():
-    from redmax_ros.core.dynamics.stabilization import assemble_loops as assemble_pin
     for name in ("fourbar", "klann_leg", "umbrella"):
         m = compile_scene(load_scene(name, ["params.ribs=2"] if name == "umbrella" else []))
         rng = np.random.default_rng(0)
         q = m.q0.copy()
         q[:m.nv] += 1e-3 * rng.normal(size=m.nv) if m.nq == m.nv else 0.0
-        a, b = assemble_loops(m, q.copy()), assemble_pin(m, q.copy())
+        a, b = assemble_loops(Context(m), q.copy()), _assemble_loops_pinocchio(m, q.copy())
         assert np.abs(a - b).max() < 1e-9, name
 
 

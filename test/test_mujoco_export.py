@@ -5,7 +5,7 @@ import numpy as np
 import pinocchio as pin
 import pytest
 
-from redmax_ros.core import Simulator
+from redmax_ros.core import Simulator, Workspace
 from redmax_ros.core.step import baselines
 
 try:
@@ -35,7 +35,7 @@ SCENES += _optional("bridge") + _optional("umbrella")
 
 @pytest.mark.parametrize("scene,overrides", SCENES, ids=[s for s, _ in SCENES])
 def test_mass_matrix_and_gravity_match(scene, overrides):
-    from redmax_ros.bench.mujoco_export import export
+    from redmax_bench.mujoco_export import export
     m = Simulator.load(scene, overrides).mech
     ex = export(m, 1e-3)
     rng = np.random.default_rng(1)
@@ -56,7 +56,7 @@ def test_mass_matrix_and_gravity_match(scene, overrides):
 def test_few_steps_match_rk4(scene, overrides):
     """Springs (tendons), dampers, joints and the free-joint velocity map: 50 MuJoCo RK4 steps at
     h = 1e-5 against RK4 on pin.aba with the same forces."""
-    from redmax_ros.bench.mujoco_export import export
+    from redmax_bench.mujoco_export import export
     m = Simulator.load(scene, overrides).mech
     h, n = 1e-5, 50
     ex = export(m, h, "rk4")
@@ -65,7 +65,7 @@ def test_few_steps_match_rk4(scene, overrides):
     d.qpos[:] = ex.qpos(q0)
     d.qvel[:] = ex.qvel(q0, v0)
     mujoco.mj_step(ex.model, d, nstep=n)
-    data = m.model.createData()
+    data = Workspace(m, pin_data=True)
     q, v = q0, v0
     for _ in range(n):
         q, v = baselines.rk4(m, data, q, v, h)
@@ -89,7 +89,7 @@ PASSIVE = [("chain", ["params.n=4", "params.springs=2", "params.joint_stiffness=
 def test_passive_forces_match(scene, overrides):
     """Joint springs (with non-zero rest: MjSpec's default unit for springref is degrees), joint
     dampers and spring tendons: MuJoCo's qfrc_passive equals our applied forces at a random state."""
-    from redmax_ros.bench.mujoco_export import export
+    from redmax_bench.mujoco_export import export
     m = Simulator.load(scene, overrides).mech
     ex = export(m, 1e-3)
     rng = np.random.default_rng(2)
@@ -99,6 +99,6 @@ def test_passive_forces_match(scene, overrides):
     d.qpos[:] = ex.qpos(q)
     d.qvel[:] = ex.qvel(q, v)
     mujoco.mj_forward(ex.model, d)
-    f = baselines.applied_force(m, m.model.createData(), q, v)
+    f = baselines.applied_force(m, Workspace(m, pin_data=True), q, v)
     fj = ex.vel_map(q).T @ d.qfrc_passive
     assert np.abs(f - fj).max() <= 1e-9 * max(1.0, float(np.abs(f).max()))

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from redmax_ros.core import CommandError, Simulator, StepError
-from redmax_ros.core.step.pipeline import State
+from redmax_ros.core import State
 
 
 def snapshot(sim):

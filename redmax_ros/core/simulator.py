@@ -1,8 +1,9 @@
 """Simulator: the stateful facade used by the runner, the node and the benchmarks.
 
-It owns a Mechanism (constant), a pin.Data workspace, the current State and the current Commands,
-and validates every command before changing anything (CommandError). Stepping goes through the
-pure function stepper.step; the state is replaced only when a step succeeds.
+It owns a Mechanism (frozen), a stepping backend with its Workspace (step/backends.py), the current
+State and the current Commands, and validates every command before changing anything
+(CommandError). Stepping goes through step.pipeline.step; the state is replaced only when a step
+succeeds.
 """
 from __future__ import annotations
 
@@ -10,15 +11,16 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from redmax_ros.core.dynamics.energy import energies
+from redmax_ros.core.dynamics.tree_kinematics import Context, all_site_positions, body_poses
 from redmax_ros.core.errors import CommandError, StepError
-from redmax_ros.core.model.mechanism import Mechanism, compile_scene
-from redmax_ros.core.scene.loader import SceneSpec, load_scene
 from redmax_ros.core.model.dof_positions import DofPositions
-from redmax_ros.core.dynamics.data_free import PIN_DATA_MAX_NV, all_site_positions, body_poses
-from redmax_ros.core.step.matrix_free import make_backend
-from redmax_ros.core.step.pipeline import Commands, State, StepResult
-import pinocchio as pin
-from redmax_ros.core.dynamics.kinematics import site_positions
+from redmax_ros.core.model.mechanism import Mechanism
+from redmax_ros.core.scene.loader import load_scene
+from redmax_ros.core.scene.spec import SceneSpec
+from redmax_ros.core.step.backends import make_backend
+from redmax_ros.core.step.compile import compile_scene
+from redmax_ros.core.step.state import Commands, State, StepResult
 
 
 _AXES = {"x": (1.0, 0.0, 0.0), "y": (0.0, 1.0, 0.0), "z": (0.0, 0.0, 1.0)}
@@ -76,7 +78,7 @@ class Simulator:
         self.mech: Mechanism = compile_scene(spec)
         # solver: the scene's 'solver' key (direct | pcg | auto) unless overridden; see docs/solvers.md
         self.backend = make_backend(self.mech, solver or spec.solver)
-        self.data = self.backend.data  # pin.Data of the direct pipeline; None for data-free solvers
+        self._query = Context(self.mech)  # kinematics for body poses, spring ends, energies between steps
         self.dt = float(spec.dt)
         self.reset()
 
@@ -94,12 +96,22 @@ class Simulator:
     def time(self) -> float:
         return self.state.t
 
+    @property
+    def workspace(self):
+        """The stepping backend's Workspace (step/workspace.py; with solver 'auto', that of the backend
+        stepping now)."""
+        return self.backend.workspace
+
+    @property
+    def data(self):
+        """pin.Data of the Pinocchio pipeline's workspace; None while a data-free backend steps."""
+        return self.backend.workspace.data
+
     def reset(self) -> None:
         """Initial state, t = 0, the scene's default prescriptions, no applied torques or forces."""
         m = self.mech
         self.state = State(0.0, m.q0.copy(), m.v0.copy())
-        if m.extras is not None:  # J_rR of spline/exp joints back at q0 (it is refreshed in place by steps)
-            m.extras.at_state(m, self.state.q, 0.0)
+        self.backend.at_state(self.state.q, 0.0)  # J_rR of spline/exp joints back at q0 (refreshed in place by steps)
         self.commands = Commands(
             joint_velocities={k: np.array(v, float) for k, v in self.spec.prescribed_joints.items()},
             site_velocities={k: np.array(v, float) for k, v in self.spec.prescribed_sites.items()},
@@ -110,14 +122,18 @@ class Simulator:
 
     def set_state(self, state: State) -> None:
         self.state = state
-        if self.mech.extras is not None:  # configuration-dependent J_rR at the new configuration
-            self.mech.extras.at_state(self.mech, state.q, state.t)
+        self.backend.at_state(state.q, state.t)  # configuration-dependent J_rR at the new configuration
 
     def joint_positions(self) -> np.ndarray:
         return self.state.q.copy()
 
     def joint_velocities(self) -> np.ndarray:
-        return self.mech.to_reduced(self.state.v).copy()
+        """Reduced joint velocities qdot_r = J_rR qdot_R (nv,) of the current state [rad/s, m/s]."""
+        return self.backend.workspace.to_reduced(self.state.v).copy()
+
+    def energies(self) -> tuple:
+        """(E_kin, E_pot, E_spring) [J] of the current state (as the step's diagnostics compute them)."""
+        return energies(self._query, self.state.q, self.joint_velocities(), self.backend.workspace.extras)
 
     # -- commands
     def _joint_vector(self, name, value, allowed=None, what="joint"):
@@ -241,24 +257,14 @@ class Simulator:
 
     def body_poses(self) -> dict:
         """Body frames in the world: name -> (position (3,) [m], quaternion xyzw (4,))."""
-        m = self.mech
-        if m.nv > PIN_DATA_MAX_NV:
-            return body_poses(m, self.state.q)
-        data = m.model.createData()
-        pin.forwardKinematics(m.model, data, self.state.q)
-        out = {}
-        for name, jid, M in zip(m.bodies, m.body_jid, m.body_placement):
-            W = data.oMi[int(jid)] * M
-            out[name] = (W.translation.copy(), pin.Quaternion(W.rotation).coeffs().copy())
-        return out
+        return body_poses(self._query, self.state.q)
+
+    def site_positions(self) -> np.ndarray:
+        """World positions (S,3) [m] of every site (mech.site_names order) at the current state."""
+        return all_site_positions(self._query, self.state.q).copy()
 
     def spring_segments(self) -> list:
         """(spring name, end a (3,), end b (3,)) world frame [m]."""
         m = self.mech
-        if m.nv > PIN_DATA_MAX_NV:
-            x = all_site_positions(m, self.state.q)
-        else:
-            data = m.model.createData()
-            pin.forwardKinematics(m.model, data, self.state.q)
-            x = site_positions(m, data)
+        x = all_site_positions(self._query, self.state.q)
         return [(n, x[a].copy(), x[b].copy()) for n, (a, b) in zip(m.spring_names, m.spring_ab)]

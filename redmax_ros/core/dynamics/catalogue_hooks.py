@@ -1,7 +1,11 @@
 """Runtime of the RedMax catalogue features in a step (hooks called from stepper/forces/constraints/energy).
 
-A Mechanism whose scene uses any of them gets ``mech.extras = Extras(...)``; otherwise
-``mech.extras is None`` and the step pays one ``is None`` test per hook.
+A Mechanism whose scene uses any of them gets ``mech.extras``, an :class:`Extras` built and checked at
+compile time (:func:`attach`) and never changed afterwards; each step workspace holds its own
+:meth:`Extras.runtime` copy (``ws.extras``: the joint maps' state, the time of the explicit loads, a
+``pin.Data`` for the momentum projection) and the hooks below run on that copy with the workspace's
+live J_rR ``ws.T``. Without catalogue features ``mech.extras is None`` and the step pays one ``is None``
+test per hook.
 
 * **Mapped joints** (joint_maps.py): J_rR rows of the carriers refreshed at the start of the step,
   the Jdot_rR qdot_R term of Eq. 2.89 in the RHS, coordinates integrated / carriers re-synchronised,
@@ -30,15 +34,20 @@ A Mechanism whose scene uses any of them gets ``mech.extras = Extras(...)``; oth
 """
 from __future__ import annotations
 
+import copy
+
 import numpy as np
 import pinocchio as pin
 
 from redmax_ros.core.errors import SceneError
 from redmax_ros.core.geometry.joints import q_index
+from redmax_ros.core.dynamics.forces import coriolis_jacobian
 from redmax_ros.core.dynamics.kinematics import frame_jacobian, site_positions
+from redmax_ros.core.dynamics.stabilization import TOL as LOOP_TOL
+from redmax_ros.core.dynamics.stabilization import loop_residual
+from redmax_ros.core.dynamics.tree_kinematics import Context
 
 TOL = 1e-12  # linear joint constraints [coordinate units]
-LOOP_TOL = 1e-10  # loops: stabilization.TOL [m]
 
 
 class Extras:
@@ -98,7 +107,8 @@ class Extras:
                 ji = mech.joint_index[js.name]
                 sub = [k for k in range(1, model.njoints) if _descends(model, k, ji.jid)]
                 self.momentum_roots.append((ji.jid, slice(ji.idx_v, ji.idx_v + ji.nv), sub))
-        self._mdata = model.createData() if self.momentum_roots else None
+        self._mdata = None  # pin.Data of the momentum projection (runtime copies only)
+        self.q0 = None  # the initial configuration after prepare()
 
     @property
     def has_rows(self) -> bool:
@@ -106,8 +116,19 @@ class Extras:
 
     # ------------------------------------------------------------------------------------------
     # compile time
+    def runtime(self, mech):
+        """This Extras' copy for one step workspace: its own joint-map state and momentum pin.Data; the
+        compiled constants are shared (never written after compile)."""
+        rt = copy.copy(self)
+        rt.maps = copy.deepcopy(self.maps)
+        rt._mdata = mech.model.createData() if self.momentum_roots else None
+        rt.t = 0.0
+        return rt
+
     def prepare(self, mech):
-        """At compile: carriers on their joints, default constraint values, initial projection."""
+        """At compile: carriers on their joints, default constraint values, initial projection. Sets
+        ``self.q0`` and writes J_rR at q0 into ``mech.T`` (the compile-time array)."""
+        ws = _CompileWork(mech)
         q = mech.q0.copy()
         if self.maps is not None:
             self.maps.sync(q)
@@ -121,23 +142,22 @@ class Extras:
             s = np.einsum("pi,pi->p", X[self.ds_ab[:, 0]] - X[self.ds_ab[:, 1]], self.ds_dir)
             self.ds_rest = np.where(np.isnan(self.ds_rest), s, self.ds_rest)
         if self.has_rows or (self.maps is not None and len(mech.loop_ab)):
-            q, err = self.project(mech, mech.model.createData(), q, (), max_iter=100)
+            q, err = self.project(mech, ws, q, (), max_iter=100)
             if err > 1e-9:
                 raise SceneError(mech.spec.source, "constraints",
                                  f"cannot satisfy the linear joint constraints (and loops) from the initial "
                                  f"configuration (residual {err:.3g}); check q0 and the constraint values")
             if self.has_rows:
-                self._check_rank(mech, data=mech.model.createData(), q=q)
-        mech.q0 = q
+                self._check_rank(mech, ws, q)
+        self.q0 = q
         if self.maps is not None:
             self.maps.refresh(mech.T, q)
             self.maps.fill_velocity(q)
 
-    def _check_rank(self, mech, data, q):
-        G = self.G_lin if mech.T is None else self.G_lin @ mech.T
+    def _check_rank(self, mech, ws, q):
+        G = self.G_lin if ws.T is None else self.G_lin @ ws.T
         if len(mech.loop_ab):
-            from redmax_ros.core.dynamics.stabilization import loop_residual
-            G = np.vstack([loop_residual(mech, data, q)[1], G])
+            G = np.vstack([loop_residual(ws.tree, q)[1], G])
         sv = np.linalg.svd(G, compute_uv=False)
         if np.sum(sv > 1e-9 * max(sv[0], 1e-300)) < len(G):
             raise SceneError(mech.spec.source, "constraints", "the linear joint constraints are redundant "
@@ -146,26 +166,26 @@ class Extras:
 
     # ------------------------------------------------------------------------------------------
     # state hooks
-    def at_state(self, mech, q, t=0.0):
-        """Make the configuration-dependent parts of ``mech`` those of configuration q at time t (called by
-        Simulator.reset/set_state): J_rR = mech.T of the mapped joints (Eq. 2.88) is refreshed in place at q,
-        so that mech.to_reduced and everything else reading T between steps sees the state's J_rR, not
-        that of the last stepped configuration."""
+    def at_state(self, ws, q, t=0.0):
+        """Make the configuration-dependent parts of the workspace those of configuration q at time t
+        (called by Simulator.reset/set_state): J_rR = ws.T of the mapped joints (Eq. 2.88) is refreshed in
+        place at q, so that ws.to_reduced and everything else reading T between steps sees the state's
+        J_rR, not that of the last stepped configuration."""
         self.t = t
         if self.maps is not None:
-            self.maps.refresh(mech.T, q)
+            self.maps.refresh(ws.T, q)
 
     # ------------------------------------------------------------------------------------------
     # step hooks
-    def begin(self, mech, state):
+    def begin(self, mech, ws, state):
         """Start of a step: time of the explicit loads; J_rR at the current coordinates."""
         self.t = state.t
         if self.maps is not None:
-            self.maps.refresh(mech.T, state.q)
+            self.maps.refresh(ws.T, state.q)
         if self.momentum_roots:
-            self._before = self._momentum_state(mech, state.q, mech.to_reduced(state.v))
+            self._before = self._momentum_state(mech, ws, state.q, ws.to_reduced(state.v))
 
-    def forces(self, mech, data, kin, q, v_r, h, A, f):
+    def forces(self, mech, ws, kin, q, v_r, h, A, f):
         """Add to the (Pinocchio-space, before the J_rR projection) LHS A and force f of Eq. (2)."""
         if self.maps is not None:  # quadratic velocity term of the configuration-dependent J_rR (Eq. 2.89)
             f -= kin.M @ self.maps.bias(q, v_r, mech.nv)
@@ -176,45 +196,45 @@ class Extras:
         for fid, com_fid, ff, ft in self.wrenches:
             F = np.array([fn(t) for fn in ff])
             Tq = np.array([fn(t) for fn in ft])
-            _, Jc, Jw, _ = frame_jacobian(mech, data, fid)
+            _, Jc, Jw, _ = frame_jacobian(mech, ws.data, fid)
             f += Jc.T @ F + Jw.T @ Tq
         if len(self.ds_ab):
             for (a, b), d, k, c, L0 in zip(self.ds_ab, self.ds_dir, self.ds_k, self.ds_c, self.ds_rest):
-                xa, Ja = _site(mech, data, a)
-                xb, Jb = _site(mech, data, b)
+                xa, Ja = _site(mech, ws.data, a)
+                xb, Jb = _site(mech, ws.data, b)
                 Jd = d @ (Ja - Jb)  # (nv,)
                 s = float(d @ (xa - xb))
                 A += (h * c + h * h * k) * np.outer(Jd, Jd)
                 f += Jd * (-k * (s - L0))
 
-    def rows(self, mech):
+    def rows(self, ws):
         """Bilateral rows of the linear constraints in hyper-reduced coordinates (rhs 0)."""
-        G = self.G_lin if mech.T is None else self.G_lin @ mech.T
+        G = self.G_lin if ws.T is None else self.G_lin @ ws.T
         return G, np.zeros(len(G)), [(f"constraint '{n}'", 1) for n in self.lin_names]
 
-    def end(self, mech, data, q_new, vR, hold_dofs=(), h=None):
+    def end(self, mech, ws, q_new, vR, hold_dofs=(), h=None):
         """End of a step: reparameterise, re-synchronise carriers, project onto the linear constraints
         (with the loops). Returns (q, vR, v_r) with v_r = J_rR(q) vR."""
         vR = vR.copy()
         if self.momentum_roots:
-            targets = self._momentum_targets(mech, mech.to_reduced(vR), h)
+            targets = self._momentum_targets(ws.to_reduced(vR), h)
         if self.maps is not None:
-            self.maps.reparameterize(q_new, vR, mech.T)
+            self.maps.reparameterize(q_new, vR, ws.T)
             self.maps.sync(q_new)
             if self.maps.euler:  # spherical_euler chart switching (Eq. 2.40; euler_charts.py)
-                self.maps.switch_charts(q_new, vR, mech.T)
+                self.maps.switch_charts(q_new, vR, ws.T)
         if self.has_rows or (self.maps is not None and len(mech.loop_ab)):
-            if self._needs_projection(mech, data, q_new):
-                q_new, _ = self.project(mech, data, q_new, hold_dofs)
+            if self._needs_projection(mech, ws, q_new):
+                q_new, _ = self.project(mech, ws, q_new, hold_dofs)
         if self.maps is not None:
-            self.maps.refresh(mech.T, q_new)
+            self.maps.refresh(ws.T, q_new)
         if self.momentum_roots:
-            vR = self._project_momentum(mech, q_new, vR, targets)
-        return q_new, vR, mech.to_reduced(vR)
+            vR = self._project_momentum(mech, ws, q_new, vR, targets)
+        return q_new, vR, ws.to_reduced(vR)
 
     # ------------------------------------------------------------------------------------------
     # momentum projection (free3d roots with conserve_momentum)
-    def _momentum_state(self, mech, q, v_r):
+    def _momentum_state(self, mech, ws, q, v_r):
         """At the start of the step: per root (H_O (6,), J_s^-T (6,6)), plus M and C (Pinocchio space)."""
         model, d = mech.model, self._mdata
         M = pin.crba(model, d, q).copy()
@@ -222,8 +242,7 @@ class Extras:
         C = pin.nonLinearEffects(model, d, q, v_r) - pin.computeGeneralizedGravity(model, d, q)
         self._Kv = None
         if mech.coriolis_implicit:  # the step's Coriolis force is C + K_v (qdot+ - qdot) (forces.assemble)
-            from redmax_ros.core.dynamics.forces import coriolis_jacobian
-            self._Kv = coriolis_jacobian(mech, q, v_r)
+            self._Kv = coriolis_jacobian(mech, ws, q, v_r)
         pin.computeJointJacobians(model, d, q)
         roots = []
         for jid, sl, sub in self.momentum_roots:
@@ -231,7 +250,7 @@ class Extras:
             roots.append((self._subtree_map(mech, d, sub) @ v_r, np.linalg.inv(Js).T))
         return M, C, v_r.copy(), roots
 
-    def _momentum_targets(self, mech, v_r_new, h):
+    def _momentum_targets(self, v_r_new, h):
         M, C, v_r, roots = self._before
         imp = M @ (v_r_new - v_r) + h * C  # external generalized impulse of the step (root rows)
         if self._Kv is not None:  # integrator.coriolis: implicit
@@ -248,9 +267,9 @@ class Extras:
             A += Iw @ pin.getJointJacobian(model, d, k, pin.ReferenceFrame.WORLD)
         return A
 
-    def _project_momentum(self, mech, q, vR, targets):
+    def _project_momentum(self, mech, ws, q, vR, targets):
         model, d = mech.model, self._mdata
-        T = mech.T if mech.T is not None else np.eye(mech.nv)
+        T = ws.T if ws.T is not None else np.eye(mech.nv)
         M = pin.crba(model, d, q)
         M = np.triu(M) + np.triu(M, 1).T
         MR = T.T @ M @ T
@@ -260,15 +279,13 @@ class Extras:
         Y = np.linalg.solve(MR, A.T)
         return vR + Y @ np.linalg.solve(A @ Y, r)
 
-    def energy(self, mech, data) -> float:
-        """Energy of the direction springs [J] at the forward kinematics in data."""
+    def energy(self, X) -> float:
+        """Energy of the direction springs [J] from the world positions X (S,3) of all sites."""
         if not len(self.ds_ab):
             return 0.0
-        X = site_positions(mech, data, sorted(set(self.ds_ab.ravel().tolist())))
-        idx = {s: i for i, s in enumerate(sorted(set(self.ds_ab.ravel().tolist())))}
         e = 0.0
         for (a, b), d, k, L0 in zip(self.ds_ab, self.ds_dir, self.ds_k, self.ds_rest):
-            s = float(d @ (X[idx[a]] - X[idx[b]]))
+            s = float(d @ (X[a] - X[b]))
             e += 0.5 * k * (s - L0) ** 2
         return e
 
@@ -279,34 +296,31 @@ class Extras:
             return np.zeros(0)
         return self.G_lin[:, self.lin_cols] @ q[self.lin_q[self.lin_cols]] - self.lin_value
 
-    def _needs_projection(self, mech, data, q):
+    def _needs_projection(self, mech, ws, q):
         r = self.lin_residual(q)
         if len(r) and float(np.abs(r).max()) > TOL:
             return True
         if len(mech.loop_ab):
-            from redmax_ros.core.dynamics.stabilization import loop_phi
-            pin.forwardKinematics(mech.model, data, q)
-            return float(np.abs(loop_phi(mech, data)).max()) > LOOP_TOL
+            return ws.tree.loop_phi_at(q)[1] > LOOP_TOL
         return False
 
-    def project(self, mech, data, q, hold_dofs=(), tol=TOL, max_iter=10):
+    def project(self, mech, ws, q, hold_dofs=(), tol=TOL, max_iter=10):
         """Least-norm Gauss-Newton onto {loops closed, G_lin q = value}, keeping ``hold_dofs`` fixed."""
-        from redmax_ros.core.dynamics.stabilization import loop_residual
         nd = mech.ndof
         hold = np.zeros((len(hold_dofs), nd))
         hold[np.arange(len(hold_dofs)), list(hold_dofs)] = 1.0
         err = np.inf
         for _ in range(max_iter + 1):
             if self.maps is not None:
-                self.maps.refresh(mech.T, q)
+                self.maps.refresh(ws.T, q)
             res, Gs = [], []
             if len(mech.loop_ab):
-                phi, G = loop_residual(mech, data, q)
+                phi, G = loop_residual(ws.tree, q)
                 res.append(phi)
                 Gs.append(G)
             if self.has_rows:
                 res.append(self.lin_residual(q))
-                Gs.append(self.G_lin @ mech.T if mech.T is not None else self.G_lin)
+                Gs.append(self.G_lin @ ws.T if ws.T is not None else self.G_lin)
             r = np.concatenate(res) if res else np.zeros(0)
             err = float(np.abs(r).max()) if len(r) else 0.0
             if err < tol:
@@ -316,7 +330,7 @@ class Extras:
             K = np.vstack(Gs + [hold])
             rhs = np.concatenate([-r, np.zeros(len(hold))])
             dq, *_ = np.linalg.lstsq(K, rhs, rcond=None)
-            q = pin.integrate(mech.model, q, mech.to_reduced(dq))
+            q = pin.integrate(mech.model, q, ws.to_reduced(dq))
             if self.maps is not None:
                 self.maps.sync(q)
         return q, err
@@ -340,9 +354,24 @@ def _site(mech, data, s):
 
 
 def attach(mech, maps):
-    """Create mech.extras when the scene uses catalogue features (called by compile_scene)."""
+    """The Extras of a mechanism whose scene uses catalogue features, prepared (``extras.q0``), or None
+    (called by step.compile.compile_scene)."""
     cat = mech.spec.catalogue
     if maps is None and cat is None and not any(j.extra.get("conserve_momentum") for j in mech.spec.joints):
-        return
-    mech.extras = Extras(mech, maps, cat)
-    mech.extras.prepare(mech)
+        return None
+    extras = Extras(mech, maps, cat)
+    extras.prepare(mech)
+    return extras
+
+
+class _CompileWork:
+    """The few workspace parts Extras.prepare needs at compile time: the compile-time J_rR (written in
+    place), a pin.Data and a recursive kinematics Context."""
+
+    def __init__(self, mech):
+        self.T = mech.T
+        self.data = mech.model.createData()
+        self.tree = Context(mech, self.T)
+
+    def to_reduced(self, vR):
+        return vR if self.T is None else self.T @ vR

@@ -11,44 +11,12 @@ Unilateral rows: joint limits lower <= q + h qdot <= upper on each limited DOF.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
 from redmax_ros.core.jit import njit
-
-
-@dataclass
-class Constraints:
-    G: np.ndarray  # (m,n) bilateral rows
-    g: np.ndarray  # (m,)
-    label_spans: list  # (label, number of rows) in row order; labels are built only for error messages
-    joint_rows: dict = field(default_factory=dict)  # prescribed joint -> slice of rows
-    site_rows: dict = field(default_factory=dict)  # prescribed site -> slice of rows
-    loop_rows: slice = field(default_factory=lambda: slice(0, 0))
-    C: np.ndarray | None = None  # (p,n) unilateral rows
-    lo: np.ndarray | None = None
-    hi: np.ndarray | None = None
-    C_labels: list = field(default_factory=list)
-
-    @property
-    def m(self) -> int:
-        return len(self.g)
-
-    @property
-    def labels(self) -> list:
-        """One label per bilateral row (for error messages)."""
-        return [lab for lab, n in self.label_spans for _ in range(n)]
-
-
-def loop_rows(mech, X, J):
-    """(G_r, phi): loop-closure rows in reduced coordinates and their position residual [m].
-    X, J: Kinematics.X/J (rows in mech.loop_rows_ab); phi = S (x_a - x_b) with S = mech.loop_select."""
-    if not len(mech.loop_ab):
-        return np.zeros((0, mech.nv)), np.zeros(0)
-    A, B = mech.loop_rows_ab[:, 0], mech.loop_rows_ab[:, 1]
-    S = mech.loop_select
-    return S @ (J[A] - J[B]).reshape(-1, J.shape[2]), S @ (X[A] - X[B]).reshape(-1)
+from redmax_ros.core.solvers.problem import Constraints
 
 
 @njit
@@ -67,7 +35,7 @@ def _loop_G(J, ab, S):
 @dataclass
 class RowLayout:
     """Where each bilateral row of a step goes, for one set of prescribed joints and sites (the rows
-    change only when the set of prescriptions does; cached per set in Mechanism.layout_cache)."""
+    change only when the set of prescriptions does; cached per set in the step workspace)."""
     m: int  # rows (without the catalogue's linear joint constraints)
     spans: list  # (label, rows) in row order
     loop_rows: slice
@@ -77,14 +45,44 @@ class RowLayout:
     site_block: slice  # prescribed sites
     site_rows: dict  # site -> slice
     site_k: tuple  # rows per prescribed site (3, or the number of its axes)
-    site_J_rows: np.ndarray | None = None  # rows of Kinematics.J (flattened (3K,nv)) of the sites, set on first use
 
 
-def row_layout(mech, prescribed_joints, prescribed_sites, axes) -> RowLayout:
+def prescribed_joint_rows(mech, ws, name: str, hyper: bool = True) -> np.ndarray:
+    """Rows *G_r of a prescribed joint (identity on its DOFs, Eq. 7), projected by J_rR unless ``hyper``
+    is False (cached in ws)."""
+    key = ("joint rows", name, hyper)
+    G = ws.cache.get(key)
+    if G is None:
+        j = mech.joint_index[name]
+        G = np.zeros((j.nv, mech.nv))
+        G[:, j.idx_v:j.idx_v + j.nv] = np.eye(j.nv)
+        G = ws.cache[key] = G if ws.T is None or not hyper else G @ ws.T
+    return G
+
+
+def held_dofs(mech, ws, prescribed_joints) -> list:
+    """Hyper-reduced DOFs moved by the prescribed joints (kept fixed by loop stabilization; cached in ws
+    per set of joints)."""
+    key = ("held", *prescribed_joints)
+    hit = ws.cache.get(key)
+    if hit is None:
+        held = set()
+        for name in prescribed_joints:
+            j = mech.joint_index[name]
+            for d in range(j.idx_v, j.idx_v + j.nv):
+                if ws.T is None:
+                    held.add(d)
+                else:
+                    held.update(np.flatnonzero(ws.T[d]).tolist())
+        hit = ws.cache[key] = sorted(held)
+    return hit
+
+
+def row_layout(mech, ws, prescribed_joints, prescribed_sites, axes, hyper: bool = True) -> RowLayout:
     """The RowLayout for prescribed joints and sites (names, in order); ``axes`` {site: (k,3)}."""
     key = (tuple(prescribed_joints), tuple(prescribed_sites),
-           tuple(3 if axes.get(n) is None else len(axes[n]) for n in prescribed_sites) if axes else None)
-    lay = mech.layout_cache.get(key)
+           tuple(3 if axes.get(n) is None else len(axes[n]) for n in prescribed_sites) if axes else None, hyper)
+    lay = ws.cache.get(key)
     if lay is not None:
         return lay
     site_counts = [(n, 3 if axes.get(n) is None else len(axes[n])) for n in prescribed_sites]
@@ -92,9 +90,9 @@ def row_layout(mech, prescribed_joints, prescribed_sites, axes) -> RowLayout:
     nl = sum(len(ax) for ax in mech.loop_axes) if len(mech.loop_ab) else 0
     spans += [(f"loop '{name}'", len(ax)) for name, ax in zip(mech.loop_names, mech.loop_axes)] if nl else []
     r = nl
-    Gj = [np.zeros((0, mech.ndof))]
+    Gj = [np.zeros((0, mech.ndof if hyper else mech.nv))]
     for name in prescribed_joints:
-        G = mech.joint_rows(name)  # constant rows of J_rR (already projected)
+        G = prescribed_joint_rows(mech, ws, name, hyper)  # constant rows of J_rR (already projected)
         Gj.append(G)
         spans.append((f"prescribed joint '{name}'", len(G)))
         joint_rows[name] = slice(r, r + len(G))
@@ -106,7 +104,7 @@ def row_layout(mech, prescribed_joints, prescribed_sites, axes) -> RowLayout:
         r += k
     lay = RowLayout(r, spans, slice(0, nl), slice(nl, r_sites), np.vstack(Gj), joint_rows,
                     slice(r_sites, r), site_rows, tuple(k for _, k in site_counts))
-    mech.layout_cache[key] = lay
+    ws.cache[key] = lay
     return lay
 
 
@@ -121,16 +119,20 @@ def _stack(vals):
         return np.concatenate([np.atleast_1d(np.asarray(x, float)) for x in vals])
 
 
-def build(mech, kin, q, prescribed_joints: dict, prescribed_sites: dict, h: float, site_axes=None) -> Constraints:
-    """All constraint rows of this step, in hyper-reduced coordinates. ``site_axes``: {site: (k,3)}
-    world directions along which a prescribed site's velocity is imposed (default all three)."""
-    T = mech.T
+def build(mech, ws, G_loop, J_sites, q, prescribed_joints: dict, prescribed_sites: dict, h: float, site_axes=None,
+          hyper: bool = True) -> Constraints:
+    """All constraint rows of this step. The kinematics come from the backend: ``G_loop`` (rows, nv) the
+    loop rows S (J_a - J_b) in reduced coordinates (or None without loops), ``J_sites`` (s, 3, nv) the
+    point Jacobians of the prescribed sites in their order (or None). ``site_axes``: {site: (k,3)} world
+    directions along which a prescribed site's velocity is imposed (default all three). ``hyper``: rows
+    in hyper-reduced coordinates (projected by the workspace's J_rR, ws.T), else in reduced ones (the PCG
+    path, which imposes the couplings as rows)."""
+    T = ws.T if hyper else None
     axes = site_axes or {}
-    lay = row_layout(mech, prescribed_joints, prescribed_sites, axes)
-    G = np.empty((lay.m, mech.ndof))
+    lay = row_layout(mech, ws, prescribed_joints, prescribed_sites, axes, hyper)
+    G = np.empty((lay.m, mech.nv if T is None else T.shape[1]))
     g = np.empty(lay.m)
     if lay.loop_rows.stop:
-        G_loop = _loop_G(kin.J, mech.loop_rows_ab, mech.loop_select)
         G[lay.loop_rows] = G_loop if T is None else G_loop @ T
         g[lay.loop_rows] = 0.0
     if prescribed_joints:
@@ -138,45 +140,38 @@ def build(mech, kin, q, prescribed_joints: dict, prescribed_sites: dict, h: floa
         g[lay.joint_block] = _stack(prescribed_joints.values())
     if prescribed_sites:
         if axes:
-            Js = kin.J[[kin.row[mech.site_index[n]] for n in prescribed_sites]]  # (s,3,nv)
             for k, (name, vel) in enumerate(prescribed_sites.items()):
                 P = axes.get(name)
                 sl = lay.site_rows[name]
-                rows = Js[k] if P is None else P @ Js[k]
+                rows = J_sites[k] if P is None else P @ J_sites[k]
                 G[sl] = rows if T is None else rows @ T
                 g[sl] = vel if P is None else P @ vel
-        else:  # all three directions: the sites' rows of J (their order in kin is fixed per site set)
-            if lay.site_J_rows is None:
-                rows = np.array([kin.row[mech.site_index[n]] for n in prescribed_sites])
-                lay.site_J_rows = (3 * rows[:, None] + np.arange(3)).reshape(-1)
-            Js = kin.J.reshape(-1, mech.nv)[lay.site_J_rows]
+        else:  # all three directions
+            Js = J_sites.reshape(-1, mech.nv)
             if T is None:
                 G[lay.site_block] = Js
             else:
                 np.matmul(Js, T, out=G[lay.site_block])
             g[lay.site_block] = _stack(prescribed_sites.values())
     spans = lay.spans
-    if mech.extras is not None and mech.extras.has_rows:  # linear joint constraints, G_r (catalogue.py)
-        G_l, g_l, sp = mech.extras.rows(mech)
+    if ws.extras is not None and ws.extras.has_rows:  # linear joint constraints, G_r (catalogue_hooks.py)
+        G_l, g_l, sp = ws.extras.rows(ws)
         G, g, spans = np.vstack([G, G_l]), np.concatenate([g, g_l]), spans + sp
     out = Constraints(G=G, g=g, label_spans=spans, joint_rows=lay.joint_rows, site_rows=lay.site_rows,
                       loop_rows=lay.loop_rows)
     if len(mech.limited):
         out.C = mech.limit_rows
-        lower, upper = _limit_bounds(mech)
         ql = q[mech.limited_q]
-        out.lo = (lower - ql) / h
-        out.hi = (upper - ql) / h
+        out.lo = (mech.limit_lower - ql) / h
+        out.hi = (mech.limit_upper - ql) / h
         out.C_labels = mech.limit_labels
     return out
 
 
-def _limit_bounds(mech):
-    """(lower, upper) of the limited DOFs [rad, m] (constant; cached)."""
-    b = mech.layout_cache.get("limit bounds")
-    if b is None:
-        b = mech.layout_cache["limit bounds"] = (mech.lower[mech.limited], mech.upper[mech.limited])
-    return b
+def loop_rows_of(mech, J) -> np.ndarray:
+    """Loop rows S (J_a - J_b) (rows, nv) in reduced coordinates from Kinematics.J (rows of the loop sites
+    in mech.loop_rows_ab), in one compiled call."""
+    return _loop_G(J, mech.loop_rows_ab, mech.loop_select)
 
 
 _EMPTY = np.zeros(0)

@@ -17,23 +17,16 @@ Hyper-reduced coordinates (Eq. 9-10) project the result with T = J_rR: T^T A T, 
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import numpy as np
 import pinocchio as pin
 
 from redmax_ros.core.dynamics.kinematics import Kinematics, frame_jacobian
 from redmax_ros.core.jit import njit
+from redmax_ros.core.solvers.problem import LinearSystem
+from redmax_ros.core.dynamics.springs import joint_displacement, spring_terms
 
 
-@dataclass
-class LinearSystem:
-    A: np.ndarray  # (n,n) LHS of Eq. (2), symmetric positive definite (unless symmetric is False)
-    b: np.ndarray  # (n,) RHS of Eq. (2)
-    symmetric: bool = True  # False with integrator.coriolis: implicit (A has h K_v, K_v not symmetric)
-
-
-def coriolis_jacobian(mech, q: np.ndarray, v: np.ndarray) -> np.ndarray:
+def coriolis_jacobian(mech, ws, q: np.ndarray, v: np.ndarray) -> np.ndarray:
     """K_v = d(nle)/d(qdot) (nv,nv) at (q, v) (gravity does not depend on qdot).
 
     The Coriolis/centrifugal part c(q, v) of nle (RNEA at zero acceleration without gravity) is exactly
@@ -42,13 +35,13 @@ def coriolis_jacobian(mech, q: np.ndarray, v: np.ndarray) -> np.ndarray:
     Pinocchio's computeRNEADerivatives is not used: in pin 4.1 its dtau_dv is wrong for joints with a
     velocity-dependent bias (universal, composite: off by up to 50 %, checked against finite differences;
     spherical, free flyer and translation joints agree to 1e-11). Cost: 2 nv RNEA calls on a zero-gravity
-    copy of the model (its own pin.Data, so the step's workspace is untouched)."""
-    ws = mech.coriolis_ws
-    if ws is None:
+    copy of the model (its own pin.Data, kept in the workspace cache; the step's pin.Data is untouched)."""
+    zg = ws.cache.get("coriolis")
+    if zg is None:
         model0 = pin.Model(mech.model)
         model0.gravity = pin.Motion.Zero()
-        ws = mech.coriolis_ws = (model0, model0.createData(), np.zeros(mech.nv))
-    model0, d0, a0 = ws
+        zg = ws.cache["coriolis"] = (model0, model0.createData(), np.zeros(mech.nv))
+    model0, d0, a0 = zg
     return quadratic_jacobian(lambda x: pin.rnea(model0, d0, q, x, a0).copy(), v)
 
 
@@ -70,51 +63,13 @@ def quadratic_jacobian(fn, v: np.ndarray) -> np.ndarray:
     return K
 
 
-def spring_forces(mech, X: np.ndarray):
-    """Per spring, from the positions X (rows in mech.spring_rows): force on end a (P,3), 3x3 stiffness
-    K (P,3,3), 3x3 damping D (P,3,3), lengths (P,). Shared by the direct and matrix-free paths.
-
-    f_a = -k (l - L0) u,  K = k [u u^T + max(0, 1 - L0/l) (I - u u^T)],  D = c u u^T.
-    The transverse (geometric) term is clamped at zero for compressed springs so that the LHS of
-    Eq. (2) stays positive definite (a compressed spring's negative transverse stiffness would
-    otherwise make the linear system indefinite).
-    """
-    a, b = mech.spring_rows[:, 0], mech.spring_rows[:, 1]
-    d = X[a] - X[b]
-    l = np.sqrt(np.einsum("pi,pi->p", d, d))
-    tiny = l <= 1e-12
-    safe = np.where(tiny, 1.0, l)
-    u = d / safe[:, None]
-    k, c, L0 = mech.spring_k, mech.spring_d, mech.spring_rest
-    f = -(k * (l - L0))[:, None] * u
-    uu = u[:, :, None] * u[:, None, :]
-    trans = np.where(tiny, 1.0, np.maximum(1.0 - L0 / safe, 0.0))
-    K = k[:, None, None] * (uu + trans[:, None, None] * (_I3 - uu))
-    D = c[:, None, None] * uu
-    return f, K, D, l
-
-
-def spring_terms(mech, X: np.ndarray, J: np.ndarray):
-    """:func:`spring_forces` plus the Jacobian of the end difference (P,3,nv) from J (K,3,nv):
-    returns (f_a, K, D, J_a - J_b, lengths)."""
-    f, K, D, l = spring_forces(mech, X)
-    return f, K, D, J[mech.spring_rows[:, 0]] - J[mech.spring_rows[:, 1]], l
-
-
-_I3 = np.eye(3)[None]
-
-
-def joint_displacement(mech, q: np.ndarray) -> np.ndarray:
-    """q - q_rest on the configuration manifold (pin.difference), per velocity DOF."""
-    return pin.difference(mech.model, mech.q_rest, q)
-
-
-def assemble(mech, data, kin: Kinematics, q, v_r, tau, h, site_forces=None) -> LinearSystem:
-    """Eq. (2): returns (A, b) in hyper-reduced coordinates.
+def assemble(mech, ws, kin: Kinematics, q, v_r, tau, h, site_forces=None) -> LinearSystem:
+    """Eq. (2): returns (A, b) in hyper-reduced coordinates (projected by the workspace's J_rR, ws.T).
 
     ``tau`` (nv,) explicit joint torques [N m]; ``site_forces`` {site index: (3,) world force [N]}
-    explicit maximal point forces (J_site^T f). Needs data from kinematics.compute.
+    explicit maximal point forces (J_site^T f). Needs ws.data from kinematics.compute.
     """
+    data = ws.data
     M = kin.M
     A = None  # maximal and catalogue terms of the LHS, added to M + h D_r + h^2 K_r below
     f = tau - kin.nle  # f_r + J^T (f_m - M_m Jdot qdot)
@@ -139,16 +94,16 @@ def assemble(mech, data, kin: Kinematics, q, v_r, tau, h, site_forces=None) -> L
     if site_forces:
         for s, fv in site_forces.items():
             f += kin.J[kin.row[s]].T @ fv
-    if mech.extras is not None:  # catalogue force elements; Jdot_rR qdot_R of spline/exp joints (catalogue.py)
-        mech.extras.forces(mech, data, kin, q, v_r, h, A, f)
+    if ws.extras is not None:  # catalogue force elements; Jdot_rR qdot_R of spline/exp joints (catalogue_hooks.py)
+        ws.extras.forces(mech, ws, kin, q, v_r, h, A, f)
     if mech.coriolis_implicit:  # nle(q, qdot+) ~ nle(q, qdot) + K_v (qdot+ - qdot): h K_v on the LHS, h K_v qdot on the RHS
-        Kv = coriolis_jacobian(mech, q, v_r)
-        if mech.extras is not None and mech.extras.maps is not None:  # M Jdot_rR qdot_R of mapped joints (Eq. 2.89)
-            Kv += M @ quadratic_jacobian(lambda x: mech.extras.maps.bias(q, x, mech.nv), v_r)
+        Kv = coriolis_jacobian(mech, ws, q, v_r)
+        if ws.extras is not None and ws.extras.maps is not None:  # M Jdot_rR qdot_R of mapped joints (Eq. 2.89)
+            Kv += M @ quadratic_jacobian(lambda x: ws.extras.maps.bias(q, x, mech.nv), v_r)
         A = h * Kv if A is None else A + h * Kv
         f += Kv @ v_r
-    A, b = _lhs_rhs(M, mech.reduced_diag_vector(h), _NONE if A is None else A, f, v_r, h,
-                    _NONE if mech.T is None else mech.T)
+    A, b = _lhs_rhs(M, ws.tree.reduced_diag(h), _NONE if A is None else A, f, v_r, h,
+                    _NONE if ws.T is None else ws.T)
     return LinearSystem(A, b, not mech.coriolis_implicit)
 
 

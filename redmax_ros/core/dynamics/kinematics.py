@@ -63,28 +63,29 @@ def _point_jacobians(J6, X, support):
 GATHER_MAX = 8  # sites: up to this many, positions are read from Pinocchio's frames (~1.4 us each)
 
 
-def _site_set(mech, sites):
-    """(frame ids, DOF support (K,nv), joint ids, offsets) of a list of sites, cached per list."""
+def _site_set(mech, ws, sites):
+    """(frame ids, DOF support (K,nv), joint ids, offsets) of a list of sites, cached per list in ws."""
     key = ("sites", *sites)
-    hit = mech.site_cache.get(key)
+    hit = ws.cache.get(key)
     if hit is None:
         idx = list(sites)
-        hit = mech.site_cache[key] = ([int(mech.site_fid[s]) for s in sites],
+        hit = ws.cache[key] = ([int(mech.site_fid[s]) for s in sites],
                                       np.ascontiguousarray(mech.site_support[idx]),
                                       np.ascontiguousarray(np.asarray(mech.site_jid)[idx], dtype=np.int64),
                                       np.ascontiguousarray(mech.site_local[idx], dtype=float))
     return hit
 
 
-def site_jacobians(mech, data, sites, q=None):
-    """(X (K,3), J (K,3,nv)) for the listed sites. Needs joint Jacobians in data (computeJointJacobians)
-    at q. Positions: from Pinocchio's frame placements for a few sites; with q given and more than
-    GATHER_MAX sites, from one compiled forward-kinematics pass (data_free.Context.site_positions_at;
-    same numbers to round-off) instead of one frame read per site."""
-    fids, support, jid, local = _site_set(mech, sites)
+def site_jacobians(mech, ws, sites, q=None):
+    """(X (K,3), J (K,3,nv)) for the listed sites. Needs joint Jacobians in ws.data
+    (computeJointJacobians) at q. Positions: from Pinocchio's frame placements for a few sites; with q
+    given and more than GATHER_MAX sites, from one compiled forward-kinematics pass
+    (tree_kinematics.Context.site_positions_at; same numbers to round-off) instead of one frame read per
+    site."""
+    data = ws.data
+    fids, support, jid, local = _site_set(mech, ws, sites)
     if q is not None and len(sites) > GATHER_MAX:
-        from redmax_ros.core.dynamics.data_free import context  # data_free imports this module
-        X = context(mech).site_positions_at(q, jid, local)
+        X = ws.tree.site_positions_at(q, jid, local)
     else:
         pin.updateFramePlacements(mech.model, data)
         oMf, loc = data.oMf, mech.site_local
@@ -92,19 +93,21 @@ def site_jacobians(mech, data, sites, q=None):
     return X, _point_jacobians(data.J.reshape(6, mech.nv), X, support)
 
 
-def compute(mech, data, q, v, extra_sites=()) -> Kinematics:
-    """All quantities of the current configuration the step needs (one Pinocchio pass + frames)."""
+def compute(mech, ws, q, v, extra_sites=()) -> Kinematics:
+    """All quantities of the current configuration the step needs (one Pinocchio pass + frames), in the
+    workspace's pin.Data."""
     nv = mech.nv
+    data = ws.data
     pin.computeAllTerms(mech.model, data, q, v)
     sites, row = mech.jac_sites, mech.jac_row
     if extra_sites:
         key = ("extra", *extra_sites)
-        hit = mech.site_cache.get(key)
+        hit = ws.cache.get(key)
         if hit is None:
             s2 = sites + [s for s in dict.fromkeys(extra_sites) if s not in mech.jac_row]
-            hit = mech.site_cache[key] = (s2, {s: k for k, s in enumerate(s2)})
+            hit = ws.cache[key] = (s2, {s: k for k, s in enumerate(s2)})
         sites, row = hit
-    X, J = site_jacobians(mech, data, sites, q)
+    X, J = site_jacobians(mech, ws, sites, q)
     return Kinematics(M=data.M.reshape(nv, nv), nle=data.nle.reshape(nv), sites=sites, row=row, X=X, J=J)
 
 

@@ -1,92 +1,172 @@
 """Loop-closure drift: post-stabilization by projection (Gauss-Newton, least-norm correction).
 
 The velocity-level constraint G qdot = 0 (Eq. 5/6) leaves O(h^2) position drift per step. After
-each configuration update we project q back onto the loop manifold phi(q) = 0 with least-norm
+each configuration update q is projected back onto the loop manifold phi(q) = 0 with least-norm
 Newton steps in hyper-reduced coordinates, dq = -G^+ phi, keeping prescribed joints fixed, until
-max |phi| < ``tol`` (default 1e-10 m) or ``max_iter`` iterations (default 5). Velocities are not
-projected (the next step's velocity constraint acts on them). This replaces Baumgarte's
-stabilization [Baumgarte 1972], which the paper uses, because it needs no tuning and removes the
-drift to solver precision; see docs/architecture.md.
+max |phi| < ``tol`` (default 1e-10 m). Velocities are not projected (the next step's velocity
+constraint acts on them). This replaces Baumgarte's stabilization [Baumgarte 1972], which the paper
+uses, because it needs no tuning and removes the drift to solver precision; see docs/architecture.md.
+
+One implementation for every pipeline, on the recursive kinematics Context (tree_kinematics.py):
+:func:`project_chord` (the step's: chord Newton reusing the step's loop rows, each iteration one
+compiled forward-kinematics + loop-residual call), :func:`project` (full Newton, its fallback and the
+initial assembly), :func:`assemble_loops` and :func:`check_loop_rank` (compile time),
+:func:`loop_violation` (diagnostics).
 """
 from __future__ import annotations
 
 import numpy as np
 import pinocchio as pin
 
-from redmax_ros.core.dynamics.constraints import loop_rows
+from redmax_ros.core.dynamics.tree_kinematics import Context
 from redmax_ros.core.errors import SceneError
-from redmax_ros.core.dynamics.kinematics import site_jacobians, site_positions
+from redmax_ros.core.jit import njit
+from redmax_ros.core.linalg import chol_solve, cholesky
 
-TOL = 1e-10
-
-
-def loop_residual(mech, data, q):
-    """phi (rows,) [m] and G_R (rows, ndof) of the loop closures at configuration q."""
-    pin.computeJointJacobians(mech.model, data, q)
-    X, J = site_jacobians(mech, data, mech.jac_sites)
-    G, phi = loop_rows(mech, X, J)
-    return phi, (G if mech.T is None else G @ mech.T)
+TOL = 1e-10  # loop closure [m]
 
 
-def loop_violation(mech, data) -> float:
-    """max |phi| [m] at the configuration of data (forward kinematics done)."""
-    if not len(mech.loop_ab):
+def loop_violation(ctx: Context, q) -> float:
+    """max |phi| [m] of the loop closures at q."""
+    if not ctx.n_loop_rows:
         return 0.0
-    return float(np.abs(loop_phi(mech, data)).max())
+    ctx.fk(q)
+    return float(np.abs(ctx.loop_phi()).max())
 
 
-def project(mech, data, q, hold_dofs=(), tol=TOL, max_iter=5):
-    """Project q onto phi(q) = 0. ``hold_dofs``: hyper-reduced DOFs that must not move. Returns (q, max|phi|)."""
-    if not len(mech.loop_ab):
+def _hold_rows(ctx, hold_dofs):
+    """Rows selecting the held hyper-reduced DOFs (cached per set in the workspace)."""
+    key = ("hold rows", *hold_dofs)
+    hold = ctx.cache.get(key)
+    if hold is None:
+        hold = np.zeros((len(hold_dofs), ctx.mech.ndof))
+        hold[np.arange(len(hold_dofs)), list(hold_dofs)] = 1.0
+        ctx.cache[key] = hold
+    return hold
+
+
+def loop_residual(ctx: Context, q):
+    """(phi (rows,) [m], G_R (rows, ndof)): the loop residual and loop rows in hyper-reduced
+    coordinates (G_r J_rR with the workspace's live J_rR) at q."""
+    ctx.fk(q)
+    G, phi = ctx.loop_rows()
+    T = ctx.T
+    return phi, (G if T is None else G @ T)
+
+
+def project(ctx: Context, q, hold_dofs=(), tol=TOL, max_iter=5):
+    """Newton projection of q onto phi(q) = 0 (least-norm, hyper-reduced, ``hold_dofs`` fixed).
+    Returns (q, max|phi|)."""
+    mech = ctx.mech
+    if not ctx.n_loop_rows:
         return q, 0.0
-    hold = np.zeros((len(hold_dofs), mech.ndof))
-    hold[np.arange(len(hold_dofs)), list(hold_dofs)] = 1.0
-    phi, G = loop_residual(mech, data, q)
+    hold = _hold_rows(ctx, hold_dofs)
+    phi, G = loop_residual(ctx, q)
     for _ in range(max_iter):
         err = float(np.abs(phi).max())
         if err < tol:
             return q, err
         Gh = np.vstack([G, hold])
-        rhs = np.concatenate([-phi, np.zeros(len(hold))])
-        dq, *_ = np.linalg.lstsq(Gh, rhs, rcond=None)
-        q = pin.integrate(mech.model, q, mech.to_reduced(dq))
-        phi, G = loop_residual(mech, data, q)
+        dq, *_ = np.linalg.lstsq(Gh, np.concatenate([-phi, np.zeros(len(hold))]), rcond=None)
+        q = pin.integrate(mech.model, q, dq if ctx.T is None else ctx.T @ dq)
+        phi, G = loop_residual(ctx, q)
     return q, float(np.abs(phi).max())
 
 
-def project_chord(mech, data, q, G, hold_dofs=(), tol=TOL, max_iter=8):
-    """Chord-Newton projection onto phi(q) = 0 reusing the step's loop rows G (hyper-reduced, at q_k):
-    each iteration costs forward kinematics and the loop sites only. The chord converges at a rate
-    O(h |qdot|) (the change of G over one step); if it has not converged in ``max_iter`` iterations the
-    full Newton projection takes over. Returns (q, max|phi|) at the returned q.
+def project_chord(ctx: Context, q, G, hold_dofs=(), tol=TOL, max_iter=8):
+    """Chord-Newton projection reusing the step's loop rows G (hyper-reduced, at q_k): each iteration costs one compiled call (forward kinematics of the placements, loop-site positions,
+    phi = S (x_a - x_b), max|phi|). The chord converges at a rate O(h |qdot|) (the change of G over one
+    step); if it has not converged in ``max_iter`` iterations the full Newton projection takes over.
+    Returns (q, max|phi|) at the returned q."""
+    mech = ctx.mech
+    held = _held_array(ctx, hold_dofs)
+    G = np.ascontiguousarray(G)
+    L, ok = _chord_factor(G, held)
+    if not ok:
+        return project(ctx, q, hold_dofs, tol)
+    T = _NO_T if ctx.T is None else ctx.T
+    for _ in range(max_iter):
+        phi, err = ctx.loop_phi_at(q)
+        if err < tol:
+            return q, err
+        q = pin.integrate(mech.model, q, _chord_step(L, G, held, phi, T))
+    return project(ctx, q, hold_dofs, tol)
 
-    One implementation serves both pipelines: data_free.project_chord, whose forward kinematics and
-    site positions are compiled O(n) passes (recursive.py) instead of a Pinocchio forwardKinematics
-    and one frame update per loop site per iteration. ``data`` is not used (kept for the signature)."""
-    from redmax_ros.core.dynamics.data_free import context, project_chord as chord  # data_free imports this module
-    return chord(context(mech), q, G, hold_dofs, tol, max_iter)
+
+_NO_T = np.zeros((0, 0))
 
 
-def loop_phi(mech, data) -> np.ndarray:
-    """Loop-closure residuals phi (rows,) [m] at the forward kinematics in data."""
-    X = site_positions(mech, data, mech.jac_sites)
-    A, B = mech.loop_rows_ab[:, 0], mech.loop_rows_ab[:, 1]
-    return mech.loop_select @ (X[A] - X[B]).reshape(-1)
+def _held_array(ctx, hold_dofs):
+    key = ("held array", *hold_dofs)
+    a = ctx.cache.get(key)
+    if a is None:
+        a = ctx.cache[key] = np.asarray(list(hold_dofs), dtype=np.int64)
+    return a
 
 
-def assemble_loops(mech, q):
-    """Close the loops at the initial configuration; reject redundant loop rows (SceneError)."""
+@njit
+def _chord_factor(G, held):
+    """Cholesky factor of K K^T, K = [G; H] (H selects the held hyper-reduced DOFs):
+    K K^T = [[G G^T, G[:, held]], [G[:, held]^T, I]]."""
+    m, n, k = G.shape[0], G.shape[1], held.shape[0]
+    KK = np.zeros((m + k, m + k))
+    for r in range(m):
+        for c in range(r + 1):
+            s = 0.0
+            for i in range(n):
+                s += G[r, i] * G[c, i]
+            KK[r, c] = s
+            KK[c, r] = s
+        for j in range(k):
+            KK[r, m + j] = G[r, held[j]]
+            KK[m + j, r] = G[r, held[j]]
+    for j in range(k):
+        KK[m + j, m + j] = 1.0
+    L = np.empty((m + k, m + k))
+    ok = cholesky(KK, L)
+    return L, ok
+
+
+@njit
+def _chord_step(L, G, held, phi, T):
+    """Least-norm correction dq = -K^T (K K^T)^-1 [phi; 0] (held DOFs fixed), mapped to reduced
+    coordinates by J_rR = T (empty T: none)."""
+    m, n, k = G.shape[0], G.shape[1], held.shape[0]
+    y = np.zeros(m + k)
+    y[:m] = phi
+    chol_solve(L, y)
+    dq = np.zeros(n)
+    for r in range(m):
+        for i in range(n):
+            dq[i] -= G[r, i] * y[r]
+    for j in range(k):
+        dq[held[j]] -= y[m + j]
+    if T.shape[0] == 0:
+        return dq
+    out = np.zeros(T.shape[0])
+    for i in range(T.shape[0]):
+        s = 0.0
+        for c in range(n):
+            s += T[i, c] * dq[c]
+        out[i] = s
+    return out
+
+
+def assemble_loops(ctx: Context, q):
+    """Close the loops at the initial configuration (Newton, tolerance 1e-12 m) and reject redundant
+    loop rows (SceneError): compile time."""
+    mech = ctx.mech
     if not len(mech.loop_ab):
         return q
-    data = mech.model.createData()
     src = mech.spec.source
-    q, err = project(mech, data, q, tol=1e-12, max_iter=100)
+    q, err = project(ctx, q, tol=1e-12, max_iter=100)
     if err > 1e-9:
         raise SceneError(src, "loops", f"cannot close the loops from the initial configuration "
                                        f"(residual {err:.3g} m after 100 Newton steps); check q0 and the loop sites")
-    _, G = loop_residual(mech, data, q)
+    _, G = loop_residual(ctx, q)
     check_loop_rank(mech, G)
     return q
+
 
 
 def check_loop_rank(mech, G) -> None:

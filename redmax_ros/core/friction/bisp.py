@@ -32,7 +32,7 @@ import pinocchio as pin
 from numba import njit
 
 from redmax_ros.core.solvers import recursive as rc
-from redmax_ros.core.friction.contact import coupling_csr
+from redmax_ros.core.friction.contact import FrictionWork, coupling_csr
 from redmax_ros.core.dynamics.forces import spring_terms
 
 
@@ -78,12 +78,12 @@ def static_external(mech, kin, ext: ExternalForces, data, site_forces=None):
     return out
 
 
-def joint_alphas(mech, fm, data, q, v_prev_r, v_con_r, h, fx_local, loop_force):
+def joint_alphas(mech, fm, work: FrictionWork, data, q, v_prev_r, v_con_r, h, fx_local, loop_force):
     """alpha (J+Lf, kmax): Eq. (16) multipliers of every frictional joint and loop pin.
 
     fx_local (njoints,6): all external wrenches (local frames); loop_force (Lf,3): world force of each
     frictional loop on its site b [N]."""
-    fext = fm.fext
+    fext = work.fext
     for i in range(1, len(fx_local)):
         fext[i] = pin.Force(fx_local[i])
     pin.rnea(mech.model, data, q, v_prev_r, (v_con_r - v_prev_r) / h, fext)
@@ -107,12 +107,12 @@ def _cross(a, b, axis=-1):
 # The affine map x = [alpha_U; beta] -> joint wrenches (compiled; world frame at the origin as in
 # recursive.py, Pinocchio's (linear, angular) order)
 # ------------------------------------------------------------------------------------------------
-def body_frames(fm, q, v_prev_r):
+def body_frames(fm, work: FrictionWork, q, v_prev_r):
     """Forward kinematics of the step for the BISP map and contact detection (recursive.py kernels on
-    the FrictionModel's own workspace: no per-joint Pinocchio calls): world placements R, p, motion
-    subspaces St (= data.J^T), spatial inertias I at the origin, twists ov = J qdot^prev and the bias
-    accelerations Z = Jdot qdot^prev (the quadratic velocity term of Eq. 2). Returns (ws, Z)."""
-    topo, ws = fm.topo, fm.ws
+    the friction stage's own workspace ``work.tree``: no per-joint Pinocchio calls): world placements R,
+    p, motion subspaces St (= data.J^T), spatial inertias I at the origin, twists ov = J qdot^prev and the
+    bias accelerations Z = Jdot qdot^prev (the quadratic velocity term of Eq. 2). Returns (ws, Z)."""
+    topo, ws = fm.topo, work.tree
     if fm.planar is None:
         rc.update_kinematics(topo, ws, q, v_prev_r)
     else:  # every FALLBACK joint is a Pinocchio planar joint: constant S, zero bias, transform from q
@@ -122,21 +122,7 @@ def body_frames(fm, q, v_prev_r):
         rc.world_inertia_kernel(topo.mass, topo.com, topo.inertia_com, ws.R, ws.p, ws.I)
         ws.v = v_prev_r
         rc.jv_kernel(topo.parents, topo.idx_v, topo.nv_j, ws.St, v_prev_r, ws.ov)
-    return ws, rc.bias_acceleration(topo, ws, fm.Z)
-
-
-def planar_fallbacks(topo, ws):
-    """Indices of the FALLBACK joints of recursive.py when all of them are Pinocchio planar joints (q = (x, y,
-    cos, sin), S constant, bias zero: body_frames then needs no per-joint Pinocchio call; their constant
-    motion subspaces are written into ws once), else None."""
-    if not topo.fallback or any(jm.shortname() != "JointModelPlanar" for jm in topo.fallback_models):
-        return None
-    for j, jm in zip(topo.fallback, topo.fallback_models):
-        i0 = topo.idx_v[j]
-        ws.Sl[i0:i0 + 3, :] = np.array([[1.0, 0, 0, 0, 0, 0], [0, 1.0, 0, 0, 0, 0], [0, 0, 0, 0, 0, 1.0]])
-        ws.c_local[j] = 0.0
-    ws.has_bias = False
-    return np.array(topo.fallback, dtype=np.int64)
+    return ws, rc.bias_acceleration(topo, ws, work.Z)
 
 
 @njit(cache=True, nogil=True)
@@ -294,7 +280,8 @@ def static_external_world(mech, kin, ws, site_forces=None):
     return out
 
 
-def linear_wrenches(mech, fm, kin, ws, Z, h, v0, PX, v_prev_r, lam0, LamX, cs, nu, nf, cons, site_forces=None):
+def linear_wrenches(mech, fm, work: FrictionWork, kin, ws, Z, h, v0, PX, v_prev_r, lam0, LamX, cs, nu, nf, cons,
+                    site_forces=None):
     """The joint wrenches of Eq. (15)-(17) as an affine function of the staggered unknowns
     x = [alpha_U; beta]: W = W0 + Wx x, W0 (J+Lf, 6), Wx (J+Lf, 6, nx); the multipliers of Eq. (16) are
     then alpha_j = h L_j W_j (L_j the constant local least-squares operator, contact.ls_operator).
@@ -324,7 +311,7 @@ def linear_wrenches(mech, fm, kin, ws, Z, h, v0, PX, v_prev_r, lam0, LamX, cs, n
     else:
         c_jid, c_X, c_n, c_t = cs.jid, cs.X, cs.n, cs.t
     nloops = len(mech.loop_ab) if cons.loop_rows.stop else 0
-    _map_kernel(nu, h, v0, PX, v_prev_r, *coupling_csr(mech, fm), lam0, LamX, fm.sel_r, fm.sel_c, fm.sel_v,
+    _map_kernel(nu, h, v0, PX, v_prev_r, *coupling_csr(fm, work), lam0, LamX, fm.sel_r, fm.sel_c, fm.sel_v,
                 nloops, kin.X, fm.loop_xa, fm.loop_xb, fm.loop_index, fm.n_tree, c_jid, c_X, c_n, c_t, fm.pin_ja,
                 fm.pin_jb, fm.pin_moment, fm.loop_ja, fm.loop_jb, topo.parents, topo.idx_v, topo.nv_j, ws.St, ws.I,
                 ws.ov, Z, fm.gravity, ws.R, ws.p, fm.fj_jid, E0, E, W0, Wx)
@@ -396,10 +383,11 @@ def affine_alphas(fm, h, W0, Wx):
     return a0.reshape(-1), Mx.reshape(-1, Wx.shape[2])
 
 
-def linear_alphas(mech, fm, kin, q, v_prev_r, h, v0, PX, lam0, LamX, cs, nu, nf, cons, site_forces=None):
+def linear_alphas(mech, fm, work: FrictionWork, kin, q, v_prev_r, h, v0, PX, lam0, LamX, cs, nu, nf, cons,
+                  site_forces=None):
     """alpha_joints = a0 + Mx x from the condensed velocity qdot_0 + PX x (hyper-reduced) and
     lambda_0 + LamX x: body_frames + linear_wrenches + affine_alphas in one call (tests, reference)."""
-    ws, Z = body_frames(fm, q, v_prev_r)
-    W0, Wx = linear_wrenches(mech, fm, kin, ws, Z, h, v0, np.ascontiguousarray(PX), v_prev_r, lam0, LamX, cs,
+    ws, Z = body_frames(fm, work, q, v_prev_r)
+    W0, Wx = linear_wrenches(mech, fm, work, kin, ws, Z, h, v0, np.ascontiguousarray(PX), v_prev_r, lam0, LamX, cs,
                              nu, nf, cons, site_forces)
     return affine_alphas(fm, h, W0, Wx)

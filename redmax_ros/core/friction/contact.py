@@ -40,6 +40,7 @@ import pinocchio as pin
 from numba import njit
 
 from redmax_ros.core.errors import SceneError
+from redmax_ros.core.solvers import recursive as rc
 from redmax_ros.core.spatial import rpy_matrix
 
 
@@ -69,13 +70,10 @@ class FrictionModel:
     loop_radius: np.ndarray  # (Lf,)
     loop_rowslices: list  # rows of each frictional loop in the loop block of G
     loop_sites: np.ndarray  # (Lf,2) site indices (a, b)
-    fext: object = None  # pin.StdVec_Force workspace (bisp.joint_alphas, the test reference)
     bound_mu: np.ndarray | None = None  # (J+Lf,) when every row is a whole joint (no spherical): bound = mu |alpha|_1
     # constant index maps of the compiled per-step set-up (bisp.linear_wrenches, detect, warm start)
     topo: object = None  # recursive.Topology of the model
-    ws: object = None  # recursive.Workspace (per-step kinematics of the BISP map; a workspace like fext)
-    Z: np.ndarray | None = None  # (njoints,6) bias accelerations (workspace)
-    planar: np.ndarray | None = None  # FALLBACK joints of ws when all are planar (bisp.body_frames fast path)
+    planar: np.ndarray | None = None  # FALLBACK joints when all are planar (bisp.body_frames fast path)
     gravity: np.ndarray | None = None  # (3,)
     loop_ja: np.ndarray | None = None  # (L,) Pinocchio joint of site a / b of every loop
     loop_jb: np.ndarray | None = None
@@ -243,9 +241,6 @@ def compile_friction(mech, fspec) -> FrictionModel | None:
     B = np.zeros((len(groups), len(Ls) * kmax))
     for r, (j, grp, m) in enumerate(groups):
         B[r, j * kmax + np.asarray(grp)] = m
-    fext = pin.StdVec_Force()
-    for _ in range(model.njoints):
-        fext.append(pin.Force.Zero())
     return FrictionModel(
         settings=st, plane_n=pn, plane_off=np.array([p.offset for p in fspec.planes]),
         plane_mu=np.array([p.mu for p in fspec.planes]), plane_t=pt, plane_names=[p.name for p in fspec.planes],
@@ -254,7 +249,7 @@ def compile_friction(mech, fspec) -> FrictionModel | None:
         fj_names=names, fj_jid=np.array(jids, dtype=int), n_tree=n_tree, L=Lpad,
         rows_fixed=np.array(rows).reshape(-1, mech.ndof), bound_B=B,
         loop_index=np.array(lidx, dtype=int), loop_axis=np.array(laxis).reshape(-1, 3), loop_radius=np.array(lrad),
-        loop_rowslices=lslices, loop_sites=np.array(lsites, dtype=int).reshape(-1, 2), fext=fext,
+        loop_rowslices=lslices, loop_sites=np.array(lsites, dtype=int).reshape(-1, 2),
         bound_mu=(np.array([mu_ for _, _, mu_ in groups]) if all(j == r and len(grp) == len(Ls[j])
                   for r, (j, grp, _) in enumerate(groups)) else None),
         **_index_maps(mech, len(jid) * len(pn) * 2 + len(rows) + len(lidx), np.array(lsites, dtype=int).reshape(-1, 2),
@@ -263,14 +258,11 @@ def compile_friction(mech, fspec) -> FrictionModel | None:
 
 def _index_maps(mech, n_slots, lsites, laxis, lrad, sph_support):
     """Constant structure of the per-step set-up, computed once per mechanism."""
-    from redmax_ros.core.solvers import recursive as rc
-    from redmax_ros.core.friction.bisp import planar_fallbacks
     topo = rc.build_topology(mech.model)
-    ws = rc.make_workspace(topo)
     ab = np.asarray(mech.loop_ab, dtype=int).reshape(-1, 2)
     sup = mech.site_support.astype(float).reshape(-1, mech.nv)
     return dict(
-        topo=topo, ws=ws, planar=planar_fallbacks(topo, ws), Z=np.zeros((topo.njoints, 6)),
+        topo=topo, planar=planar_fallbacks(topo),
         gravity=np.array(mech.model.gravity.linear, dtype=float),
         loop_ja=np.ascontiguousarray(mech.site_jid[ab[:, 0]], dtype=np.int64),
         loop_jb=np.ascontiguousarray(mech.site_jid[ab[:, 1]], dtype=np.int64),
@@ -284,13 +276,54 @@ def _index_maps(mech, n_slots, lsites, laxis, lrad, sph_support):
         **_sparse_maps(mech))
 
 
-def coupling_csr(mech, fm):
+@dataclass
+class FrictionWork:
+    """Per-workspace scratch of the friction stage (step Workspace.friction): the recursive workspace of
+    the BISP map and contact detection (bisp.body_frames), the bias accelerations Z, Pinocchio's
+    external-force vector (bisp.joint_alphas, the test reference) and the workspace's J_rR of Eq. (9)
+    (``live_T``: refreshed in place every step by catalogue joint maps)."""
+    tree: object  # recursive.Workspace
+    Z: np.ndarray  # (njoints, 6)
+    fext: object  # pin.StdVec_Force
+    T: np.ndarray | None
+    live_T: bool
+
+
+def make_work(mech, fm: FrictionModel, T) -> FrictionWork:
+    """A FrictionWork for one step workspace; ``T``: that workspace's J_rR (or None)."""
+    tree = rc.make_workspace(fm.topo)
+    if fm.planar is not None:
+        write_planar_subspaces(fm.topo, tree)
+    fext = pin.StdVec_Force()
+    for _ in range(mech.model.njoints):
+        fext.append(pin.Force.Zero())
+    return FrictionWork(tree, np.zeros((fm.topo.njoints, 6)), fext, T, mech.extras is not None and T is not None)
+
+
+def planar_fallbacks(topo):
+    """Indices of the FALLBACK joints of recursive.py when all of them are Pinocchio planar joints (q = (x, y,
+    cos, sin), S constant, bias zero: body_frames then needs no per-joint Pinocchio call), else None."""
+    if not topo.fallback or any(jm.shortname() != "JointModelPlanar" for jm in topo.fallback_models):
+        return None
+    return np.array(topo.fallback, dtype=np.int64)
+
+
+def write_planar_subspaces(topo, ws):
+    """The constant motion subspaces of planar FALLBACK joints, written into a recursive workspace once."""
+    for j in topo.fallback:
+        i0 = topo.idx_v[j]
+        ws.Sl[i0:i0 + 3, :] = np.array([[1.0, 0, 0, 0, 0, 0], [0, 1.0, 0, 0, 0, 0], [0, 0, 0, 0, 0, 1.0]])
+        ws.c_local[j] = 0.0
+    ws.has_bias = False
+
+
+def coupling_csr(fm, work: FrictionWork):
     """The coupling matrix T of Eq. (9) in CSR form (ptr, idx, val): the constant one built with the
-    mechanism, or, with catalogue joint maps (a configuration-dependent J_rR refreshed in place in
-    mech.T every step, catalogue.py), the current one."""
-    if mech.extras is None or mech.T is None:
+    mechanism, or, with catalogue joint maps (a configuration-dependent J_rR refreshed in place every
+    step, catalogue_hooks.py), the workspace's current one."""
+    if not work.live_T:
         return fm.T_ptr, fm.T_idx, fm.T_val
-    return _csr(np.ascontiguousarray(mech.T, dtype=float))
+    return _csr(np.ascontiguousarray(work.T, dtype=float))
 
 
 @njit(cache=True, nogil=True)
@@ -404,15 +437,16 @@ def _detect_kernel(R, p, St, sph_jid, sph_local, sph_radius, sph_support, sph_mu
     return ks, ps, X, n, t, d, mu, jid, Nv, Tv, lo
 
 
-def detect(mech, fm: FrictionModel, ws, h) -> ContactSet:
-    """Sphere/plane pairs closer than the margin, with their rows (compiled, _detect_kernel). ``ws``: the
-    step's recursive.Workspace (bisp.body_frames): world joint placements and motion subspaces."""
+def detect(mech, fm: FrictionModel, work: FrictionWork, h) -> ContactSet:
+    """Sphere/plane pairs closer than the margin, with their rows (compiled, _detect_kernel), from the
+    kinematics bisp.body_frames left in ``work.tree`` (world joint placements and motion subspaces)."""
+    ws = work.tree
     if len(fm.sph_jid) == 0 or len(fm.plane_n) == 0:
         return None
     st = fm.settings
     out = _detect_kernel(ws.R, ws.p, ws.St, fm.sph_jid, fm.sph_local, fm.sph_radius, fm.sph_support_f, fm.sph_mu,
                          fm.plane_n, fm.plane_off, fm.plane_t, fm.plane_mu, st.margin, st.erp, h,
-                         _EMPTY if mech.T is None else mech.T)
+                         _EMPTY if work.T is None else work.T)
     if len(out[0]) == 0:
         return None
     ks, ps, X, n, t, d, mu, jid, N, Tr, lo = out
@@ -453,7 +487,7 @@ def _rows_kernel(R, p, St, sph_jid, sph_local, sph_radius, sph_support, sph_mu, 
     return ks, ps, X, n, t, d, mu, jid, N, Tv, lo, RX, lo_U, nu
 
 
-def staggered_rows(mech, fm: FrictionModel, ws, h, cons):
+def staggered_rows(mech, fm: FrictionModel, work: FrictionWork, h, cons):
     """Contacts and rows of one staggered step in one compiled call: (ContactSet or None, RX (nx, ndof),
     lo_U, nu) with RX = [U; -T], U = [ground normals; limit rows +-C] (N qdot >= lo_U), T = [ground
     tangents; joint rows; loop-pin rows] (same rows as detect, loop_friction_rows and the joint rows)."""
@@ -465,9 +499,10 @@ def staggered_rows(mech, fm: FrictionModel, ws, h, cons):
         CU, lo_CU = _NO_ROWS[mech.ndof], _NO_VALUES
     st = fm.settings
     contacts = len(fm.plane_n) > 0
+    ws = work.tree
     out = _rows_kernel(ws.R, ws.p, ws.St, fm.sph_jid if contacts else _NO_SPHERES, fm.sph_local, fm.sph_radius,
                        fm.sph_support_f, fm.sph_mu, fm.plane_n, fm.plane_off, fm.plane_t, fm.plane_mu, st.margin, st.erp,
-                       h, _EMPTY if mech.T is None else mech.T, *coupling_csr(mech, fm), mech.ndof,
+                       h, _EMPTY if work.T is None else work.T, *coupling_csr(fm, work), mech.ndof,
                        fm.rows_fixed, fm.pin_moment, fm.loop_sdiff, CU, lo_CU)
     ks, ps, X, n, t, d, mu, jid, N, Tv, lo, RX, lo_U, nu = out
     cs = ContactSet(ks, ps, X, n, t, d, mu, jid, N, Tv, lo) if len(ks) else None
@@ -485,10 +520,10 @@ _NO_VALUES = np.zeros(0)
 _NO_SPHERES = np.zeros(0, dtype=np.int64)
 
 
-def loop_friction_rows(mech, fm: FrictionModel, ws):
-    """(Lf, ndof) friction rows of the loop pins: r axis^T (J_w,a - J_w,b) (relative spin about the pin).
-    ``ws``: the step's recursive.Workspace (St = data.J^T)."""
+def loop_friction_rows(mech, fm: FrictionModel, work: FrictionWork):
+    """(Lf, ndof) friction rows of the loop pins: r axis^T (J_w,a - J_w,b) (relative spin about the pin),
+    from the motion subspaces bisp.body_frames left in ``work.tree`` (St = data.J^T)."""
     if not len(fm.loop_index):
         return np.zeros((0, mech.ndof))
-    rows = (fm.pin_moment @ ws.St[:, 3:].T) * fm.loop_sdiff
-    return rows if mech.T is None else rows @ mech.T
+    rows = (fm.pin_moment @ work.tree.St[:, 3:].T) * fm.loop_sdiff
+    return rows if work.T is None else rows @ work.T

@@ -42,7 +42,7 @@ from redmax_ros.core.friction import bisp
 from redmax_ros.core.friction.condense import condense
 from redmax_ros.core.friction.contact import staggered_rows
 from redmax_ros.core.errors import StepError
-from redmax_ros.core.dynamics.forces import LinearSystem
+from redmax_ros.core.solvers.problem import LinearSystem
 from redmax_ros.core.solvers.direct import Solution
 import copy
 
@@ -305,18 +305,18 @@ def _qp(H, c, lo, hi, x0, eps):
     return np.clip(x, lo, hi)
 
 
-def solve(mech, data, kin, system: LinearSystem, cons, q, v_prev_r, h, cache, site_forces=None):
+def solve(mech, work, kin, system: LinearSystem, cons, q, v_prev_r, h, cache, site_forces=None):
     """Frictional contact step. Returns (Solution, FrictionReport, new cache). ``cache``: the previous
-    step's friction impulses (ndarray of FrictionModel.n_slots, or None); ``data`` is not used (the
-    set-up runs on the FrictionModel's own kinematics workspace, bisp.body_frames)."""
+    step's friction impulses (ndarray of FrictionModel.n_slots, or None); ``work``: the step workspace's
+    contact.FrictionWork (the set-up runs on its own kinematics workspace, bisp.body_frames)."""
     fm = mech.friction
     st = fm.settings
     A, b = system.A, system.b
     n = len(b)
-    ws, Z = bisp.body_frames(fm, q, v_prev_r)  # placements, subspaces, inertias, twists, Jdot qdot
+    ws, Z = bisp.body_frames(fm, work, q, v_prev_r)  # placements, subspaces, inertias, twists, Jdot qdot
 
     # rows: unilateral U (ground normals, limits) and friction T (ground tangents, joints, loops)
-    cs, RX, lo_U, nu = staggered_rows(mech, fm, ws, h, cons)
+    cs, RX, lo_U, nu = staggered_rows(mech, fm, work, h, cons)
     nc = 0 if cs is None else len(cs.gap)
     nf = len(RX) - nu
     ng = 2 * nc
@@ -335,7 +335,7 @@ def solve(mech, data, kin, system: LinearSystem, cons, q, v_prev_r, h, cache, si
                               fm.joint_slot0, nf)
     joint_fric = fm.has_joint_friction
     if joint_fric:  # Eq. (15)-(17) as an affine map of x = [alpha_U; beta] (bisp.linear_wrenches)
-        W0, Wx = bisp.linear_wrenches(mech, fm, kin, ws, Z, h, v0, PX, v_prev_r, lam0, LamX, cs, nu, nf, cons,
+        W0, Wx = bisp.linear_wrenches(mech, fm, work, kin, ws, Z, h, v0, PX, v_prev_r, lam0, LamX, cs, nu, nf, cons,
                                       site_forces)
         kmax = fm.L.shape[1]
     alpha = np.zeros(nu)

@@ -1,10 +1,13 @@
-"""Compile a :class:`SceneSpec` into a :class:`Mechanism`: the constant part of a simulation.
+"""The compiled model of a scene: :class:`Mechanism`, frozen, and :func:`build_mechanism` (SceneSpec ->
+Mechanism, the structural part of step.compile.compile_scene).
 
-Like Pinocchio's Model/Data split, a Mechanism never changes while stepping; per-step work
-buffers live in ``pin.Data``. The Mechanism holds the Pinocchio model of the kinematic tree
-(reduced coordinates q_r, velocities qdot_r), the sites (points on bodies), the maximal springs,
-loop closures, the hyper-reduced coupling matrix J_rR of Eq. (9) (``T`` here), and the per-DOF
-arrays of the reduced forces (K_r, D_r, explicit torques, limits).
+Like Pinocchio's Model/Data split (and MJX's Model/Data), a Mechanism never changes after compilation:
+it holds no cache, no ``pin.Data`` and no scratch; everything a step writes lives in the workspace the
+stepping backend creates from it (step/workspace.py). The Mechanism holds the Pinocchio model of the
+kinematic tree (reduced coordinates q_r, velocities qdot_r), the sites (points on bodies), the maximal
+springs, loop closures, the hyper-reduced coupling matrix J_rR of Eq. (9) (``T`` here: the constant
+one; with configuration-dependent catalogue joint maps, J_rR at q0, the workspace holds the live one),
+and the per-DOF arrays of the reduced forces (K_r, D_r, explicit torques, limits). SI units throughout.
 """
 from __future__ import annotations
 
@@ -32,7 +35,7 @@ class JointInfo:
     nv: int
 
 
-@dataclass
+@dataclass(frozen=True)
 class Mechanism:
     spec: SceneSpec
     model: pin.Model
@@ -82,59 +85,20 @@ class Mechanism:
     jac_row: dict = field(default_factory=dict)  # site -> row in Kinematics.X/J for jac_sites
     spring_rows: np.ndarray | None = None  # (P,2) rows of spring ends in Kinematics.X/J
     loop_rows_ab: np.ndarray | None = None  # (L,2) rows of loop sites in Kinematics.X/J
-    diag_cache: dict = field(default_factory=dict)  # h -> h D_r + h^2 K_r
     has_stiffness: bool = False
-    row_cache: dict = field(default_factory=dict)  # prescribed joint -> constant constraint rows
-    layout_cache: dict = field(default_factory=dict)  # prescription set -> constraints.RowLayout
-    site_cache: dict = field(default_factory=dict)  # site lists -> kinematics frame ids, support, rows
     loop_select: np.ndarray | None = None  # (rows, 3L) block-diagonal loop axes: phi = S (x_a - x_b)
     has_armature: bool = False
     no_rows: np.ndarray | None = None  # (0, ndof): G when there are no bilateral rows
     armature: np.ndarray | None = None  # (nv,)
     limit_rows: np.ndarray | None = None  # (p,ndof) rows of J_rR for the limited DOFs
     limit_labels: list = field(default_factory=list)
-    extras: object = None  # catalogue.Extras: mapped joints, linear joint constraints, force elements (or None)
+    limit_lower: np.ndarray | None = None  # (p,) lower[limited] [rad, m]
+    limit_upper: np.ndarray | None = None  # (p,) upper[limited]
+    extras: object = None  # catalogue_hooks.Extras (compiled; workspaces run copies): mapped joints, linear joint constraints, force elements (or None)
     friction: object = None  # contact.FrictionModel (ground contact, joint friction) or None
     joint_support: np.ndarray | None = None  # (njoints, nv) bool: DOFs moving each joint's body (row 0: world)
     coriolis_implicit: bool = False  # integrator.coriolis: implicit (forces.coriolis_jacobian; docs/scenes.md)
-    coriolis_ws: object = None  # (zero-gravity pin.Model, its pin.Data) for forces.coriolis_jacobian
-
-    def joint_rows(self, name: str) -> np.ndarray:
-        """Rows *G_r of a prescribed joint (identity on its DOFs, Eq. 7), projected by J_rR (cached)."""
-        G = self.row_cache.get(name)
-        if G is None:
-            j = self.joint_index[name]
-            G = np.zeros((j.nv, self.nv))
-            G[:, j.idx_v:j.idx_v + j.nv] = np.eye(j.nv)
-            G = self.row_cache[name] = G if self.T is None else G @ self.T
-        return G
-
-    def held_dofs(self, prescribed_joints) -> list:
-        """Hyper-reduced DOFs moved by the prescribed joints (kept fixed by loop stabilization; cached
-        per set of joints)."""
-        key = ("held", *prescribed_joints)
-        hit = self.layout_cache.get(key)
-        if hit is None:
-            hit = self.layout_cache[key] = self._held_dofs(prescribed_joints)
-        return hit
-
-    def _held_dofs(self, prescribed_joints) -> list:
-        held = set()
-        for name in prescribed_joints:
-            j = self.joint_index[name]
-            for d in range(j.idx_v, j.idx_v + j.nv):
-                if self.T is None:
-                    held.add(d)
-                else:
-                    held.update(np.flatnonzero(self.T[d]).tolist())
-        return sorted(held)
-
-    def reduced_diag_vector(self, h: float) -> np.ndarray:
-        """h D_r + h^2 K_r (nv,) (cached per h)."""
-        D = self.diag_cache.get(h)
-        if D is None:
-            D = self.diag_cache[h] = h * self.damping + h * h * self.stiffness
-        return D
+    maps: object = None  # joint_maps.Maps (spline/exp/Euler-chart joints) as built, or None (compile only)
 
     @property
     def nq(self) -> int:
@@ -149,7 +113,9 @@ class Mechanism:
         return self.nv if self.T is None else self.T.shape[1]
 
     def to_reduced(self, vR: np.ndarray) -> np.ndarray:
-        """qdot_r = J_rR qdot_R (Eq. 8-9)."""
+        """qdot_r = J_rR qdot_R (Eq. 8-9) with the compile-time J_rR. Exact for every scene whose J_rR is
+        constant (couplings); with catalogue joint maps (configuration-dependent J_rR) a step's J_rR is the
+        workspace's: use Workspace.to_reduced (Simulator.joint_velocities does)."""
         return vR if self.T is None else self.T @ vR
 
     def position_names(self) -> list:
@@ -231,8 +197,10 @@ def _build_urdf(spec: SceneSpec):
     return model, frame_of, q0, q0.copy(), None
 
 
-def compile_scene(spec: SceneSpec) -> Mechanism:
-    """Build the Mechanism of a validated scene (Pinocchio model, sites, forces, constraints)."""
+def build_mechanism(spec: SceneSpec) -> Mechanism:
+    """The Mechanism of a validated scene (Pinocchio model, sites, forces, constraints, couplings) before
+    the compile steps that need the dynamics (step.compile.compile_scene: catalogue hooks, loop assembly,
+    spring rest lengths, friction). ``v0`` is still the reduced initial velocity here."""
     src = spec.source
     if spec.urdf:
         model, frame_of, q0, q_rest, jspecs = _build_urdf(spec)
@@ -326,62 +294,50 @@ def compile_scene(spec: SceneSpec) -> Mechanism:
                        | {int(i) for lp in spec.loops for i in (site_index[lp.a], site_index[lp.b])})
     jac_row = {s_: k for k, s_ in enumerate(jac_sites)}
 
-    mech = Mechanism(
-        spec=spec, model=model, joints=joints, bodies=body_names, body_jid=body_jid, body_placement=body_pl,
-        body_com=np.array(coms).reshape(-1, 3), body_mass=np.array(masses), body_inertia=Is,
-        site_names=site_names, site_jid=site_jid, site_local=site_local, site_support=support,
-        spring_names=[s.name for s in spec.springs],
-        spring_ab=np.array([[site_index[s.a], site_index[s.b]] for s in spec.springs], dtype=int).reshape(-1, 2),
-        spring_k=np.array([s.stiffness for s in spec.springs]), spring_d=np.array([s.damping for s in spec.springs]),
-        spring_rest=np.zeros(len(spec.springs)),
-        loop_names=[lp.name for lp in spec.loops],
-        loop_ab=np.array([[site_index[lp.a], site_index[lp.b]] for lp in spec.loops], dtype=int).reshape(-1, 2),
-        loop_axes=[lp.axes for lp in spec.loops],
-        T=T, coupling_names=cnames, stiffness=stiffness, damping=damping, torque0=torque0, lower=lower, upper=upper,
-        limited=limited, limited_q=limited_q, q0=q0, v0=np.zeros(0), q_rest=q_rest, damped_bodies=damped,
-        body_damping=body_damping, body_support=body_support,
-        wrench_body=wrench_body, wrench_fw=wrench_fw, prescribable_joints=list(pj), prescribable_sites=list(ps),
-        joint_index=joint_index, site_index=site_index, site_fid=site_fid, body_com_fid=com_fid,
-        jac_sites=jac_sites, jac_row=jac_row, has_stiffness=bool(stiffness.any()),
-    )
-    mech.joint_support = support_of
-    mech.no_rows = np.zeros((0, mech.ndof))
-    nrows = sum(len(P) for P in mech.loop_axes)
-    mech.loop_select = np.zeros((nrows, 3 * len(mech.loop_axes)))
+    nrows = sum(len(lp.axes) for lp in spec.loops)
+    loop_select = np.zeros((nrows, 3 * len(spec.loops)))
     r = 0
-    for i, P in enumerate(mech.loop_axes):
-        mech.loop_select[r:r + len(P), 3 * i:3 * i + 3] = P
-        r += len(P)
-    mech.armature = np.array(model.armature, dtype=float).reshape(nv)
-    mech.has_armature = bool(mech.armature.any())
+    for i, lp in enumerate(spec.loops):
+        loop_select[r:r + len(lp.axes), 3 * i:3 * i + 3] = lp.axes
+        r += len(lp.axes)
+    armature = np.array(model.armature, dtype=float).reshape(nv)
+    limit = {}
     if len(limited):
         Cr = np.zeros((len(limited), nv))
         Cr[np.arange(len(limited)), limited] = 1.0
-        mech.limit_rows = Cr if T is None else Cr @ T
-        names = mech.velocity_names()
-        mech.limit_labels = [f"limit of joint DOF '{names[i]}'" for i in limited]
-    mech.spring_rows = np.array([[jac_row[a], jac_row[b]] for a, b in mech.spring_ab], dtype=int).reshape(-1, 2)
-    mech.loop_rows_ab = np.array([[jac_row[a], jac_row[b]] for a, b in mech.loop_ab], dtype=int).reshape(-1, 2)
+        names = [n for j in joints for n in _names(j.name, j.nv)]
+        limit = dict(limit_rows=Cr if T is None else Cr @ T,
+                     limit_labels=[f"limit of joint DOF '{names[i]}'" for i in limited],
+                     limit_lower=lower[limited], limit_upper=upper[limited])
+    spring_ab = np.array([[site_index[s.a], site_index[s.b]] for s in spec.springs], dtype=int).reshape(-1, 2)
+    loop_ab = np.array([[site_index[lp.a], site_index[lp.b]] for lp in spec.loops], dtype=int).reshape(-1, 2)
     for name in spec.prescribed_joints:
         if name not in joint_index:
             raise SceneError(src, "prescribed.joints", f"unknown joint '{name}'")
         if joint_index[name].nv != len(spec.prescribed_joints[name]):
             raise SceneError(src, f"prescribed.joints.{name}",
                              f"needs {joint_index[name].nv} values, got {len(spec.prescribed_joints[name])}")
-    mech.coriolis_implicit = spec.coriolis == "implicit"
-    from redmax_ros.core.dynamics.catalogue_hooks import attach
-    attach(mech, maps)  # mech.extras for catalogue features (None otherwise)
-    _check_couplings_q0(mech, spec, src)
-    mech.v0 = _hyper_reduced_v0(mech, v0r, src)
-    # Assemble loops at the initial configuration (and check they do not over-constrain).
-    from redmax_ros.core.dynamics.data_free import compile_helpers  # no pin.Data for large models (its memory grows as nv^3)
-    mech.q0, rest = compile_helpers(mech, mech.q0)
-    for i, s in enumerate(spec.springs):
-        mech.spring_rest[i] = rest[i] if s.rest_length is None else s.rest_length
-    if spec.friction is not None:
-        from redmax_ros.core.friction.contact import compile_friction
-        mech.friction = compile_friction(mech, spec.friction)
-    return mech
+    ndof = nv if T is None else T.shape[1]
+    return Mechanism(
+        spec=spec, model=model, joints=joints, bodies=body_names, body_jid=body_jid, body_placement=body_pl,
+        body_com=np.array(coms).reshape(-1, 3), body_mass=np.array(masses), body_inertia=Is,
+        site_names=site_names, site_jid=site_jid, site_local=site_local, site_support=support,
+        spring_names=[s.name for s in spec.springs], spring_ab=spring_ab,
+        spring_k=np.array([s.stiffness for s in spec.springs]), spring_d=np.array([s.damping for s in spec.springs]),
+        spring_rest=np.zeros(len(spec.springs)),
+        loop_names=[lp.name for lp in spec.loops], loop_ab=loop_ab, loop_axes=[lp.axes for lp in spec.loops],
+        T=T, coupling_names=cnames, stiffness=stiffness, damping=damping, torque0=torque0, lower=lower, upper=upper,
+        limited=limited, limited_q=limited_q, q0=q0, v0=v0r, q_rest=q_rest, damped_bodies=damped,
+        body_damping=body_damping, body_support=body_support,
+        wrench_body=wrench_body, wrench_fw=wrench_fw, prescribable_joints=list(pj), prescribable_sites=list(ps),
+        joint_index=joint_index, site_index=site_index, site_fid=site_fid, body_com_fid=com_fid,
+        jac_sites=jac_sites, jac_row=jac_row, has_stiffness=bool(stiffness.any()),
+        loop_select=loop_select, has_armature=bool(armature.any()), no_rows=np.zeros((0, ndof)), armature=armature,
+        joint_support=support_of,
+        spring_rows=np.array([[jac_row[a], jac_row[b]] for a, b in spring_ab], dtype=int).reshape(-1, 2),
+        loop_rows_ab=np.array([[jac_row[a], jac_row[b]] for a, b in loop_ab], dtype=int).reshape(-1, 2),
+        coriolis_implicit=spec.coriolis == "implicit", maps=maps, **limit,
+    )
 
 
 def _urdf_joint_type(short: str) -> str:
@@ -443,7 +399,9 @@ def _coupling_matrix(spec, joint_index, nv, src):
     return T[:, :len(cols)].copy(), [c.name for c in spec.couplings]
 
 
-def _check_couplings_q0(mech, spec, src):
+def check_couplings_q0(mech) -> None:
+    """SceneError unless the initial configuration of every coupling is proportional to its ratios."""
+    spec, src = mech.spec, mech.spec.source
     for c in spec.couplings:
         qs = np.array([mech.q0[mech.joint_index[j].idx_q] for j in c.joints])
         theta = qs / c.ratios
@@ -452,18 +410,11 @@ def _check_couplings_q0(mech, spec, src):
                              f"initial q0 of {c.joints} ({qs.tolist()}) must be proportional to ratios {c.ratios.tolist()}")
 
 
-def _hyper_reduced_v0(mech, v0r, src):
+def hyper_reduced_v0(mech, v0r) -> np.ndarray:
+    """qdot_R(0) from the scene's reduced initial velocities (SceneError if not in the range of J_rR)."""
     if mech.T is None:
         return v0r.copy()
     vR, *_ = np.linalg.lstsq(mech.T, v0r, rcond=None)
     if np.abs(mech.T @ vR - v0r).max() > 1e-9:
-        raise SceneError(src, "couplings", "initial joint velocities v0 are not consistent with the coupling ratios")
+        raise SceneError(mech.spec.source, "couplings", "initial joint velocities v0 are not consistent with the coupling ratios")
     return vR
-
-
-def _spring_lengths(mech, q):
-    from redmax_ros.core.dynamics.kinematics import site_positions
-    data = mech.model.createData()
-    pin.forwardKinematics(mech.model, data, q)
-    x = site_positions(mech, data)
-    return np.linalg.norm(x[mech.spring_ab[:, 0]] - x[mech.spring_ab[:, 1]], axis=1) if len(mech.spring_ab) else np.zeros(0)

@@ -13,9 +13,9 @@ import eigenpy
 import numpy as np
 import proxsuite
 
-from redmax_ros.core.dynamics.constraints import Constraints
+from redmax_ros.core.solvers.problem import Constraints
 from redmax_ros.core.errors import StepError
-from redmax_ros.core.dynamics.forces import LinearSystem
+from redmax_ros.core.solvers.problem import LinearSystem
 from redmax_ros.core.solvers.kkt import SMALL_N, kkt_residual, kkt_solve, kkt_solve_lu, max_row_residual
 
 _SUCCESS = eigenpy.ComputationInfo.Success

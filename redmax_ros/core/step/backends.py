@@ -1,0 +1,159 @@
+"""The stepping backends and the solver selection (``solver: direct | pcg | auto``, docs/solvers.md).
+
+A backend owns a Workspace (step/workspace.py) made from the frozen Mechanism and steps with
+step.pipeline.step and its velocity stages: :class:`DirectBackend` with the Pinocchio stages
+(pipeline.pinocchio_velocity, pin.Data), :class:`DataFreeBackend` with the data-free ones
+(data_free_stages.data_free_velocity: PCG with Alg. 1, or the dense data-free direct solver), and
+:class:`AutoBackend` choosing between them by a cost model after a short PCG probe.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from redmax_ros.core.dynamics.tree_kinematics import PIN_DATA_MAX_NV
+from redmax_ros.core.errors import SceneError
+from redmax_ros.core.solvers.lockstep_pcg import DEFAULT_RTOL
+from redmax_ros.core.step.data_free_stages import data_free_velocity
+from redmax_ros.core.step.pipeline import pinocchio_velocity, step
+from redmax_ros.core.step.workspace import Workspace
+
+
+class DirectBackend:
+    """The Pinocchio pipeline with its pin.Data (small models only: pin.Data grows as nv^3)."""
+
+    name = "direct"
+
+    def __init__(self, mech):
+        self.mech = mech
+        self.workspace = Workspace(mech, pin_data=True)
+
+    def step(self, state, cmd, h):
+        return step(self.mech, self.workspace, state, cmd, h, pinocchio_velocity)
+
+    def at_state(self, q, t):
+        self.workspace.at_state(q, t)
+
+
+class DataFreeBackend:
+    """The data-free stages with solver 'pcg' or 'direct' (dense, data-free); no pin.Data."""
+
+    def __init__(self, mech, solver, rtol=DEFAULT_RTOL, max_iter=None):
+        if solver not in ("pcg", "direct"):
+            raise ValueError(f"solver must be 'pcg' or 'direct', got {solver!r}")
+        self.mech, self.solver, self.rtol, self.max_iter = mech, solver, rtol, max_iter
+        self.name = solver if solver == "pcg" else "direct (data-free)"
+        self.workspace = Workspace(mech, pin_data=False)
+
+    def velocity(self, mech, ws, state, cmd, tau, h):
+        """The data-free velocity stages with this backend's solver, tolerance and iteration cap."""
+        return data_free_velocity(mech, ws, state, cmd, tau, h, self.solver, self.rtol, self.max_iter)
+
+    def step(self, state, cmd, h):
+        return step(self.mech, self.workspace, state, cmd, h, self.velocity)
+
+    def at_state(self, q, t):
+        self.workspace.at_state(q, t)
+
+
+# The auto rule (docs/solvers.md). Per-step cost models [s], fitted to redmax_bench scaling on the
+# project's 2-core benchmark machine (CPU time, single-threaded BLAS); only their ratio matters.
+AUTO_DIRECT_NV = 48  # at or below: direct without probing (PCG's fixed per-step Python cost dominates)
+AUTO_PROBE_STEPS = 5
+PCG_S_PER_STEP = 1.0e-3  # fixed: numpy/Python work of a step (rows, small solves, stabilization)
+PCG_S_PER_JOINT_STEP = 1.5e-6  # kinematics, RHS, factorisation, stabilization, energies, per DOF
+PCG_S_PER_JOINT_ITER = 1.2e-7  # one LHS product + one P^-1 application, per DOF and iteration
+PCG_S_PER_ITER = 3.0e-5  # fixed per-iteration overhead
+DENSE_S_PER_STEP = 6.0e-4
+DENSE_S_PER_N3 = 2.5e-11  # dense Cholesky (Eigen LLT) + KKT, per nv^3
+DENSE_S_PER_N2 = 4.0e-8  # dense assembly per nv^2 (deep chains; less on bushy trees)
+
+
+def predicted_costs(nv: int, iters_per_step: float) -> tuple:
+    """(PCG, direct) predicted seconds per step for nv DOFs and the measured PCG iterations per step
+    (summed over the l + 1 solves of Eq. 4)."""
+    pcg_t = PCG_S_PER_STEP + PCG_S_PER_JOINT_STEP * nv + iters_per_step * (PCG_S_PER_JOINT_ITER * nv + PCG_S_PER_ITER)
+    direct_t = DENSE_S_PER_STEP + PCG_S_PER_JOINT_STEP * nv + DENSE_S_PER_N3 * nv ** 3 + DENSE_S_PER_N2 * nv ** 2
+    return pcg_t, direct_t
+
+
+class AutoBackend:
+    """``solver: auto``: direct for nv <= AUTO_DIRECT_NV; otherwise PCG for AUTO_PROBE_STEPS steps,
+    then PCG if its predicted cost with the measured iterations per step is below the direct
+    solver's (dense Cholesky ~ nv^3), else direct (Pinocchio pipeline when nv <= PIN_DATA_MAX_NV,
+    data-free dense otherwise). A PCG fallback during the probe chooses direct."""
+
+    def __init__(self, mech, rtol=DEFAULT_RTOL, max_iter=None):
+        self.mech = mech
+        self.pcg = DataFreeBackend(mech, "pcg", rtol, max_iter)
+        self.choice = None
+        self.iters = []
+        self.impl = self.pcg
+        self.reason = ""
+        if mech.nv <= AUTO_DIRECT_NV:
+            self._choose("direct", f"nv = {mech.nv} <= {AUTO_DIRECT_NV}")
+
+    @property
+    def name(self):
+        return "auto:" + (self.choice if self.choice else "probing")
+
+    @property
+    def workspace(self):
+        """The workspace of the backend that steps now (the PCG probe's until the choice is made)."""
+        return self.impl.workspace
+
+    def at_state(self, q, t):
+        self.pcg.at_state(q, t)
+        if self.impl is not self.pcg:
+            self.impl.at_state(q, t)
+
+    def _choose(self, what, reason):
+        self.reason = reason
+        if what == "pcg":
+            self.choice, self.impl = "pcg", self.pcg
+            return
+        self.choice = "direct"
+        self.impl = DirectBackend(self.mech) if self.mech.nv <= PIN_DATA_MAX_NV else DataFreeBackend(self.mech, "direct")
+
+    def step(self, state, cmd, h):
+        if self.choice is not None:
+            return self.impl.step(state, cmd, h)
+        new, res = self.pcg.step(state, cmd, h)
+        d = res.diagnostics
+        if d.solver != "pcg":
+            self._choose("direct", f"PCG fell back during the probe ({d.solver})")
+            return new, res
+        self.iters.append(d.iterations)
+        if len(self.iters) >= AUTO_PROBE_STEPS:
+            k = float(np.mean(self.iters))
+            tp, td = predicted_costs(self.mech.nv, k)
+            self._choose("pcg" if tp < td else "direct",
+                         f"{k:.1f} PCG iterations/step: predicted {tp * 1e3:.2f} ms (PCG) vs {td * 1e3:.2f} ms (direct)")
+        return new, res
+
+
+def make_backend(mech, solver: str, rtol: float = DEFAULT_RTOL, max_iter: int | None = None):
+    """The stepping backend for ``solver`` ('direct' | 'pcg' | 'auto'). 'direct' uses the Pinocchio
+    pipeline when nv <= PIN_DATA_MAX_NV (pin.Data fits) and the data-free dense solver above.
+    Scenes with contact or joint friction (Mechanism.friction, Staggered Projections / BISP) or catalogue
+    joints and force elements (Mechanism.extras) need the Pinocchio pipeline: 'direct' and 'auto' use
+    it at any size, 'pcg' is a SceneError."""
+    unsupported = [what for what, attr in (("contact or joint friction", "friction"),
+                                           ("catalogue joints/force elements", "extras"))
+                   if getattr(mech, attr) is not None]
+    if unsupported:
+        if solver == "pcg":
+            raise SceneError(mech.spec.source, "solver",
+                             f"solver 'pcg' does not support {' and '.join(unsupported)} (use direct or auto)")
+        if solver in ("direct", "auto"):
+            return DirectBackend(mech)
+    if mech.coriolis_implicit and (solver != "direct" or mech.nv > PIN_DATA_MAX_NV):
+        raise SceneError(mech.spec.source, "integrator.coriolis",
+                         f"'implicit' is implemented in the Pinocchio pipeline only (solver 'direct' with at most "
+                         f"{PIN_DATA_MAX_NV} DOFs; here solver '{solver}', {mech.nv} DOFs); use coriolis: explicit")
+    if solver == "direct":
+        return DirectBackend(mech) if mech.nv <= PIN_DATA_MAX_NV else DataFreeBackend(mech, "direct")
+    if solver == "pcg":
+        return DataFreeBackend(mech, "pcg", rtol, max_iter)
+    if solver == "auto":
+        return AutoBackend(mech, rtol, max_iter)
+    raise SceneError(mech.spec.source, "solver", f"unknown solver '{solver}' (direct, pcg, auto)")

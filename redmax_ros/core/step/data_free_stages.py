@@ -1,0 +1,227 @@
+"""The data-free backend's velocity stages (stages 1-4 of step.pipeline.step without ``pin.Data``, whose
+memory grows as nv^3 in pin 4.1): Wang et al. 2019 §3, Eq. (2)-(4), Alg. 1.
+
+1. O(n) forward kinematics, body twists and bias accelerations (tree_kinematics.Context, cached on
+   (q, qdot));
+2. the RHS of Eq. (2) in O(n + m) and the LHS as an O(n + m) operator (solvers.pcg.MatrixFreeSystem);
+3. the bilateral rows H (loop closures, prescribed joints and sites, Eq. 7) in reduced coordinates by
+   constraints.build; hyper-reduced couplings (Eq. 8-10) are imposed as extra bilateral rows whose null
+   space is the range of T = J_rR (the constrained reduced solution is exactly T qdot_R of Eq. 10, with
+   the same multipliers for the other rows), so the tree-structured preconditioner still applies;
+4. ``solver='pcg'``: the Projected Block Jacobi Preconditioner factored once (Alg. 1 lines 1-8, O(n)),
+   Eq. (4) as l + 1 lockstep PCG solves (solvers.lockstep_pcg: u = A^-1 b warm-started with the
+   previous velocity, Z = A^-1 H^T warm-started with the previous step's Z), the small dense solve
+   (H Z) lam = H u - g and qdot = u - Z lam, and the joint limits (Eq. 5) by the active set; if a PCG
+   solve misses its tolerance within its cap (or the preconditioner or the active set fails) the step
+   is redone with the direct solver and Diagnostics.solver says ``pcg->direct`` (or ``pcg->qp``).
+   ``solver='direct'``: a dense data-free LHS (tree_forces.dense_lhs) and solvers.direct.solve_direct
+   (Cholesky / KKT / ProxSuite QP): the direct solver for models too large for pin.Data.
+
+Diagnostics.iterations of a PCG step is the total number of PCG iterations over all its solves
+(l + 1 with l bilateral rows, plus any active limit rows), like the paper's Table 2 counts; the
+per-solve counts are in ``ws.tree.last_stats``.
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+
+from redmax_ros.core.dynamics import constraints
+from redmax_ros.core.dynamics import tree_forces as tf
+from redmax_ros.core.solvers.problem import Constraints
+from redmax_ros.core.solvers.problem import LinearSystem
+from redmax_ros.core.dynamics.springs import spring_forces
+from redmax_ros.core.errors import StepError
+from redmax_ros.core.solvers.direct import solve_direct
+from redmax_ros.core.solvers.lockstep_pcg import DEFAULT_RTOL, Fallback, Ops, active_set, block_pcg, default_max_iter, spd_solve
+from redmax_ros.core.solvers.pcg import MatrixFreeSystem, PointSprings
+from redmax_ros.core.step.pipeline import VelocitySolve
+from redmax_ros.core.step.state import check_inputs
+
+
+@dataclasses.dataclass
+class MFSolution:
+    """Solution of one step in hyper-reduced coordinates (the Solution interface of solvers/direct.py)."""
+
+    v: np.ndarray  # hyper-reduced velocity
+    lam: np.ndarray  # multipliers of the bilateral rows (loops, prescribed joints, prescribed sites)
+    mu: np.ndarray  # multipliers of the limit rows (0 when inactive)
+    iterations: int
+    solver: str
+    residual: float  # relative KKT residual |T^T (A v - b + H^T y)| / |T^T b| (true residual, not PCG's)
+
+
+def coupling_rows(mech, ws) -> np.ndarray:
+    """Rows c with c T = 0 spanning null(T^T): r_i e_first - r_first e_i per coupled joint (normalised;
+    cached in the workspace)."""
+    cached = ws.cache.get("coupling rows")
+    if cached is not None:
+        return cached
+    T = mech.T
+    rows = []
+    if T is not None:
+        for col in range(T.shape[1]):
+            nz = np.flatnonzero(T[:, col])
+            if len(nz) < 2:
+                continue
+            d0, r0 = nz[0], T[nz[0], col]
+            for d in nz[1:]:
+                row = np.zeros(mech.nv)
+                row[d0], row[d] = T[d, col], -r0
+                rows.append(row / np.linalg.norm(row))
+    out = ws.cache["coupling rows"] = np.array(rows).reshape(-1, mech.nv)
+    return out
+
+
+def build_rows(mech, ws, cmd, q, h, hyper: bool) -> Constraints:
+    """Stage 3 on the recursive kinematics: loop rows and prescribed-site Jacobians from the Context,
+    then constraints.build (reduced coordinates for PCG, hyper-reduced for the dense direct solver)."""
+    ctx = ws.tree
+    G_loop = ctx.loop_rows()[0] if ctx.n_loop_rows else None
+    psites = cmd.site_velocities
+    J_sites = ctx.point_jacobians([mech.site_index[n] for n in psites])[1] if psites else None
+    return constraints.build(mech, ws, G_loop, J_sites, q, cmd.joint_velocities, psites, h, cmd.site_axes, hyper)
+
+
+def solve_dense(mech, ws, system: MatrixFreeSystem, b: np.ndarray, cons: Constraints, h: float):
+    """Data-free direct solve: dense LHS (CRBA-style pass + spring cross terms), then solve_direct.
+    ``cons`` in hyper-reduced coordinates."""
+    blocks = system.preconditioner_blocks()
+    A = tf.dense_lhs(ws.tree, h, blocks, system.C, system.pa, system.pb)
+    T = mech.T
+    if T is not None:
+        A, b = T.T @ A @ T, T.T @ b
+    if not cons.m:
+        cons.G = mech.no_rows
+    return solve_direct(LinearSystem(A, b), cons)
+
+
+def solve_pcg(mech, ws, system: MatrixFreeSystem, b, cons: Constraints, x0, rtol, max_iter, stats):
+    """Eq. (4) with lockstep PCG solves, plus the joint-limit active set. ``cons`` in reduced coordinates.
+    Returns (v_r, y_H, mu, iters)."""
+    ctx = ws.tree
+    nv = ctx.topo.nv
+    try:
+        ctx.P = system.preconditioner(ctx.P)
+    except ValueError as e:
+        raise Fallback(f"preconditioner: {e}") from None
+    ops = Ops(system, ctx.P)
+    Gc = coupling_rows(mech, ws)
+    H = np.vstack([cons.G, Gc]) if len(Gc) else cons.G
+    gH = np.concatenate([cons.g, np.zeros(len(Gc))]) if len(Gc) else cons.g
+    l = len(H)
+    labels = [lab for lab, n in cons.label_spans for _ in range(n)] + ["coupling (hyper-reduced coordinates)"] * len(Gc)
+    key = tuple(cons.label_spans) + (len(Gc),)
+    X0 = np.empty((l + 1, nv))
+    X0[0] = x0
+    zc = ctx.z_cache
+    if l:
+        if zc is not None and zc[0] == key:
+            X0[1:] = zc[1]
+        else:
+            X0[1:] = 0.0
+    B = np.vstack([b[None], H]) if l else b[None]
+    X, its, conv, rel = block_pcg(ops, B, X0, rtol, max_iter)
+    stats["solves"] = list(its)
+    total = int(its.sum())
+    if not conv.all():
+        bad = int(np.flatnonzero(~conv)[0])
+        raise Fallback(f"PCG did not reach rtol {rtol:g} in {max_iter} iterations "
+                       f"(solve {bad}: relative residual {rel[bad]:.2e})", total)
+    u = X[0]
+    Z = X[1:].T  # (nv, l)
+    if l:
+        ctx.z_cache = (key, X[1:].copy())
+        y = spd_solve(H @ Z, H @ u - gH, labels)
+        v = u - Z @ y
+    else:
+        y = np.zeros(0)
+        v = u
+    limits = _LimitRows(np.asarray(mech.limited, dtype=int), cons.lo, cons.hi)
+    mu = np.zeros(len(limits.C_idx))
+    if len(limits.C_idx):
+        v, y, mu, extra = active_set(ops, limits, H, gH, Z, u, v, y, labels, rtol, max_iter, stats)
+        total += extra
+    return v, y, mu, total
+
+
+@dataclasses.dataclass
+class _LimitRows:
+    C_idx: np.ndarray  # limited reduced DOFs (unilateral rows e_d)
+    lo: np.ndarray | None
+    hi: np.ndarray | None
+
+
+def data_free_velocity(mech, ws, state, cmd, tau, h, solver="pcg", rtol=DEFAULT_RTOL, max_iter=None):
+    """Stages 1-4 without pin.Data (module docstring); the velocity argument of step.pipeline.step."""
+    ctx = ws.tree
+    nv = mech.nv
+    max_iter = default_max_iter(nv) if max_iter is None else int(max_iter)
+    stats = {"solver": solver}
+    ctx.last_stats = stats
+
+    # 1-2: kinematics, forces (Eq. 2)
+    v_r = ws.to_reduced(state.v)
+    rws = ctx.fk(state.q, v_r)
+    springs = None
+    K = D = None
+    if len(mech.spring_ab):
+        X = ctx.jac_positions()
+        fs, K, D, _ = spring_forces(mech, X)
+        springs = (fs, X)
+    sf = {mech.site_index[n]: f for n, f in cmd.site_forces.items()} if cmd.site_forces else None
+    b = tf.rhs(ctx, state.q, v_r, tau, h, sf, springs)
+    if not math.isfinite(float(b.sum())):
+        raise StepError("non-finite right-hand side of Eq. (2) (state or forces out of range)")
+    ps = PointSprings(ctx.spring_ja, ctx.spring_oa, ctx.spring_jb, ctx.spring_ob, K, D) if K is not None else None
+    system = MatrixFreeSystem(ctx.topo, rws, h, ctx.reduced_diag(h), ps, tf.body_damping_blocks(ctx, h))
+    # 3: constraint rows (reduced coordinates for PCG)
+    cons = build_rows(mech, ws, cmd, state.q, h, hyper=solver != "pcg")
+    if cons.m and not math.isfinite(cons.g.sum()):
+        check_inputs(state, tau, cmd)
+
+    # 4: solve
+    label = solver
+    sol = None
+    if solver == "pcg":
+        try:
+            v_red, y, mu, iters = solve_pcg(mech, ws, system, b, cons, v_r, rtol, max_iter, stats)
+            y_rows = y[:cons.m]
+            v_hyp = ctx.to_hyper(v_red)
+            # true residual of the KKT stationarity equation (one more O(n + m) LHS product)
+            r = system.apply(v_red) - b
+            Gc = coupling_rows(mech, ws)
+            H = np.vstack([cons.G, Gc]) if len(Gc) else cons.G
+            if len(H):
+                r += H.T @ y
+            if len(mu):
+                r[mech.limited] += mu
+            bb = b
+            if mech.T is not None:
+                r, bb = mech.T.T @ r, mech.T.T @ b
+            res = math.sqrt(float(r @ r) / max(float(bb @ bb), 1e-300))
+            sol = MFSolution(v_hyp, y_rows, mu, iters, "pcg", res)
+        except Fallback as e:
+            stats["fallback"] = str(e.args[0])
+            label = "pcg->"
+            spent = e.args[1] if len(e.args) > 1 else 0
+            cons = build_rows(mech, ws, cmd, state.q, h, hyper=True)
+    if sol is None:
+        dsol = solve_dense(mech, ws, system, b, cons, h)
+        sol = dsol
+        if label == "pcg->":
+            label = "pcg->" + dsol.solver
+            iters = spent + dsol.iterations
+        else:
+            label, iters = dsol.solver, dsol.iterations
+    stats["iterations"] = int(iters)
+    G_loop = None
+    if ctx.n_loop_rows:  # hyper-reduced loop rows for the post-stabilization
+        G_loop = cons.G[cons.loop_rows]
+        if mech.T is not None and cons.G.shape[1] == nv:
+            G_loop = G_loop @ mech.T
+    v_new = ws.to_reduced(sol.v)
+    viol_vel = float(np.abs(cons.G @ (v_new if cons.G.shape[1] == nv else sol.v) - cons.g).max()) if cons.m else 0.0
+    return VelocitySolve(sol, cons.joint_rows, cons.site_rows, G_loop, viol_vel, label, int(iters))
