@@ -202,3 +202,11 @@ def test_node_runner_and_logging_use_only_the_core_facade(client):
             if mod and mod.startswith("redmax_ros.core."):
                 bad.append(f"{m}:{lineno} imports {mod}")
     assert bad == []
+
+
+def test_every_package_folder_is_a_regular_package():
+    """Each folder of Python modules has an __init__.py, so setuptools' find_packages (setup.py: pip and
+    colcon installs) ships it; a namespace folder would work in the source tree only."""
+    missing = [str(d.relative_to(ROOT)) for pkg in PACKAGES for d in [ROOT / pkg, *(ROOT / pkg).rglob("*")]
+               if d.is_dir() and d.name != "__pycache__" and any(d.glob("*.py")) and not (d / "__init__.py").exists()]
+    assert missing == []
