@@ -43,6 +43,8 @@ def run(tree: Path, scene: str, solver: str | None, duration: float, out: Path) 
 
 
 def diff_columns(a: Path, b: Path) -> str:
+    """Largest absolute difference of the state columns (q:, v:) and, separately, of the worst other
+    columns (energies, violation, required torques/forces); NaN in both files counts as equal."""
     ha, hb = a.read_text().splitlines()[0], b.read_text().splitlines()[0]
     if ha != hb:
         return "headers differ"
@@ -50,10 +52,17 @@ def diff_columns(a: Path, b: Path) -> str:
     B = np.loadtxt(b, delimiter=",", skiprows=1, ndmin=2)
     if A.shape != B.shape:
         return f"shapes differ {A.shape} vs {B.shape}"
-    d = np.nan_to_num(np.abs(A - B), nan=np.inf)
+    both_nan = np.isnan(A) & np.isnan(B)
+    d = np.where(both_nan, 0.0, np.nan_to_num(np.abs(A - B), nan=np.inf))
     cols = ha.split(",")
-    worst = np.argsort(d.max(axis=0))[::-1][:3]
-    return "; ".join(f"{cols[i]} max |diff| {d[:, i].max():.3g}" for i in worst if d[:, i].max() > 0)
+    state = [i for i, c in enumerate(cols) if c.startswith(("q:", "v:"))]
+    other = [i for i in range(len(cols)) if i not in state and cols[i] != "t"]
+    parts = [f"state (q, v) max |diff| {d[:, state].max():.3g}" if state else "no state columns"]
+    worst = sorted(other, key=lambda i: -d[:, i].max())[:3]
+    parts += [f"{cols[i]} {d[:, i].max():.3g}" for i in worst if d[:, i].max() > 0]
+    if not d.any():
+        parts = ["equal values, different text (e.g. -0 vs 0)"]
+    return "; ".join(parts)
 
 
 def main(argv=None) -> int:
