@@ -48,7 +48,9 @@ setup(
     maintainer="RedMax ROS maintainers",
     maintainer_email="maintainers@redmax-ros.dev",
     python_requires=">=3.10",
-    packages=find_packages(include=[PACKAGE, f"{PACKAGE}.*"]),
+    # redmax_bench: the benchmarks, a separate top-level package beside the runtime (it imports
+    # redmax_ros.core's public API; results go to its --out directory, never into the install).
+    packages=find_packages(include=[PACKAGE, f"{PACKAGE}.*", "redmax_bench", "redmax_bench.*"]),
     data_files=data_files,
     zip_safe=False,
     # ROS Python packages (rclpy, *_msgs, redmax_msgs) are deliberately absent:
@@ -64,7 +66,7 @@ setup(
         "mcap-ros2-support",
     ],
     extras_require={
-        # Benchmarks: MuJoCo as a comparator, matplotlib for the charts.
+        # Benchmarks (redmax_bench): MuJoCo as a comparator, matplotlib for the charts.
         "bench": ["mujoco", "matplotlib"],
         "test": ["pytest", "rosbags", "mcap", "mcap-ros2-support"],
     },
@@ -72,7 +74,7 @@ setup(
         "console_scripts": [
             "redmax_run = redmax_ros.runner:main",
             "redmax_node = redmax_ros.node.main:main",
-            "redmax_bench = redmax_ros.bench.cli:main",
+            "redmax_bench = redmax_bench.cli:main",
         ],
     },
 )

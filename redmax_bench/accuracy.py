@@ -28,7 +28,7 @@ from pathlib import Path
 import numpy as np
 import pinocchio as pin
 
-from redmax_ros.core import Simulator
+from redmax_ros.core import Simulator, Workspace
 from redmax_ros.core.dynamics.kinematics import site_positions
 from redmax_ros.core.step import baselines
 from redmax_bench import methods as M
@@ -269,10 +269,10 @@ def stability(sweeps, method_names, T=5.0, budget=90.0, log=print) -> dict:
                     rows.append({"value": val, "h_max": None, "applicable": False, "reason": why, "tried": []})
                     continue
                 mech = probe.mech
-                data = mech.model.createData()
-                E0 = baselines.mechanical_energy(mech, data, probe.q0, mech.to_reduced(probe.vR0))
+                ws = Workspace(mech, pin_data=True)
+                E0 = baselines.mechanical_energy(mech, ws, probe.q0, mech.to_reduced(probe.vR0))
                 q_eq, _ = M.static_equilibrium(mech, probe.q0)
-                S = max(E0 - baselines.mechanical_energy(mech, data, q_eq, np.zeros(mech.nv)), 1e-12)
+                S = max(E0 - baselines.mechanical_energy(mech, ws, q_eq, np.zeros(mech.nv)), 1e-12)
                 tried, h_max = [], None
                 for h in H_GRID:
                     p = M.make_problem(case, T=T, sample_dt=max(h, 0.01))

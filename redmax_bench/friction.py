@@ -66,8 +66,8 @@ _STAGES = (  # (module, function, label): the stages of a walker step, timed fro
     (staggered, "staggered_rows", "  contact detection + rows"),
     (staggered, "condense", "  condensation (P, Delassus blocks, lambda map)"),
     (staggered, "bisp.linear_wrenches", "  BISP joint-wrench map (Eq. 15-17)"),
-    (staggered, "_staggered_kernel", "  staggered iterations (compiled loop)"),
-    (staggered, "_finish", "  outputs"),
+    (staggered, "staggered_kernel", "  staggered iterations (compiled loop)"),
+    (staggered, "finish", "  outputs"),
     (stepper, "stabilization.project_chord", "loop post-stabilization"),
     (stepper, "energies", "energies"),
 )

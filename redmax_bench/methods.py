@@ -28,11 +28,10 @@ from typing import Callable
 import numpy as np
 import pinocchio as pin
 
-from redmax_ros.core import Simulator
-from redmax_ros.core.step import baselines
-from redmax_ros.core.errors import StepError
+from redmax_ros.core import Simulator, State, StepError, Workspace
 from redmax_ros.core.dynamics.kinematics import site_jacobians, site_positions
-from redmax_ros.core.step.pipeline import State
+from redmax_ros.core.step import baselines
+from redmax_ros.core.step.backends import make_backend
 from redmax_bench import mujoco_export
 from redmax_bench.maximal import MaximalModel
 
@@ -111,9 +110,9 @@ def make_problem(case: Case, T: float | None = None, sample_dt: float | None = N
 def project_velocity(mech, q, vR):
     """Closest velocity (mass metric) satisfying the loop rows: what Eq. (2) does to v0."""
     model = mech.model
-    data = model.createData()
-    G = loop_jacobian(mech, data, q)
-    M = pin.crba(model, data, q)
+    ws = Workspace(mech, pin_data=True)
+    G = loop_jacobian(mech, ws, q)
+    M = pin.crba(model, ws.data, q)
     M = np.triu(M) + np.triu(M, 1).T
     v = mech.to_reduced(vR)
     lam = np.linalg.solve(G @ np.linalg.solve(M, G.T), G @ v)
@@ -121,12 +120,13 @@ def project_velocity(mech, q, vR):
     return v if mech.T is None else np.linalg.lstsq(mech.T, v, rcond=None)[0]
 
 
-def loop_jacobian(mech, data, q):
-    pin.computeJointJacobians(mech.model, data, q)
-    pin.updateFramePlacements(mech.model, data)
+def loop_jacobian(mech, ws, q):
+    """Loop-closure rows G (reduced velocities) at q; ``ws``: a Workspace with pin.Data."""
+    pin.computeJointJacobians(mech.model, ws.data, q)
+    pin.updateFramePlacements(mech.model, ws.data)
     rows = []
     for (a, b), P in zip(mech.loop_ab, mech.loop_axes):
-        _, J = site_jacobians(mech, data, [int(a), int(b)])
+        _, J = site_jacobians(mech, ws, [int(a), int(b)])
         rows.append(np.asarray(P) @ (J[0] - J[1]))
     return np.vstack(rows) if rows else np.zeros((0, mech.nv))
 
@@ -143,12 +143,12 @@ def static_equilibrium(mech, q, iters: int = 60):
     """Newton on f_applied(q, 0) - g(q) = 0 (trees), numerical tangent stiffness, least squares for
     directions without stiffness (free rotations of bodies whose springs act through the COM)."""
     model = mech.model
-    data = model.createData()
+    ws = Workspace(mech, pin_data=True)
     nv = model.nv
     zero = np.zeros(nv)
 
     def F(qq):
-        return baselines.applied_force(mech, data, qq, zero) - pin.computeGeneralizedGravity(model, data, qq)
+        return baselines.applied_force(mech, ws, qq, zero) - pin.computeGeneralizedGravity(model, ws.data, qq)
 
     f = F(q)
     for _ in range(iters):
@@ -195,14 +195,14 @@ class HybridSplit:
         self.dof = j.idx_v
         self.q, self.v, self.a = spec["q"], spec["v"], spec["a"]
 
-    def accel(self, data, q, vR, t):
-        """(aR, required torque of the prescribed joint [N m])."""
+    def accel(self, ws, q, vR, t):
+        """(aR, required torque of the prescribed joint [N m]); ``ws``: a Workspace with pin.Data."""
         mech, T = self.mech, self.T
         v = T @ vR
-        M = pin.crba(mech.model, data, q)
+        M = pin.crba(mech.model, ws.data, q)
         M = np.triu(M) + np.triu(M, 1).T
-        nle = pin.rnea(mech.model, data, q, v, np.zeros(mech.nv))
-        b = T.T @ (baselines.applied_force(mech, data, q, v) - nle)
+        nle = pin.rnea(mech.model, ws.data, q, v, np.zeros(mech.nv))
+        b = T.T @ (baselines.applied_force(mech, ws, q, v) - nle)
         MR = T.T @ M @ T
         ap = self.a(t)
         f, p = self.f, self.p
@@ -233,29 +233,30 @@ class LoopDynamics:
         for cm in self.models:
             self.datas.append(cm.createData())
         self.mech = mech
-        self.data = model.createData()
+        self.ws = Workspace(mech, pin_data=True)
+        self.data = self.ws.data
         pin.initConstraintDynamics(model, self.data, self.models, self.datas)
         self.settings = pin.ProximalSettings(1e-13, 1e-10, 50)
 
     def accel(self, q, v):
         m = self.mech
-        tau = baselines.applied_force(m, self.data, q, v)
+        tau = baselines.applied_force(m, self.ws, q, v)
         return pin.constraintDynamics(m.model, self.data, q, v, tau, self.models, self.datas, self.settings).copy()
 
 
 def make_dynamics(problem: Problem, baumgarte: bool):
     """f(q, vR, t) -> (aR, required torque or None) for the problem's mechanism."""
     mech = problem.mech
-    data = mech.model.createData()
+    ws = Workspace(mech, pin_data=True)
     if problem.hybrid is not None:
         hyb = problem.hybrid
-        return lambda q, vR, t: hyb.accel(data, q, vR, t)
+        return lambda q, vR, t: hyb.accel(ws, q, vR, t)
     if len(mech.loop_ab):
         ld = LoopDynamics(mech, *((LOOP_KP, LOOP_KD) if baumgarte else (0.0, 0.0)))
         return lambda q, v, t: (ld.accel(q, v), None)
     if mech.T is not None:
         raise ValueError("couplings without a prescribed joint: no Pinocchio baseline")
-    return lambda q, v, t: (baselines.acceleration(mech, data, q, v), None)
+    return lambda q, v, t: (baselines.acceleration(mech, ws, q, v), None)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -356,7 +357,7 @@ def run_explicit(problem, h, scheme: str, energy_cap=None, budget=None, baumgart
     model = mech.model
     dyn = make_dynamics(problem, baumgarte)
     T = problem.hybrid.T if problem.hybrid is not None else None
-    data = model.createData()
+    ws = Workspace(mech, pin_data=True)
     rec = _Recorder(problem, h, name or f"{scheme} (Pinocchio)", energy_cap, budget)
     run = rec.run
     q, v = problem.q0.copy(), problem.vR0.copy()
@@ -396,8 +397,8 @@ def run_explicit(problem, h, scheme: str, energy_cap=None, budget=None, baumgart
         if math.isfinite(v.sum()) and math.isfinite(q.sum()):
             if problem.hybrid is not None:
                 _, tau = dyn(q, v, t)
-            E = baselines.mechanical_energy(mech, data, q, qdot(v))
-        if not rec.record(k, q, E, loop_residual(mech, data, q), tau, float(np.abs(v).max())):
+            E = baselines.mechanical_energy(mech, ws, q, qdot(v))
+        if not rec.record(k, q, E, loop_residual(mech, ws.data, q), tau, float(np.abs(v).max())):
             return run
     return run
 
@@ -441,7 +442,7 @@ def run_mujoco(problem, h, integrator, energy_cap=None, budget=None):
     d = ex.make_data()
     d.qpos[:] = ex.qpos(problem.q0)
     d.qvel[:] = ex.qvel(problem.q0, mech.to_reduced(problem.vR0))
-    data = mech.model.createData()
+    ws = Workspace(mech, pin_data=True)
     rec = _Recorder(problem, h, f"MuJoCo {integrator}", energy_cap, budget)
     run = rec.run
     m = ex.model
@@ -456,8 +457,8 @@ def run_mujoco(problem, h, integrator, energy_cap=None, budget=None):
                 return run.fail("blow-up", f"MuJoCo: {w} (state reset to qpos0) before t = {d.time:.4g} s")
         q = ex.q(d.qpos)
         v = ex.v(q, d.qvel)
-        E = baselines.mechanical_energy(mech, data, q, v) if np.all(np.isfinite(v)) else float("nan")
-        if not rec.record(k, q, E, loop_residual(mech, data, q), None, float(np.abs(d.qvel).max())):
+        E = baselines.mechanical_energy(mech, ws, q, v) if np.all(np.isfinite(v)) else float("nan")
+        if not rec.record(k, q, E, loop_residual(mech, ws.data, q), None, float(np.abs(d.qvel).max())):
             return run
     return run
 
@@ -533,16 +534,13 @@ def _pcg_applies(p):
 
 
 def _ours_pcg(rtol=None):
-    """Our step with solver=pcg; ``rtol`` is set on the simulator's solver backend when it has one."""
+    """Our step with solver=pcg; with ``rtol``, the simulator steps with a PCG backend of that tolerance."""
     name = "ours (PCG)" if rtol is None else f"ours (PCG rtol {rtol:g})"
 
     def run(problem, h, energy_cap=None, budget=None):
         p2 = make_problem(problem.case, problem.T, problem.sample_dt, ["solver=pcg"])
         if rtol is not None:
-            backend = getattr(p2.sim, "backend", None)
-            if backend is None or not hasattr(backend, "rtol"):
-                return Run(name, h).fail("not-applicable", "the simulator exposes no PCG tolerance (backend.rtol)")
-            backend.rtol = rtol
+            p2.sim.backend = make_backend(p2.sim.mech, "pcg", rtol=rtol)
         return run_ours(p2, h, energy_cap=energy_cap, budget=budget, name=name, require_solver="pcg")
     return run
 
@@ -598,8 +596,7 @@ def reference(problem, tol=1e-9, h_min=1e-6, use_cache=True, log=print, cache_di
                          float(z["E0"]), str(z["method"]), float(z["wall"]))
     mech = problem.mech
     model = mech.model
-    data = model.createData()
-    E0 = baselines.mechanical_energy(mech, data, problem.q0, mech.to_reduced(problem.vR0))
+    E0 = baselines.mechanical_energy(mech, Workspace(mech, pin_data=True), problem.q0, mech.to_reduced(problem.vR0))
     h = problem.case.h_ref
     t0, c0 = time.perf_counter(), time.process_time()
     prev = run_explicit(problem, h, "rk4", baumgarte=False, name="reference")

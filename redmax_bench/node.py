@@ -30,9 +30,9 @@ message) so the client measures the node rather than its own decoding.
 
 Writes node.json into --out (default bench/results under the current directory).
 
-The ROS parts (rclpy, the message packages, redmax_ros.node and redmax_ros.logging, which need
-rclpy) are imported inside the functions that use them: they are optional for the benchmark
-package (every other subcommand runs without ROS).
+The ROS parts (rclpy, the message packages and redmax_ros.node, which needs rclpy) are imported
+inside the functions that use them: they are optional for the benchmark package (every other
+subcommand runs without ROS).
 """
 from __future__ import annotations
 
@@ -49,6 +49,7 @@ import threading
 import time
 
 from redmax_ros.core import Simulator
+from redmax_ros.logging.mcap_log import McapLogger
 from redmax_bench.common import add_out_argument, write_json
 
 os.environ.setdefault("ROS_DOMAIN_ID", str(101 - os.getpid() % 20))
@@ -475,7 +476,6 @@ def bench_logging_inprocess(scene, dt, rounds, window, writers=("process", "thre
     from rclpy.executors import MultiThreadedExecutor  # optional: rclpy
     from rclpy.parameter import Parameter  # optional: rclpy
 
-    from redmax_ros.logging.mcap_log import McapLogger  # optional: rclpy (redmax_ros.logging, as the node)
     from redmax_ros.node.main import RedmaxNode, qos_dict, type_name  # optional: rclpy (redmax_ros.node)
 
     ns = f"/bench_log{os.getpid()}"

@@ -11,15 +11,15 @@ excluded; the kernels are compiled by a warm-up run first). Times are process CP
 (``--wall`` for wall time): on a shared machine other jobs inflate wall time, not CPU time, and all
 solvers run single-threaded (OPENBLAS_NUM_THREADS=1, set by the package):
 
-* **direct**: our direct solver for large models, i.e. ``step_matrix_free(..., solver="direct")``:
+* **direct**: our direct solver for large models, i.e. ``DataFreeBackend(mech, "direct")``:
   the same data-free kinematics and RHS as PCG, the dense LHS of Eq. (2) assembled by a CRBA-style
   numba pass (O(n d) for tree depth d) plus the cross-body spring terms, then a dense Cholesky of
   the LHS and the Schur complement of the loop rows (Eigen LLT through eigenpy, solve.solve_direct).
   It is dense (O(n^3) factorisation), not a sparse factorisation like the paper's Pardiso. For
-  DOF <= 100 the Pinocchio pipeline (stepper.step with pin.Data, the Simulator's direct solver at
-  that size) is timed too, as a reference column.
-* **pcg**: ``solver="pcg"``: PCG with the Projected Block Jacobi Preconditioner, rtol 1e-6, warm
-  starts, Eq. (4) for the loop rows; ``iters`` is the average number of PCG iterations per step
+  DOF <= 100 the Pinocchio pipeline (``DirectBackend``: pipeline.step with pin.Data, the Simulator's
+  direct solver at that size) is timed too, as a reference column.
+* **pcg**: ``DataFreeBackend(mech, "pcg")``: PCG with the Projected Block Jacobi Preconditioner,
+  rtol 1e-6, warm starts, Eq. (4) for the loop rows; ``iters`` is the average number of PCG iterations per step
   summed over the l + 1 solves of Eq. (4), like Table 2.
 
 Scene times: 5 s for the bridges, 1 s for the umbrella (Table 2), times ``--fraction`` (default 1).
@@ -35,8 +35,8 @@ import time
 import numpy as np
 
 from redmax_ros.core import Simulator
-from redmax_ros.core.dynamics.data_free import PIN_DATA_MAX_NV
-from redmax_ros.core.step.matrix_free import DataFreeBackend, DirectBackend
+from redmax_ros.core.dynamics.tree_kinematics import PIN_DATA_MAX_NV
+from redmax_ros.core.step.backends import DataFreeBackend, DirectBackend
 from redmax_bench.common import add_out_argument, results_dir, write_json
 
 # scene -> (label, scene file, overrides per size level, Table 2 scene time [s], paper DOF)
@@ -115,8 +115,9 @@ def measure(key, levels, fraction, rtol, no_direct_above, verbose=True):
         n_steps = max(1, int(round(T * fraction / sim.dt)))
         row = {"dof": nv, "steps": n_steps, "scene_time": n_steps * sim.dt, "loop_rows": int(sum(
             len(a) for a in sim.mech.loop_axes)), "springs": len(sim.mech.spring_names)}
-        t, wall, its, labels, s_pcg = run_solver(sim, DataFreeBackend(sim.mech, "pcg", rtol=rtol), n_steps)
-        solves = sim.mech.__dict__["_data_free_ctx"].last_stats.get("solves", [])
+        pcg = DataFreeBackend(sim.mech, "pcg", rtol=rtol)
+        t, wall, its, labels, s_pcg = run_solver(sim, pcg, n_steps)
+        solves = pcg.workspace.tree.last_stats.get("solves", [])  # the last step's solves (Eq. 4)
         row.update(pcg=t, pcg_wall=wall, iters=float(np.mean(its)), iters_max=int(np.max(its)),
                    iters_first_step=int(its[0]), solves_per_step=len(solves), pcg_labels=labels)
         if no_direct_above is None or nv <= no_direct_above:

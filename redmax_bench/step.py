@@ -14,8 +14,9 @@ import argparse
 import time
 
 import numpy as np
+import pinocchio as pin
 
-from redmax_ros.core import Simulator
+from redmax_ros.core import Simulator, Workspace
 from redmax_ros.core.step import baselines
 from redmax_ros.core.dynamics import constraints
 from redmax_ros.core.dynamics import forces
@@ -49,7 +50,7 @@ def cases():
 
 
 def sie_rate(sim, n, repeats):
-    mech, data = sim.mech, sim.mech.model.createData()
+    mech, data = sim.mech, Workspace(sim.mech, pin_data=True)
     q0, v0 = sim.state.q.copy(), mech.to_reduced(sim.state.v).copy()
 
     def run(k):
@@ -57,7 +58,7 @@ def sie_rate(sim, n, repeats):
         for _ in range(k):
             a = baselines.acceleration(mech, data, q, v)
             v = v + sim.dt * a
-            q = baselines.pin.integrate(mech.model, q, sim.dt * v)
+            q = pin.integrate(mech.model, q, sim.dt * v)
 
     return best_rate(run, n, repeats)
 
@@ -80,8 +81,9 @@ def stage_times(sim, n=2000) -> dict:
     step's time minus its time with that stage replaced by its cached result. (Stages timed in
     isolation run about twice as fast as inside the step, where they compete for caches with the
     rest; this measures what removing the stage would save.)"""
-    m, d, st, cmd, h = sim.mech, sim.data, sim.state, sim.commands, sim.dt
-    whole = _cpu_per_call(lambda: stepper.step(m, d, st, cmd, h), n)
+    m, ws, st, cmd, h = sim.mech, sim.workspace, sim.state, sim.commands, sim.dt
+    vel = stepper.pinocchio_velocity
+    whole = _cpu_per_call(lambda: stepper.step(m, ws, st, cmd, h, vel), n)
     out = {}
     for label, mod, fname in STAGES:
         orig, memo = getattr(mod, fname), {}
@@ -93,7 +95,7 @@ def stage_times(sim, n=2000) -> dict:
 
         setattr(mod, fname, cached)
         try:
-            out[label] = max(whole - _cpu_per_call(lambda: stepper.step(m, d, st, cmd, h), n), 0.0)
+            out[label] = max(whole - _cpu_per_call(lambda: stepper.step(m, ws, st, cmd, h, vel), n), 0.0)
         finally:
             setattr(mod, fname, orig)
     out["whole step"] = whole

@@ -12,8 +12,9 @@ import math
 import numpy as np
 import pytest
 
-from redmax_ros.bench import methods as M
-from redmax_ros.bench.accuracy import BLOWUP_ENERGY, VIOLATION_MAX, classify
+from redmax_bench import methods as M
+from redmax_bench.accuracy import BLOWUP_ENERGY, VIOLATION_MAX, classify
+from redmax_ros.core import Workspace
 from redmax_ros.core.step import baselines
 
 
@@ -21,7 +22,7 @@ def _problem(scene, overrides, T, sample_dt=0.05):
     case = M.Case(f"{scene} {overrides}", "test", scene, overrides, T=T)
     p = M.make_problem(case, T=T, sample_dt=sample_dt)
     m = p.mech
-    data = m.model.createData()
+    data = Workspace(m, pin_data=True)
     E0 = baselines.mechanical_energy(m, data, p.q0, m.to_reduced(p.vR0))
     q_eq, _ = M.static_equilibrium(m, p.q0)
     S = E0 - baselines.mechanical_energy(m, data, q_eq, np.zeros(m.nv))

@@ -7,6 +7,7 @@ import numpy as np
 
 from redmax_ros.core.dynamics.springs import spring_energy
 from redmax_ros.core.dynamics.tree_kinematics import Context
+from redmax_ros.core.jit import njit
 
 
 def energies(ctx: Context, q, v_r, extras=None) -> tuple:
@@ -14,19 +15,36 @@ def energies(ctx: Context, q, v_r, extras=None) -> tuple:
     catalogue runtime (direction springs) or None. Leaves (q, v_r) in ctx.ws."""
     mech, topo = ctx.mech, ctx.topo
     ws = ctx.fk(q, v_r)
-    R, ov = ws.R[1:], ws.ov[1:]
-    com = np.einsum("jab,jb->ja", R, topo.com[1:]) + ws.p[1:]
-    # per body at its COM (no lever arm to the world origin, whose cancellation would cost round-off):
-    # 1/2 m |v_c|^2 + 1/2 w_b^T I_c w_b, v_c = v_o + w x c, w_b = R^T w
-    w = ov[:, 3:]
-    v_c = ov[:, :3] + np.cross(w, com)
-    w_b = np.einsum("jba,jb->ja", R, w)
-    ek = 0.5 * float(topo.mass[1:] @ np.einsum("ja,ja->j", v_c, v_c))
-    ek += 0.5 * float(np.einsum("ja,jab,jb->", w_b, topo.inertia_com[1:], w_b))
+    ek, ep = _body_energies(ws.R, ws.p, ws.ov, topo.mass, topo.com, topo.inertia_com, ctx.gravity)
     if mech.has_armature:
         ek += 0.5 * float(mech.armature @ (v_r * v_r))
-    ep = -float(topo.mass[1:] @ (com @ ctx.gravity))
     es = spring_energy(mech, ctx.jac_positions() if len(mech.spring_ab) else None, q)
     if extras is not None:  # direction springs (catalogue_hooks.py)
         es += extras.energy(ctx.site_positions())
     return float(ek), float(ep), es
+
+
+@njit
+def _body_energies(R, p, ov, mass, com, Ic, g):
+    """(E_kin, E_pot) of the bodies from the world placements (R, p) and twists at the world origin ov
+    (v_o, w): per body at its COM c = R com + p (no lever arm to the origin, whose cancellation would cost
+    round-off), 1/2 m |v_o + w x c|^2 + 1/2 w_b^T I_c w_b with w_b = R^T w, and -m g.c."""
+    ek = 0.0
+    ep = 0.0
+    for j in range(1, R.shape[0]):
+        c0 = R[j, 0, 0] * com[j, 0] + R[j, 0, 1] * com[j, 1] + R[j, 0, 2] * com[j, 2] + p[j, 0]
+        c1 = R[j, 1, 0] * com[j, 0] + R[j, 1, 1] * com[j, 1] + R[j, 1, 2] * com[j, 2] + p[j, 1]
+        c2 = R[j, 2, 0] * com[j, 0] + R[j, 2, 1] * com[j, 1] + R[j, 2, 2] * com[j, 2] + p[j, 2]
+        w0, w1, w2 = ov[j, 3], ov[j, 4], ov[j, 5]
+        v0 = ov[j, 0] + w1 * c2 - w2 * c1
+        v1 = ov[j, 1] + w2 * c0 - w0 * c2
+        v2 = ov[j, 2] + w0 * c1 - w1 * c0
+        b0 = R[j, 0, 0] * w0 + R[j, 1, 0] * w1 + R[j, 2, 0] * w2
+        b1 = R[j, 0, 1] * w0 + R[j, 1, 1] * w1 + R[j, 2, 1] * w2
+        b2 = R[j, 0, 2] * w0 + R[j, 1, 2] * w1 + R[j, 2, 2] * w2
+        rot = (b0 * (Ic[j, 0, 0] * b0 + Ic[j, 0, 1] * b1 + Ic[j, 0, 2] * b2)
+               + b1 * (Ic[j, 1, 0] * b0 + Ic[j, 1, 1] * b1 + Ic[j, 1, 2] * b2)
+               + b2 * (Ic[j, 2, 0] * b0 + Ic[j, 2, 1] * b1 + Ic[j, 2, 2] * b2))
+        ek += 0.5 * mass[j] * (v0 * v0 + v1 * v1 + v2 * v2) + 0.5 * rot
+        ep -= mass[j] * (c0 * g[0] + c1 * g[1] + c2 * g[2])
+    return ek, ep

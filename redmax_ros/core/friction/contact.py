@@ -145,7 +145,7 @@ def ls_operator(P, Nn, M, eps):
 
 
 def compile_friction(mech, fspec) -> FrictionModel | None:
-    """Constant contact/friction data of a mechanism (called by mechanism.compile_scene); None when
+    """Constant contact/friction data of a mechanism (called by step.compile.compile_scene); None when
     the scene has neither contacts nor friction (the step then takes the frictionless path)."""
     src = mech.spec.source
     st = fspec.settings

@@ -26,8 +26,8 @@ warm-start the next step [Kaufman et al. 2008]. The loop exits after a CONTACT s
 velocity always satisfies the bilateral and unilateral rows (feasible) even when the iteration cap is
 reached; that case is reported (FrictionReport.converged = False), never silent.
 Per step: bisp.body_frames (kinematics), contact.staggered_rows (detection, rows RX = [U; -T]),
-condense.condense, bisp.linear_wrenches, _warm_start, _staggered_kernel (with PGS and whole-joint bounds;
-_python_loop otherwise), _finish: all compiled (numba), a few calls per step.
+condense.condense, bisp.linear_wrenches, _warm_start, staggered_kernel (with PGS and whole-joint bounds;
+_python_loop otherwise), finish: all compiled (numba), a few calls per step.
 """
 from __future__ import annotations
 
@@ -127,13 +127,13 @@ def _small_solve(H, r):
 @numba.njit(cache=True)
 def loop_kernel(W_U, X_UT, X_TU, U_v0, lo_U, W_T, T_v0, mu_g, a0, Mx, bound_mu, kmax, joint, wU, wT, tol,
                  max_iter, depth, alpha, beta):
-    """The staggered loop with the joint multipliers given as alpha = a0 + Mx x (bench/sp_maximal.py)."""
-    return _staggered_kernel(W_U, X_UT, X_TU, U_v0, lo_U, W_T, T_v0, mu_g, a0, Mx, np.zeros((0, kmax, 6)), 1.0,
+    """The staggered loop with the joint multipliers given as alpha = a0 + Mx x (redmax_bench/sp_maximal.py)."""
+    return staggered_kernel(W_U, X_UT, X_TU, U_v0, lo_U, W_T, T_v0, mu_g, a0, Mx, np.zeros((0, kmax, 6)), 1.0,
                              bound_mu, kmax, joint, wU, wT, tol, max_iter, depth, alpha, beta)
 
 
 @numba.njit(cache=True)
-def _staggered_kernel(W_U, X_UT, X_TU, U_v0, lo_U, W_T, T_v0, mu_g, a0, Mx, Lop, h, bound_mu, kmax, joint, wU, wT,
+def staggered_kernel(W_U, X_UT, X_TU, U_v0, lo_U, W_T, T_v0, mu_g, a0, Mx, Lop, h, bound_mu, kmax, joint, wU, wT,
                       tol, max_iter, depth, alpha, beta):
     """The staggered loop of solve() (same steps, same tests, PGS inner solves, Anderson) compiled:
     used when the friction bounds are whole-joint sums (no spherical joints) and qp = pgs.
@@ -347,7 +347,7 @@ def solve(mech, work, kin, system: LinearSystem, cons, q, v_prev_r, h, cache, si
             kmax, w0, wx, Lop, bmu = 1, np.zeros(0), np.zeros((0, nu + nf)), np.zeros((0, 1, 6)), np.zeros(0)
         else:
             w0, wx, Lop, bmu = W0.reshape(-1), Wx.reshape(-1, nu + nf), fm.L, fm.bound_mu
-        alpha, beta, bound, al, it, converged, resid = _staggered_kernel(
+        alpha, beta, bound, al, it, converged, resid = staggered_kernel(
             W_U, X_UT, X_TU, U_v0, lo_U, W_T, T_v0, mu_g, w0, wx, Lop, h, bmu, kmax, joint_fric, wU, wT, st.tol,
             st.max_iter, st.anderson, alpha, beta)
     else:
@@ -357,7 +357,7 @@ def solve(mech, work, kin, system: LinearSystem, cons, q, v_prev_r, h, cache, si
 
     if not joint_fric:
         kmax, al = 1, np.zeros(0)
-    v, r, lam, new_cache, active, max_pen, sticking, jn = _finish(
+    v, r, lam, new_cache, active, max_pen, sticking, jn = finish(
         v0, PX, b, RX, lam0, LamX, alpha, beta, bound, al, slots, fm.n_slots, cs.gap if nc else _NO_GAP, kmax, h)
     # velocity of the last contact stage (Alg. 2 line 20); the unilateral rows are in r = b + RX^T x
     sol = Solution(v, lam, _NO_GAP, it, "staggered", LinearSystem(A, r), cons if cons.C is None else _no_unilateral(cons))
@@ -392,7 +392,7 @@ def _warm_start(cache, has_cache, sphere, plane, n_planes, j0, nf):
 
 
 @numba.njit(cache=True)
-def _finish(v0, PX, b, RX, lam0, LamX, alpha, beta, bound, al, slots, n_slots, gap, kmax, h):
+def finish(v0, PX, b, RX, lam0, LamX, alpha, beta, bound, al, slots, n_slots, gap, kmax, h):
     """Outputs of the staggered solve from its last iterate x = [alpha; beta]: velocity qdot_0 + PX x,
     generalized impulse RHS b + RX^T x, multipliers lambda_0 + LamX x, the new warm-start cache, and the
     report's counts (active ground contacts, deepest penetration, sticking friction rows, joint normal
@@ -430,7 +430,7 @@ def _finish(v0, PX, b, RX, lam0, LamX, alpha, beta, bound, al, slots, n_slots, g
 
 def _python_loop(fm, st, W_U, X_UT, U_v0, lo_U, W_T, T_v0, mu_g, nc, affine, alpha, beta):
     """The staggered loop in Python (ProxSuite inner solves, spherical-joint bounds); same steps as
-    _staggered_kernel. Returns (alpha, beta, bound, al, iterations, converged, residual)."""
+    staggered_kernel. Returns (alpha, beta, bound, al, iterations, converged, residual)."""
     nu, nf, ng = len(U_v0), len(T_v0), 2 * nc
     wU, wT = np.maximum(np.diag(W_U), 0.0), np.maximum(np.diag(W_T), 0.0)
     acc = Anderson(st.anderson)

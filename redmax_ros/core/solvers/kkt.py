@@ -4,13 +4,13 @@
     [G   0 ] [ lam ] = [g]        A symmetric positive definite (LHS of Eq. 2), G full row rank
 
 by the Schur complement: A = L L^T, Y = A^-1 G^T, S = G Y = L_S L_S^T,
-lam = S^-1 (G A^-1 b - g), qdot+ = A^-1 b - Y lam (sign convention of solve.py: A qdot = b - G^T lam).
+lam = S^-1 (G A^-1 b - g), qdot+ = A^-1 b - Y lam (sign convention of solvers/direct.py: A qdot = b - G^T lam).
 
 For the small systems of hands, legs and short chains (n <= SMALL_N) the NumPy/Eigen route costs
 a dozen interpreter round trips of 1-5 us each while the arithmetic is a few thousand flops; this
 kernel does the factorisations, the triangular solves, the joint-limit feasibility test of Eq. (5)
 and the velocity-level residual max|G qdot+ - g| in one call. Larger systems keep Eigen's blocked
-LLT (solve.py), which is faster from a few dozen DOFs on (measured in docs/architecture.md).
+LLT (solvers/direct.py), which is faster from a few dozen DOFs on (measured in docs/architecture.md).
 kkt_solve_lu is the same solve for a non-symmetric A (integrator.coriolis: implicit): LU with partial
 pivoting for A and for the Schur complement S.
 """

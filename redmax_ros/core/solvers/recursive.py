@@ -38,7 +38,7 @@ not supported.
 
 Hot loops are numba kernels (``@njit``): on a chain the tree has one joint per level, so
 vectorising by tree level degenerates to one interpreter round trip per joint; measured in
-``redmax_ros/bench/passes.py``.
+``redmax_bench/passes.py``.
 """
 from __future__ import annotations
 
