@@ -133,7 +133,7 @@ class Simulator:
 
     def energies(self) -> tuple:
         """(E_kin, E_pot, E_spring) [J] of the current state (as the step's diagnostics compute them)."""
-        return energies(self._query, self.state.q, self.joint_velocities(), self.backend.workspace.extras)
+        return energies(self.mech, self.backend.workspace, self.state.q, self.joint_velocities())
 
     # -- commands
     def _joint_vector(self, name, value, allowed=None, what="joint"):

@@ -1,18 +1,42 @@
 """Energy diagnostics [J]: kinetic (incl. armature), gravitational, spring (maximal + joint + catalogue
-direction springs). One implementation for every pipeline, on the recursive kinematics Context
-(tree_kinematics.py)."""
+direction springs). One entry point, :func:`energies`, for every pipeline; the kinematics under it are
+the workspace's: Pinocchio's (computeKineticEnergy/computePotentialEnergy on pin.Data, one C++ call
+each) where the workspace has a pin.Data, else the recursive Context (tree_kinematics.py), whose
+compiled per-body sums are :func:`tree_energies`. The spring energies are springs.spring_energy for
+both."""
 from __future__ import annotations
 
 import numpy as np
 
+import pinocchio as pin
+
+from redmax_ros.core.dynamics.kinematics import site_positions
 from redmax_ros.core.dynamics.springs import spring_energy
 from redmax_ros.core.dynamics.tree_kinematics import Context
 from redmax_ros.core.jit import njit
 
 
-def energies(ctx: Context, q, v_r, extras=None) -> tuple:
-    """(E_kin, E_pot, E_spring) [J] at (q, v_r) (reduced velocities). ``extras``: the workspace's
-    catalogue runtime (direction springs) or None. Leaves (q, v_r) in ctx.ws."""
+def energies(mech, ws, q, v_r) -> tuple:
+    """(E_kin, E_pot, E_spring) [J] at (q, v_r) (reduced velocities), with the workspace's kinematics
+    (pin.Data when it has one, else its recursive Context) and catalogue runtime (direction springs).
+    Leaves the forward kinematics of q in that workspace."""
+    data = ws.data
+    if data is None:
+        return tree_energies(ws.tree, q, v_r, ws.extras)
+    ek = pin.computeKineticEnergy(mech.model, data, q, v_r)  # also runs forward kinematics
+    if mech.has_armature:
+        ek += 0.5 * float(mech.armature @ (v_r * v_r))
+    ep = pin.computePotentialEnergy(mech.model, data)
+    X = site_positions(mech, data, mech.jac_sites) if len(mech.spring_ab) else None
+    es = spring_energy(mech, X, q)
+    if ws.extras is not None:  # direction springs (catalogue_hooks.py)
+        es += ws.extras.energy(site_positions(mech, data))
+    return float(ek), float(ep), es
+
+
+def tree_energies(ctx: Context, q, v_r, extras=None) -> tuple:
+    """(E_kin, E_pot, E_spring) [J] at (q, v_r) on the recursive Context (no pin.Data). ``extras``: the
+    workspace's catalogue runtime (direction springs) or None. Leaves (q, v_r) in ctx.ws."""
     mech, topo = ctx.mech, ctx.topo
     ws = ctx.fk(q, v_r)
     ek, ep = _body_energies(ws.R, ws.p, ws.ov, topo.mass, topo.com, topo.inertia_com, ctx.gravity)

@@ -66,4 +66,4 @@ def rk4(mech, ws, q, v, h, tau=None):
 
 def mechanical_energy(mech, ws, q, v) -> float:
     """E_kin + E_pot + E_spring [J] of a baseline state (the step's energies, energy.py)."""
-    return float(sum(energies(ws.tree, q, v, ws.extras)))
+    return float(sum(energies(mech, ws, q, v)))

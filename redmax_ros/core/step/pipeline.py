@@ -9,7 +9,7 @@ StepResult).
     q+ = stabilization.project_chord(q+, G_loop)        #    loop post-stabilization
     q+, qdot_R+ = ws.extras.end(...)                    #    catalogue: coordinates, charts, projections
     effort, site forces = *G^T lam / h                  # 6: required torques and forces (Eq. 7)
-    energies, violations -> Diagnostics                 #    one implementation (energy.py)
+    energies, violations -> Diagnostics                 #    one entry point (energy.py)
 
 The velocity stages are what really differs between backends (MJX's "two implementations behind one
 entry point"): :func:`pinocchio_velocity` here (kinematics.compute on pin.Data -> forces.assemble (Eq.
@@ -61,7 +61,7 @@ def step(mech, ws, state: State, cmd, h: float, velocity) -> tuple:
     check_speed(vs.sol.v)
     q_new, v_hyper, v_new, viol_pos = update_configuration(mech, ws, state.q, vs, cmd, h)  # 5
     effort, site_forces = required_forces(mech, tau, vs, cmd, h)  # 6
-    ek, ep, es = energies(ws.tree, q_new, v_new, ws.extras)
+    ek, ep, es = energies(mech, ws, q_new, v_new)
     if not math.isfinite(ek + ep + es):
         raise StepError("non-finite energy after the step")
     diag = Diagnostics(ek, ep, es, ek + ep + es, viol_pos, vs.violation_vel, vs.iterations, vs.solver,
