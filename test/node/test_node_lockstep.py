@@ -1,6 +1,6 @@
 """The node in-process, lockstep (PAUSED): services, commands, physics against the core.
 
-Real rclpy over Fast DDS (private ROS_DOMAIN_ID, localhost discovery: see node_fixtures.py).
+Real rclpy over Fast DDS (private ROS_DOMAIN_ID, localhost discovery: see test/conftest.py).
 Every physics check replays the same commands on a separate in-process core Simulator and
 compares bitwise: the node must publish exactly the core's state and required torques.
 """
@@ -11,7 +11,7 @@ import time
 import numpy as np
 import pytest
 
-from node_fixtures import Client, arrays_equal, rclpy, run_node_in_thread  # noqa: F401
+from node_fixtures import Client, arrays_equal, run_node_in_thread  # noqa: F401  (first: skips without ROS)
 
 from rcl_interfaces.srv import SetParameters  # noqa: E402
 from rclpy.parameter import Parameter  # noqa: E402
@@ -23,13 +23,6 @@ from redmax_ros.core import Simulator  # noqa: E402
 H = 1e-3
 PARAMS = {"scene": "hand", "mode": "lockstep", "command_timeout": 100.0, "marker_rate": 0.0,
           "diagnostics_period": 0.5}
-
-
-@pytest.fixture(scope="module")
-def ros():
-    rclpy.init()
-    yield
-    rclpy.shutdown()
 
 
 NS = f"/lockstep{os.getpid()}"  # a namespace of our own, in case another run shares the domain

@@ -1,7 +1,10 @@
-"""Shared helpers for the node tests (test_node_*.py, test_mcap_*.py): real rclpy over Fast DDS.
+"""Helpers of the ROS tests (test/node/test_node_*.py, test/logging/test_mcap_node.py): real rclpy
+over Fast DDS. Plain code, not fixtures: the test modules import it by name.
 
-Importing this module isolates the run before rclpy starts: a private ROS_DOMAIN_ID (derived
-from the process id unless already set) and ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST.
+The private ROS graph (ROS_DOMAIN_ID, ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST, RMW_IMPLEMENTATION) is
+set before any test module is imported, by test/conftest.py (pytest_configure); its ``ros`` fixture
+initialises rclpy per test module. Importing this module skips the importing test module when rclpy
+or redmax_msgs is missing (fails instead when CI is set).
 """
 from __future__ import annotations
 
@@ -9,11 +12,7 @@ import os
 import threading
 import time
 
-os.environ.setdefault("ROS_DOMAIN_ID", str(20 + os.getpid() % 80))
-os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
-os.environ.setdefault("RMW_IMPLEMENTATION", "rmw_fastrtps_cpp")
-
-import pytest  # noqa: E402
+import pytest
 
 if os.environ.get("CI"):  # in CI a missing ROS environment is a failure, not a skip
     import rclpy  # noqa: E402

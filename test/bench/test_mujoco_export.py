@@ -75,8 +75,8 @@ def test_few_steps_match_rk4(scene, overrides):
 
 def test_core_does_not_import_mujoco():
     import pathlib
-    core = pathlib.Path(__file__).resolve().parents[1] / "redmax_ros" / "core"
-    for f in core.glob("*.py"):
+    core = pathlib.Path(__file__).resolve().parents[2] / "redmax_ros" / "core"
+    for f in core.rglob("*.py"):
         assert "import mujoco" not in f.read_text(), f"{f.name} imports mujoco (benchmark-only dependency)"
 
 

@@ -40,10 +40,10 @@ def _arrays(obj, seen=None, path="mech"):
 
 
 @pytest.mark.parametrize("name,overrides,solver", SCENES)
-def test_stepping_never_writes_the_mechanism(name, overrides, solver):
+def test_stepping_never_writes_the_mechanism(name, overrides, solver, load_sim):
     """Every array reachable from the Mechanism (incl. the compiled catalogue hooks and friction model) is
     bitwise the same after 100 steps with prescriptions, torques and site forces; fields cannot be set."""
-    sim = Simulator.load(name, overrides, solver=solver)
+    sim = load_sim(name, overrides, solver=solver)
     m = sim.mech
     before = {k: v.copy() for k, v in _arrays(m).items()}
     assert len(before) > 20

@@ -3,7 +3,7 @@ raise CommandError and change nothing."""
 import numpy as np
 import pytest
 
-from redmax_ros.core import CommandError, Simulator, StepError
+from redmax_ros.core import CommandError, StepError
 from redmax_ros.core import State
 
 
@@ -16,8 +16,8 @@ def same(a, b):
             and a[3].keys() == b[3].keys())
 
 
-def test_non_finite_state_raises_and_keeps_state():
-    sim = Simulator.load("chain")
+def test_non_finite_state_raises_and_keeps_state(load_sim):
+    sim = load_sim("chain")
     sim.step(10)
     bad = State(sim.state.t, sim.state.q.copy(), sim.state.v.copy())
     bad.v[2] = np.nan
@@ -28,8 +28,8 @@ def test_non_finite_state_raises_and_keeps_state():
     assert same(before, snapshot(sim))
 
 
-def test_non_finite_torque_bypassing_validation_raises_and_keeps_state():
-    sim = Simulator.load("hand")
+def test_non_finite_torque_bypassing_validation_raises_and_keeps_state(load_sim):
+    sim = load_sim("hand")
     sim.step(5)
     before = snapshot(sim)
     sim.commands.joint_torques[3] = np.inf  # bypasses the command API on purpose
@@ -38,8 +38,8 @@ def test_non_finite_torque_bypassing_validation_raises_and_keeps_state():
     assert same(before, snapshot(sim))
 
 
-def test_diverging_step_raises_and_keeps_state():
-    sim = Simulator.load("pendulum")
+def test_diverging_step_raises_and_keeps_state(load_sim):
+    sim = load_sim("pendulum")
     sim.set_joint_torques({"hinge": 1e12})
     before = snapshot(sim)
     with pytest.raises(StepError, match="diverged"):
@@ -47,10 +47,10 @@ def test_diverging_step_raises_and_keeps_state():
     assert same(before, snapshot(sim))
 
 
-def test_over_constraining_prescriptions_name_the_constraints():
+def test_over_constraining_prescriptions_name_the_constraints(load_sim):
     """The four-bar has 1 DOF: prescribing both crank and rocker is redundant/conflicting; the step
     names the constraints involved and changes nothing."""
-    sim = Simulator.load("fourbar")
+    sim = load_sim("fourbar")
     sim.prescribe_joints({"crank_joint": 1.0, "rocker_joint": 0.5})
     before = snapshot(sim)
     with pytest.raises(StepError, match="redundant or conflicting") as ei:
@@ -60,9 +60,9 @@ def test_over_constraining_prescriptions_name_the_constraints():
     assert same(before, snapshot(sim))
 
 
-def test_impossible_point_prescription_names_the_site():
+def test_impossible_point_prescription_names_the_site(load_sim):
     """A hinge about y cannot move its tip along y: the row of that site acts on no DOF."""
-    sim = Simulator.load("pendulum")
+    sim = load_sim("pendulum")
     sim.prescribe_sites({"tip": [0.0, 0.1, 0.0]})
     before = snapshot(sim)
     with pytest.raises(StepError, match="prescribed site 'tip' does not act on any DOF"):
@@ -70,8 +70,8 @@ def test_impossible_point_prescription_names_the_site():
     assert same(before, snapshot(sim))
 
 
-def test_multi_step_failure_reports_steps_done():
-    sim = Simulator.load("pendulum")
+def test_multi_step_failure_reports_steps_done(load_sim):
+    sim = load_sim("pendulum")
     sim.step(3)
     sim.commands.joint_torques[0] = np.nan
     with pytest.raises(StepError) as ei:
@@ -93,8 +93,8 @@ def test_multi_step_failure_reports_steps_done():
     (lambda s: s.prescribe_sites({}, axes={"index_tip": ["x"]}), "without a velocity"),
     (lambda s: s.step(0), "positive integer"),
 ])
-def test_bad_commands_raise_and_change_nothing(call, text):
-    sim = Simulator.load("hand")
+def test_bad_commands_raise_and_change_nothing(call, text, load_sim):
+    sim = load_sim("hand")
     sim.prescribe_joints({"elbow": 0.2})
     before = snapshot(sim)
     tau = sim.commands.joint_torques.copy()

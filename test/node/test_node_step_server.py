@@ -5,7 +5,7 @@ from __future__ import annotations
 import os
 import threading
 
-from node_fixtures import rclpy  # noqa: F401  (isolates the ROS domain first)
+import node_fixtures  # noqa: F401  (first: skips this module without rclpy/redmax_msgs)
 
 import pytest
 from rclpy.executors import SingleThreadedExecutor
@@ -16,13 +16,6 @@ from redmax_ros.node import step_server
 
 _RUNS = []
 pytestmark = pytest.mark.skipif(not step_server.available(), reason="librcl not reachable through ctypes")
-
-
-@pytest.fixture(scope="module")
-def ros():
-    rclpy.init()
-    yield
-    rclpy.shutdown()
 
 
 @pytest.fixture()

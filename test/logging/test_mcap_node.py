@@ -11,11 +11,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from node_fixtures import Client, rclpy  # noqa: F401  (sets ROS_DOMAIN_ID / discovery range first)
+from node_fixtures import Client  # noqa: F401  (test/node/node_fixtures.py; first: skips without ROS)
 
 from redmax_msgs.msg import Result, SimulationState  # noqa: E402
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 PID = os.getpid()  # namespace of our own, in case another run shares the ROS domain
 
 
@@ -24,7 +24,7 @@ def _stamp_ns(st):
 
 
 @pytest.fixture(scope="module")
-def run(tmp_path_factory):
+def run(tmp_path_factory, ros):
     """Start the node (hand, lockstep, logging), drive it, then SIGINT it while playing."""
     logdir = tmp_path_factory.mktemp("logs")
     cmd = [sys.executable, "-m", "redmax_ros.node.main", "--ros-args", "--params-file",
@@ -32,7 +32,6 @@ def run(tmp_path_factory):
            "-p", "command_timeout:=100.0", "-p", "marker_rate:=50.0", "-p", "real_time_factor:=0.0",
            "-p", "diagnostics_period:=0.2", "-r", f"__ns:=/sim{PID}"]
     proc = subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-    rclpy.init()
     client = Client("mcap_test_client", ns=f"/sim{PID}")
     out = {"logdir": logdir}
     try:
@@ -61,7 +60,6 @@ def run(tmp_path_factory):
             proc.kill()
         out["output"] = proc.stdout.read()
         client.close()
-        rclpy.shutdown()
     return out
 
 

@@ -5,7 +5,7 @@ import time
 
 import pytest
 
-from node_fixtures import rclpy  # noqa: F401  (sets ROS_DOMAIN_ID / discovery range first)
+import node_fixtures  # noqa: F401  (first: skips this module without rclpy/redmax_msgs)
 
 from rclpy.executors import SingleThreadedExecutor  # noqa: E402
 from rclpy.node import Node  # noqa: E402
@@ -22,8 +22,7 @@ QOS = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
 
 
 @pytest.fixture(scope="module")
-def nodes():
-    rclpy.init()
+def nodes(ros):
     pub_node, sub_node = Node("sender_pub", namespace=NS), Node("sender_sub", namespace=NS)
     got, lock = [], threading.Lock()
 
@@ -50,7 +49,6 @@ def nodes():
     th.join(5)
     pub_node.destroy_node()
     sub_node.destroy_node()
-    rclpy.shutdown()
 
 
 @pytest.mark.parametrize("mode", Sender.MODES)

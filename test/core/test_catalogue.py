@@ -20,7 +20,7 @@ from redmax_ros.core.geometry.mesh import Mesh, mass_properties, read_obj
 from redmax_ros.core.scene.loader import list_scenes, scene_from_dict
 from redmax_ros.core.geometry.spline_joints import SplineCurve, SplineSurface
 
-CAT = Path(__file__).resolve().parents[1] / "scenes" / "catalogue"
+CAT = Path(__file__).resolve().parents[2] / "scenes" / "catalogue"
 RNG = np.random.default_rng(7)
 FD_TOL = 1e-7
 

@@ -4,7 +4,7 @@ import os
 
 import pytest
 
-from node_fixtures import Client, rclpy, run_node_in_thread  # noqa: F401
+from node_fixtures import Client, run_node_in_thread  # noqa: F401  (first: skips without ROS)
 
 from redmax_msgs.msg import Result, SimulationState  # noqa: E402
 
@@ -14,15 +14,13 @@ PARAMS = {"scene": "hand", "mode": "free_run", "real_time_factor": 2.0, "command
 
 
 @pytest.fixture(scope="module")
-def client():
-    rclpy.init()
+def client(ros):
     node, shutdown = run_node_in_thread(PARAMS, namespace=NS)
     c = Client(ns=NS)
     c.wait_ready()
     yield c
     c.close()
     shutdown()
-    rclpy.shutdown()
 
 
 def _t(js):

@@ -1,0 +1,87 @@
+"""Shared set-up of the whole suite: the environment, the ROS 2 domain, scene loading.
+
+The test folders mirror the packages (test/core/<sub-package>/, test/node/, test/logging/,
+test/bench/; test_layers.py and test_runner.py are about redmax_ros as a whole and redmax_ros/runner.py).
+The folders have no __init__.py: pytest's default ("prepend") import mode puts each test file's folder
+on sys.path and imports the file under its basename, so basenames are unique across the suite and a
+helper module next to its tests (node/node_fixtures.py, core/solvers/recursive_models.py) imports
+by name.
+
+Environment (``pytest_configure``, before any test module is imported):
+
+* BLAS single-threaded (OPENBLAS/OMP/MKL_NUM_THREADS=1 unless set), as redmax_ros/__init__.py
+  arranges for the package; here it holds whichever module imports numpy first.
+* A private ROS 2 graph, as scripts/test.sh sets it: ROS_DOMAIN_ID (derived from the process id
+  unless set), ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST and RMW_IMPLEMENTATION=rmw_fastrtps_cpp
+  unless set. A node started by a test as a subprocess inherits them.
+
+Fixtures: ``ros_domain`` (session: the domain id, checked private), ``ros`` (module: rclpy.init and
+rclpy.shutdown around a test module's ROS tests) and ``load_sim`` (Simulator.load as a factory).
+"""
+from __future__ import annotations
+
+import os
+
+import pytest
+
+BLAS_THREADS = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")
+ROS_DISCOVERY = "LOCALHOST"
+ROS_DOMAIN_MAX = 232  # the largest domain id Fast DDS maps to valid ports on Linux
+
+
+def pytest_configure(config):
+    for var in BLAS_THREADS:
+        os.environ.setdefault(var, "1")
+    os.environ.setdefault("ROS_DOMAIN_ID", str(20 + os.getpid() % 80))
+    os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", ROS_DISCOVERY)
+    os.environ.setdefault("RMW_IMPLEMENTATION", "rmw_fastrtps_cpp")
+
+
+def pytest_report_header(config):
+    env = os.environ
+    return (f"ROS_DOMAIN_ID={env['ROS_DOMAIN_ID']} ROS_AUTOMATIC_DISCOVERY_RANGE={env['ROS_AUTOMATIC_DISCOVERY_RANGE']} "
+            f"RMW_IMPLEMENTATION={env['RMW_IMPLEMENTATION']} OPENBLAS_NUM_THREADS={env['OPENBLAS_NUM_THREADS']}")
+
+
+@pytest.fixture(scope="session")
+def ros_domain() -> int:
+    """The ROS_DOMAIN_ID of this run; fails, saying why, unless the graph is private (a domain other
+    than the default 0, discovery limited to this machine)."""
+    raw = os.environ.get("ROS_DOMAIN_ID", "")
+    discovery = os.environ.get("ROS_AUTOMATIC_DISCOVERY_RANGE", "")
+    try:
+        domain = int(raw)
+    except ValueError:
+        domain = -1
+    if not 1 <= domain <= ROS_DOMAIN_MAX:
+        pytest.fail(f"ROS_DOMAIN_ID={raw!r}: the ROS tests need a private domain, an integer in 1..{ROS_DOMAIN_MAX} "
+                    "(0 is the default every ROS 2 process joins); unset ROS_DOMAIN_ID (scripts/test.sh and this "
+                    "conftest then pick one) or set it in that range", pytrace=False)
+    if discovery != ROS_DISCOVERY:
+        pytest.fail(f"ROS_AUTOMATIC_DISCOVERY_RANGE={discovery!r}: the ROS tests need {ROS_DISCOVERY} (no traffic "
+                    "to other machines); unset the variable or run scripts/test.sh, which sets it", pytrace=False)
+    return domain
+
+
+@pytest.fixture(scope="module")
+def ros(ros_domain):
+    """rclpy initialised for the test module (its nodes and clients), shut down after its last test
+    (unless a signal, e.g. Ctrl-C, has shut it down already)."""
+    if os.environ.get("CI"):  # in CI a missing ROS environment is a failure, not a skip
+        import rclpy
+    else:
+        rclpy = pytest.importorskip("rclpy")
+    rclpy.init()
+    yield rclpy
+    rclpy.try_shutdown()
+
+
+@pytest.fixture
+def load_sim():
+    """``load_sim(name_or_path, overrides=(), solver=None)``: ``Simulator.load`` of the core, a fresh
+    Simulator per call."""
+    from redmax_ros.core import Simulator
+
+    def load(name_or_path, overrides=(), solver=None):
+        return Simulator.load(name_or_path, overrides, solver=solver)
+    return load
