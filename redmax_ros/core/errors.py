@@ -13,6 +13,11 @@ class SceneError(ValueError):
         super().__init__(f"{where}: {problem}")
 
 
+class SceneNotFound(SceneError):
+    """No scene of that name or path may be loaded: there is no such file, or (``load_scene`` with
+    ``allowed_dirs``) it lies outside the allowed scene directories. The node answers NOT_FOUND."""
+
+
 class StepError(RuntimeError):
     """A step failed (non-finite numbers, singular/infeasible system, QP failure, divergence).
 

@@ -32,11 +32,13 @@ class Mesh:
     faces: np.ndarray  # (F,3) vertex indices, counter-clockwise seen from outside
 
 
-def read_obj(path, scale=1.0) -> Mesh:
-    """Vertices and (fan-triangulated) faces of an OBJ file; ``scale``: scalar or 3-vector."""
+def read_obj(path, scale=1.0, text=None) -> Mesh:
+    """Vertices and (fan-triangulated) faces of an OBJ file; ``scale``: scalar or 3-vector; ``text``:
+    the file's content if already read (``path`` then only names it in messages). Messages give the
+    line number, never the line's content."""
     path = Path(path)
     verts, faces = [], []
-    for ln, line in enumerate(path.read_text().splitlines(), 1):
+    for ln, line in enumerate((path.read_text() if text is None else text).splitlines(), 1):
         parts = line.split("#", 1)[0].split()
         if not parts:
             continue
@@ -44,7 +46,7 @@ def read_obj(path, scale=1.0) -> Mesh:
             try:
                 verts.append([float(x) for x in parts[1:4]])
             except ValueError:
-                raise MeshError(f"{path.name}:{ln}: bad vertex line {line!r}") from None
+                raise MeshError(f"{path.name}:{ln}: bad vertex line (expected 'v x y z', numbers)") from None
             if len(verts[-1]) != 3:
                 raise MeshError(f"{path.name}:{ln}: a vertex needs 3 coordinates")
         elif parts[0] == "f":
@@ -53,7 +55,7 @@ def read_obj(path, scale=1.0) -> Mesh:
                 try:
                     i = int(tok.split("/")[0])
                 except ValueError:
-                    raise MeshError(f"{path.name}:{ln}: bad face index {tok!r}") from None
+                    raise MeshError(f"{path.name}:{ln}: bad face index (expected an integer)") from None
                 i = i - 1 if i > 0 else len(verts) + i  # OBJ: 1-based, negative = relative
                 if not 0 <= i < len(verts):
                     raise MeshError(f"{path.name}:{ln}: face index {tok} out of range (1..{len(verts)})")

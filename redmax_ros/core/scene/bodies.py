@@ -17,13 +17,12 @@
 """
 from __future__ import annotations
 
-from pathlib import Path
-
 import numpy as np
 import pinocchio as pin
 
 from redmax_ros.core.geometry.mesh import MeshError, mass_properties, read_obj
 from redmax_ros.core.spatial import placement
+from redmax_ros.core.scene import files
 from redmax_ros.core.scene.spec import BodySpec
 
 BODY_KEYS = {"name", "parts", "shape", "density", "mass", "damping", "rgba", "frame"}
@@ -59,17 +58,17 @@ def principal_frame(com, inertia) -> tuple:
 
 def _mesh(v, entry, shape, base_dir, density=None, mass=None):
     v.keys(f"{entry} shape", shape, {"type", "file", "scale"}, required=("type", "file"))
-    p = Path(str(shape["file"]))
-    if not p.is_absolute() and base_dir is not None:
-        p = Path(base_dir) / p
-    if not p.is_file():
-        v.err(entry, f"mesh file not found: {p}")
+    p = v.named_file(entry, "shape.file", shape["file"], "mesh")  # relative to base_dir; confined, capped
     scale = shape.get("scale", 1.0)
     scale = v.vector(entry, "shape.scale", scale, 3, allow_scalar=True)
     if np.any(scale <= 0):
         v.err(entry, f"shape.scale must be positive, got {scale.tolist()}")
     try:
-        mesh = read_obj(p, scale)
+        text = files.read_capped(p, files.MAX_MESH_BYTES).decode("utf-8", errors="replace")
+    except files.FileProblem as e:
+        v.err(entry, f"mesh file {p.name}: {e}")
+    try:
+        mesh = read_obj(p, scale, text=text)
         m, c, I, vol = mass_properties(mesh, density=density, mass=mass)
     except MeshError as e:
         v.err(entry, f"mesh {p.name}: {e}")

@@ -13,11 +13,10 @@ from pathlib import Path
 
 import numpy as np
 import pinocchio as pin
-import yaml
 
-from redmax_ros.core.errors import SceneError
+from redmax_ros.core.errors import SceneError, SceneNotFound
 from redmax_ros.core.geometry.inertia import shape_inertia, shape_volume
-from redmax_ros.core.scene import bodies, catalogue_schema, contact_schema
+from redmax_ros.core.scene import bodies, catalogue_schema, contact_schema, files
 from redmax_ros.core.scene import builders, builders_friction, builders_large  # noqa: F401  (register the shipped builders)
 from redmax_ros.core.scene.registry import BUILDERS
 from redmax_ros.core.scene.spec import (CORE_JOINT_TYPES, WORLD, BodySpec, CouplingSpec, JointSpec, LoopSpec, SceneSpec, SiteSpec,
@@ -53,39 +52,108 @@ SCENES_DIR = _scenes_dir()
 # entry points
 
 
-def resolve_scene_path(name_or_path: str) -> Path:
-    """A scene name from ``scenes/`` (``hand``, ``catalogue/gear``) or a path to a YAML file."""
+def resolve_scene_path(name_or_path: str, *, allowed_dirs=None) -> Path:
+    """The real path (symlinks resolved) of a scene given by name (``hand``, ``catalogue/gear``: a
+    ``.yaml`` file in a scene directory) or by path to a YAML file.
+
+    ``allowed_dirs=None`` (offline use: redmax_run, tests, ``Simulator.load``): any path the process
+    can read; relative paths first against the working directory, names in SCENES_DIR. With
+    ``allowed_dirs`` (a list of directories; SCENES_DIR is always allowed, and searched first): names
+    and relative paths resolve inside those directories only (never against the working directory),
+    ``..`` may not climb above the directory, and the file's real path (every symlink resolved) must
+    lie inside one of them and end in ``.yaml`` / ``.yml``; otherwise :class:`SceneNotFound`
+    "outside the allowed scene directories", decided before the file is looked at, so the answer is
+    the same whether or not such a file exists."""
+    if allowed_dirs is not None:
+        return _resolve_confined(str(name_or_path), scene_roots(allowed_dirs))
     p = Path(name_or_path)
     if p.suffix in (".yaml", ".yml") and p.exists():
-        return p.resolve()
+        return files.real(p)
     for cand in (SCENES_DIR / f"{name_or_path}.yaml", SCENES_DIR / name_or_path):
         if cand.is_file():
-            return cand
+            return files.real(cand)
     known = ", ".join(list_scenes())
-    raise SceneError(str(name_or_path), "", f"no such scene file or scene name (known scenes: {known})")
+    raise SceneNotFound(str(name_or_path), "", f"no such scene file or scene name (known scenes: {known})")
 
 
-def list_scenes() -> list:
-    """Names of the scenes shipped in ``scenes/``."""
-    return sorted(str(p.relative_to(SCENES_DIR).with_suffix("")) for p in SCENES_DIR.rglob("*.yaml"))
+def scene_roots(allowed_dirs) -> list:
+    """SCENES_DIR and ``allowed_dirs`` as real paths, without repeats; SceneError naming an entry that
+    is not an existing directory."""
+    roots = []
+    for d in [SCENES_DIR, *allowed_dirs]:
+        if not isinstance(d, (str, os.PathLike)) or not os.fspath(d):
+            raise SceneError(repr(d), "", "an allowed scene directory must be a non-empty path")
+        r = files.real(d)
+        if not r.is_dir():
+            raise SceneError(str(d), "", "allowed scene directory does not exist or is not a directory")
+        if r not in roots:
+            roots.append(r)
+    return roots
 
 
-def load_scene(name_or_path: str, overrides=()) -> SceneSpec:
-    """Read, expand (builder), override (``key=value``) and validate a scene."""
-    path = resolve_scene_path(name_or_path)
+def _resolve_confined(name: str, roots: list) -> Path:
+    shown = name if name.isprintable() and len(name) <= 200 else repr(name)[:200]  # the request, as text
+    outside = f"outside the allowed scene directories ({', '.join(map(str, roots))})"
+    try:
+        p = Path(name)
+        if p.is_absolute():
+            cands = [Path(f"{name}.yaml"), p]
+        else:
+            if files.climbs(name):
+                raise SceneNotFound(shown, "", outside)
+            cands = [c for r in roots for c in (r / f"{name}.yaml", r / name)]
+        for cand in cands:
+            rc = files.real(cand)
+            if not any(files.inside(rc, r) for r in roots):
+                raise SceneNotFound(shown, "", outside)
+            if rc.is_file():
+                if rc.suffix not in (".yaml", ".yml"):
+                    raise SceneNotFound(shown, "", "not a scene file (a scene file's name ends in .yaml or .yml)")
+                return rc
+    except (OSError, ValueError) as e:  # a NUL byte, a name too long, ...
+        if isinstance(e, SceneError):
+            raise
+        raise SceneNotFound(shown, "", f"not a usable scene name or path ({type(e).__name__})") from None
+    names = list_scenes(roots[1:])
+    known = ", ".join(names[:100]) + (f", ... ({len(names) - 100} more)" if len(names) > 100 else "")
+    raise SceneNotFound(shown, "", f"no such scene file or scene name (known scenes: {known})")
+
+
+def list_scenes(allowed_dirs=()) -> list:
+    """Names of the scenes shipped in ``scenes/`` and (``allowed_dirs``) in other scene directories
+    (their ``.yaml`` files, relative to the directory, without the suffix; sorted, without repeats)."""
+    names = set()
+    for d in [SCENES_DIR, *allowed_dirs]:
+        root = files.real(d)
+        names.update(str(p.relative_to(d).with_suffix("")) for p in Path(d).rglob("*.yaml")
+                     if files.inside(files.real(p), root))
+    return sorted(names)
+
+
+def load_scene(name_or_path: str, overrides=(), *, allowed_dirs=None) -> SceneSpec:
+    """Read, expand (builder), override (``key=value``) and validate a scene.
+
+    ``allowed_dirs``: None (any path; offline use) or the directories a scene may come from besides
+    SCENES_DIR (see :func:`resolve_scene_path`); with it, the meshes and URDF the scene names must lie
+    inside the scene file's own directory. Always: the YAML file at most files.MAX_SCENE_BYTES, a
+    named file at most files.MAX_MESH_BYTES, the YAML document within files.MAX_YAML_NODES /
+    MAX_YAML_DEPTH (alias bombs). No error message quotes the file."""
+    path = resolve_scene_path(name_or_path, allowed_dirs=allowed_dirs)
     src = str(path)
     try:
-        raw = yaml.safe_load(path.read_text())
-    except yaml.YAMLError as e:
-        raise SceneError(src, "", f"not valid YAML: {e}") from None
+        raw = files.parse_yaml(files.read_capped(path, files.MAX_SCENE_BYTES))
+    except files.FileProblem as e:
+        raise SceneError(src, "", str(e)) from None
     if not isinstance(raw, dict):
         raise SceneError(src, "", "top level must be a mapping")
     raw.setdefault("name", path.stem)
-    return scene_from_dict(raw, src, overrides, base_dir=path.parent)
+    return scene_from_dict(raw, src, overrides, base_dir=path.parent, confine_files=allowed_dirs is not None)
 
 
-def scene_from_dict(raw: dict, source: str = "<dict>", overrides=(), base_dir: Path | None = None) -> SceneSpec:
-    """Validate a scene given as a dict (the parsed YAML)."""
+def scene_from_dict(raw: dict, source: str = "<dict>", overrides=(), base_dir: Path | None = None, *,
+                    confine_files: bool = False) -> SceneSpec:
+    """Validate a scene given as a dict (the parsed YAML). Files it names (meshes, URDF) are relative
+    to ``base_dir``; ``confine_files``: they must lie inside it (real paths; no absolute paths)."""
     raw = copy.deepcopy(raw)
     ov = [_parse_override(source, o) for o in overrides]
     # Builder parameters first (they shape the model), everything else after expansion.
@@ -97,7 +165,7 @@ def scene_from_dict(raw: dict, source: str = "<dict>", overrides=(), base_dir: P
     for keys, val in ov:
         if keys[0] not in ("params", "builder"):
             _apply_override(source, raw, keys, val, create=len(keys) == 1)
-    return _Validator(source, base_dir).scene(raw)
+    return _Validator(source, base_dir, confine_files).scene(raw)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -112,9 +180,9 @@ def _parse_override(source, text):
     if not keys:
         raise SceneError(source, f"override {text!r}", "empty key")
     try:
-        value = yaml.safe_load(val)
-    except yaml.YAMLError as e:
-        raise SceneError(source, f"override {text!r}", f"value is not valid YAML: {e}") from None
+        value = files.parse_yaml(val)
+    except files.FileProblem as e:
+        raise SceneError(source, f"override {text!r}", f"value is {e}") from None
     return keys, value
 
 
@@ -187,12 +255,46 @@ def _expand_builder(raw, source):
 class _Validator:
     """Turns the raw dict into a SceneSpec, naming the entry of every problem."""
 
-    def __init__(self, source: str, base_dir: Path | None):
+    def __init__(self, source: str, base_dir: Path | None, confine_files: bool = False):
         self.src = source
         self.base_dir = base_dir
+        self.confine_files = confine_files
 
     def err(self, entry, problem):
         raise SceneError(self.src, entry, problem)
+
+    def named_file(self, entry, key, value, what) -> Path:
+        """The path of a file the scene names (``what``: "mesh", "URDF"), relative to the scene
+        file's directory; with confine_files it must lie inside that directory (real path, no
+        absolute path, no ``..`` above it). Must exist; at most files.MAX_MESH_BYTES."""
+        if not isinstance(value, str) or not value:
+            self.err(entry, f"'{key}' must be a file path (a non-empty string)")
+        p = Path(value)
+        if self.confine_files:
+            if self.base_dir is None:
+                self.err(entry, f"'{key}': this scene has no directory its {what} file could be in")
+            if p.is_absolute():
+                self.err(entry, f"'{key}': an absolute path is not allowed here; give the {what} file's path "
+                                "relative to the scene file's directory")
+            base = files.real(self.base_dir)
+            try:
+                rp = files.real(base / p)
+            except (OSError, ValueError) as e:
+                self.err(entry, f"'{key}': not a usable path ({type(e).__name__})")
+            if files.climbs(value) or not files.inside(rp, base):
+                self.err(entry, f"'{key}': the {what} file must lie inside the scene file's directory {base}")
+            p = rp
+        else:
+            if not p.is_absolute() and self.base_dir is not None:
+                p = Path(self.base_dir) / p
+            p = files.real(p)  # read what was checked, even if a symlink changes meanwhile
+        if not p.is_file():
+            self.err(entry, f"{what} file not found: {p}")
+        try:
+            files.check_size(p, files.MAX_MESH_BYTES)
+        except files.FileProblem as e:
+            self.err(entry, f"{what} file {p.name}: {e}")
+        return p
 
     # -- scalars and vectors
     def number(self, entry, key, value, *, positive=False, nonneg=False):
@@ -324,11 +426,7 @@ class _Validator:
         if isinstance(d, str):
             d = {"file": d}
         self.keys("urdf", d, {"file", "fixed_base"}, required=("file",))
-        p = Path(d["file"])
-        if not p.is_absolute() and self.base_dir is not None:
-            p = self.base_dir / p
-        if not p.is_file():
-            self.err("urdf", f"file not found: {p}")
+        p = self.named_file("urdf", "file", d["file"], "URDF")
         spec.urdf = str(p)
         spec.urdf_fixed_base = bool(d.get("fixed_base", True))
 
@@ -502,7 +600,10 @@ class _Validator:
 
     def body_names(self, spec):
         if spec.urdf:
-            model = pin.buildModelFromUrdf(spec.urdf)
+            try:
+                model = pin.buildModelFromUrdf(spec.urdf)
+            except (ValueError, RuntimeError):  # its message names the file only; urdfdom prints the details
+                self.err("urdf", f"{Path(spec.urdf).name} is not a valid URDF model")
             return {f.name for f in model.frames if f.type == pin.FrameType.BODY} | {WORLD}
         return {b.name for b in spec.bodies} | {WORLD}
 
