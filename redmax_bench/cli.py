@@ -16,6 +16,7 @@ SUBCOMMANDS = {
     "node": "ROS node latency, service overhead and real-time factor",
     "friction": "frictional joints and contact (Fig. 5c), BISP vs SP",
     "accuracy": "work-precision charts and stability maps",
+    "budget": "step budget: time to failure and overshoot on abusive inputs, cost of its checks",
 }
 
 

@@ -90,8 +90,11 @@ class Problem:
 
 
 def make_problem(case: Case, T: float | None = None, sample_dt: float | None = None, extra=()) -> Problem:
-    """Instantiate a case; ``extra`` overrides go after the case's own (e.g. solver=pcg)."""
-    sim = Simulator.load(case.scene, list(case.overrides) + list(extra))
+    """Instantiate a case; ``extra`` overrides go after the case's own (e.g. solver=pcg). The simulator has
+    no step budget (budget=None): the work-precision charts and stability maps measure the method's
+    unbounded cost and accuracy (a large h can need long PCG/QP solves), and a run's wall-time limit is
+    the ``budget`` of run_ours (seconds per run, not per step)."""
+    sim = Simulator.load(case.scene, list(case.overrides) + list(extra), budget=None)
     mech = sim.mech
     q0, vR0 = mech.q0.copy(), mech.v0.copy()
     if case.prepare is not None:
@@ -524,7 +527,7 @@ def _pcg_applies(p):
     key = p.case.scene
     if key not in _PCG_STATUS:
         try:
-            sim = Simulator.load(p.case.scene, list(p.case.overrides) + ["solver=pcg"])
+            sim = Simulator.load(p.case.scene, list(p.case.overrides) + ["solver=pcg"], budget=None)  # as make_problem
             res = sim.step(1)
             _PCG_STATUS[key] = None if "pcg" in str(res.diagnostics.solver).lower() else \
                 f"the stepper does not run PCG yet (diagnostics.solver = '{res.diagnostics.solver}')"

@@ -71,7 +71,7 @@ def run_solver(sim, backend, n_steps):
     state, cmd, h = sim.state, sim.commands, sim.dt
     t0, c0 = time.perf_counter(), time.process_time()
     for _ in range(n_steps):
-        state, res = backend.step(state, cmd, h)
+        state, res = backend.step(state, cmd, h, None)  # no step budget: this measures the unbounded solver cost
         d = res.diagnostics
         its.append(d.iterations)
         labels[d.solver] = labels.get(d.solver, 0) + 1

@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from redmax_ros.core import CommandError, SceneError, Simulator, StepError
+from redmax_ros.core import CommandError, SceneError, Simulator, StepBudget, StepError
 
 
 def parse_args(argv=None):
@@ -29,6 +29,9 @@ def parse_args(argv=None):
                     help="override a scene value or builder parameter, e.g. params.n=20, joints.elbow.q0=0.3")
     ap.add_argument("--out", type=Path, help="CSV file to write (default: runs/<scene>.csv)")
     ap.add_argument("--quiet", action="store_true", help="no progress bar")
+    ap.add_argument("--step-budget-ms", type=float, default=None, metavar="MS",
+                    help="CPU time a step's iterative solvers may take before the step fails (default: the "
+                         "core's StepBudget, 50 ms; 0: unlimited, ProxSuite's own iteration caps)")
     return ap.parse_args(argv)
 
 
@@ -139,6 +142,8 @@ def main(argv=None) -> int:
         overrides.append(f"solver={a.solver}")
     try:
         sim = Simulator.load(a.scene, overrides)
+        if a.step_budget_ms is not None:
+            sim.budget = StepBudget.from_ms(a.step_budget_ms)
     except (SceneError, CommandError) as e:
         print(f"redmax_run: {e}", file=sys.stderr)
         return 2

@@ -4,16 +4,17 @@ The public API (everything the node, the runner and the benchmarks use) is impor
 sub-packages follow the layers of a step: scene/ (YAML -> SceneSpec) -> model/ (Mechanism) ->
 solvers/, dynamics/, friction/ (the stages) -> step/ (the step, backends, workspace) -> Simulator.
 """
-from redmax_ros.core.errors import CommandError, SceneError, StepError
+from redmax_ros.core.errors import CommandError, SceneError, SceneNotFound, StepError
 from redmax_ros.core.model.dof_positions import DofPositions
 from redmax_ros.core.model.mechanism import JointInfo, Mechanism
 from redmax_ros.core.scene.loader import list_scenes, load_scene, scene_from_dict
 from redmax_ros.core.scene.spec import SceneSpec
 from redmax_ros.core.simulator import SceneDescription, Simulator
+from redmax_ros.core.solvers.budget import StepBudget
 from redmax_ros.core.step.compile import compile_scene
 from redmax_ros.core.step.state import Commands, Diagnostics, State, StepResult
 from redmax_ros.core.step.workspace import Workspace
 
-__all__ = ["CommandError", "SceneError", "StepError", "DofPositions", "JointInfo", "Mechanism", "list_scenes",
-           "load_scene", "scene_from_dict", "SceneSpec", "SceneDescription", "Simulator", "compile_scene",
-           "Commands", "Diagnostics", "State", "StepResult", "Workspace"]
+__all__ = ["CommandError", "SceneError", "SceneNotFound", "StepError", "DofPositions", "JointInfo", "Mechanism",
+           "list_scenes", "load_scene", "scene_from_dict", "SceneSpec", "SceneDescription", "Simulator", "StepBudget",
+           "compile_scene", "Commands", "Diagnostics", "State", "StepResult", "Workspace"]

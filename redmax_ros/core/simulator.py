@@ -3,7 +3,9 @@
 It owns a Mechanism (frozen), a stepping backend with its Workspace (step/backends.py), the current
 State and the current Commands, and validates every command before changing anything
 (CommandError). Stepping goes through step.pipeline.step; the state is replaced only when a step
-succeeds.
+succeeds. Every step is held to ``budget`` (a solvers/budget.StepBudget: 50 ms of CPU time for its
+iterative solvers, ProxSuite iteration caps; None for unlimited), past which it fails with
+StepError("step budget exceeded: ...").
 """
 from __future__ import annotations
 
@@ -18,6 +20,7 @@ from redmax_ros.core.model.dof_positions import DofPositions
 from redmax_ros.core.model.mechanism import Mechanism
 from redmax_ros.core.scene.loader import load_scene
 from redmax_ros.core.scene.spec import SceneSpec
+from redmax_ros.core.solvers.budget import StepBudget
 from redmax_ros.core.step.backends import make_backend
 from redmax_ros.core.step.compile import compile_scene
 from redmax_ros.core.step.state import Commands, State, StepResult
@@ -72,9 +75,13 @@ class SceneDescription:
     dof_positions: object = None  # dof_positions.DofPositions: one position per velocity DOF (joint_states)
 
 
+DEFAULT_BUDGET = StepBudget()  # 50 ms CPU time of the iterative solvers (JIT excluded), QP caps 1000 / 50
+
+
 class Simulator:
-    def __init__(self, spec: SceneSpec, solver: str | None = None):
+    def __init__(self, spec: SceneSpec, solver: str | None = None, budget: StepBudget | None = DEFAULT_BUDGET):
         self.spec = spec
+        self.budget = budget
         self.mech: Mechanism = compile_scene(spec)
         # solver: the scene's 'solver' key (direct | pcg | auto) unless overridden; see docs/solvers.md
         self.backend = make_backend(self.mech, solver or spec.solver)
@@ -83,9 +90,24 @@ class Simulator:
         self.reset()
 
     @classmethod
-    def load(cls, name_or_path: str, overrides=(), solver: str | None = None) -> "Simulator":
-        """Load a scene by name (scenes/) or path; ``overrides``: ["key=value", ...]. Raises SceneError."""
-        return cls(load_scene(name_or_path, overrides), solver)
+    def load(cls, name_or_path: str, overrides=(), solver: str | None = None, *, allowed_dirs=None,
+             budget: StepBudget | None = DEFAULT_BUDGET) -> "Simulator":
+        """Load a scene by name (scenes/) or path; ``overrides``: ["key=value", ...]. Raises SceneError.
+        ``allowed_dirs``: see ``load_scene`` (None: any path; a list: only scenes in scenes/ and there).
+        ``budget``: the step budget (StepBudget; None: unlimited)."""
+        return cls(load_scene(name_or_path, overrides, allowed_dirs=allowed_dirs), solver, budget)
+
+    @property
+    def budget(self) -> StepBudget | None:
+        """The work each step may do (solvers/budget.StepBudget), None for unlimited; settable, e.g.
+        ``sim.budget = StepBudget(cpu_time=0.02)`` or ``sim.budget = StepBudget.from_ms(ms)``."""
+        return self._budget
+
+    @budget.setter
+    def budget(self, value: StepBudget | None) -> None:
+        if value is not None and not isinstance(value, StepBudget):
+            raise CommandError(f"budget must be a StepBudget or None, got {value!r}")
+        self._budget = value
 
     # -- state
     @property
@@ -218,6 +240,30 @@ class Simulator:
         new = {n: self._site_vector(n, f, None, "force on site") for n, f in forces.items()}
         self.commands.site_forces = new
 
+    def restore_prescriptions(self, joints=(), sites=()) -> None:
+        """Joints and sites back to the scene's own prescription (its ``prescribed:`` entry, as after
+        reset), or to passive dynamics where the scene prescribes none. CommandError for unknown names."""
+        for n in joints:
+            if n not in self.mech.joint_index:
+                raise CommandError(f"unknown joint '{n}'")
+        for n in sites:
+            if n not in self.mech.site_index:
+                raise CommandError(f"unknown site '{n}'")
+        spec, cmd = self.spec, self.commands
+        for n in joints:
+            if n in spec.prescribed_joints:
+                cmd.joint_velocities[n] = np.array(spec.prescribed_joints[n], float)
+            else:
+                cmd.joint_velocities.pop(n, None)
+        for n in sites:
+            cmd.site_axes.pop(n, None)
+            if n in spec.prescribed_sites:
+                cmd.site_velocities[n] = np.array(spec.prescribed_sites[n], float)
+                if n in spec.prescribed_site_axes:
+                    cmd.site_axes[n] = np.array(spec.prescribed_site_axes[n], float)
+            else:
+                cmd.site_velocities.pop(n, None)
+
     def prescribed_joints(self) -> dict:
         return {k: v.copy() for k, v in self.commands.joint_velocities.items()}
 
@@ -233,7 +279,7 @@ class Simulator:
         res = None
         for i in range(int(n)):
             try:
-                self.state, res = self.backend.step(self.state, self.commands, self.dt)
+                self.state, res = self.backend.step(self.state, self.commands, self.dt, self._budget)
             except StepError as e:
                 raise StepError(f"step at t = {self.state.t:.6g} s failed: {e.reason}", steps_done=i) from None
             self.last = res

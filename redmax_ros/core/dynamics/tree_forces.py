@@ -9,7 +9,7 @@ data-free direct solver):
   inertias (M_m plus the 6x6 diagonal blocks of the maximal stiffness/damping) plus the cross-body
   spring terms, O(n d + sum_s d_a d_b) for tree depth d.
 
-Conventions match the Pinocchio pipeline (forces.py); test/test_matrix_free.py checks each piece.
+Conventions match the Pinocchio pipeline (forces.py); test/core/step/test_matrix_free.py checks each piece.
 """
 from __future__ import annotations
 

@@ -9,7 +9,7 @@ forward-kinematics cache keyed on (q, qdot) (world frame at the world origin, tw
 first): site positions, dense point Jacobians of a few sites (loops, prescriptions; Eq. S2.4), loop
 residuals from the placements alone, body poses. Every pipeline uses it for the loop projection
 (stabilization.py) and the energies (energy.py); the data-free pipeline for everything. One Context
-per step workspace (it is scratch, not thread-safe); test/test_matrix_free.py checks it against
+per step workspace (it is scratch, not thread-safe); test/core/step/test_matrix_free.py checks it against
 Pinocchio.
 """
 from __future__ import annotations

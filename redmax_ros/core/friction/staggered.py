@@ -27,7 +27,9 @@ velocity always satisfies the bilateral and unilateral rows (feasible) even when
 reached; that case is reported (FrictionReport.converged = False), never silent.
 Per step: bisp.body_frames (kinematics), contact.staggered_rows (detection, rows RX = [U; -T]),
 condense.condense, bisp.linear_wrenches, _warm_start, staggered_kernel (with PGS and whole-joint bounds;
-_python_loop otherwise), finish: all compiled (numba), a few calls per step.
+_python_loop otherwise), finish: all compiled (numba), a few calls per step. Under a step budget
+(solvers/budget.py) the loop checks the step's deadline between iterations (_python_loop) or between
+pieces of the resumable compiled loop (_compiled_loop), with bitwise the result of an unbudgeted step.
 """
 from __future__ import annotations
 
@@ -42,6 +44,7 @@ from redmax_ros.core.friction import bisp
 from redmax_ros.core.friction.condense import condense
 from redmax_ros.core.friction.contact import staggered_rows
 from redmax_ros.core.errors import StepError
+from redmax_ros.core.solvers.budget import qp_solve
 from redmax_ros.core.solvers.problem import LinearSystem
 from redmax_ros.core.solvers.direct import Solution
 import copy
@@ -127,45 +130,85 @@ def _small_solve(H, r):
 @numba.njit(cache=True)
 def loop_kernel(W_U, X_UT, X_TU, U_v0, lo_U, W_T, T_v0, mu_g, a0, Mx, bound_mu, kmax, joint, wU, wT, tol,
                  max_iter, depth, alpha, beta):
-    """The staggered loop with the joint multipliers given as alpha = a0 + Mx x (redmax_bench/sp_maximal.py)."""
-    return staggered_kernel(W_U, X_UT, X_TU, U_v0, lo_U, W_T, T_v0, mu_g, a0, Mx, np.zeros((0, kmax, 6)), 1.0,
-                             bound_mu, kmax, joint, wU, wT, tol, max_iter, depth, alpha, beta)
+    """The staggered loop with the joint multipliers given as alpha = a0 + Mx x (redmax_bench/sp_maximal.py),
+    in one call. Returns (alpha, beta, bound, al, iterations, converged, residual)."""
+    sbuf, sint = loop_state(len(U_v0), len(T_v0), depth, len(a0))
+    out = staggered_kernel(W_U, X_UT, X_TU, U_v0, lo_U, W_T, T_v0, mu_g, a0, Mx, np.zeros((0, kmax, 6)), 1.0,
+                           bound_mu, kmax, joint, wU, wT, tol, max_iter, depth, alpha, beta, sbuf, sint, np.inf)
+    return out[0], out[1], out[2], out[3], out[4], out[5], out[6]
+
+
+@numba.njit(cache=True)
+def loop_state(nu, nf, depth, nal):
+    """The state of a new staggered loop for staggered_kernel: (float buffer, int buffer), zeros."""
+    return np.zeros(5 * nf + nu + nal + 2 * depth * nf + 2), np.zeros(3, dtype=np.int64)
+
+
+KERNEL_FIRST_WORK = 2.0e6  # work units (~ multiply-adds, ~1-2 ms here) of the first call of the compiled loop
+KERNEL_SLICE = 2e-3  # s: CPU time of each further call under a budget, between two deadline checks
 
 
 @numba.njit(cache=True)
 def staggered_kernel(W_U, X_UT, X_TU, U_v0, lo_U, W_T, T_v0, mu_g, a0, Mx, Lop, h, bound_mu, kmax, joint, wU, wT,
-                      tol, max_iter, depth, alpha, beta):
+                      tol, max_iter, depth, alpha, beta, sbuf, sint, work_cap):
     """The staggered loop of solve() (same steps, same tests, PGS inner solves, Anderson) compiled:
     used when the friction bounds are whole-joint sums (no spherical joints) and qp = pgs.
     Joint multipliers (Eq. 16): with Lop (J, kmax, 6) given, a0 (6J,) and Mx (6J, nx) are the joint
     wrenches W = a0 + Mx x (bisp.linear_wrenches) and alpha_j = h Lop_j W_j; with Lop empty, alpha = a0 + Mx x.
-    Returns (alpha, beta, bound, al, iterations, converged, residual)."""
+
+    Resumable, so that a step budget can be checked between its pieces (solvers/budget.py): the loop's
+    state between iterations lives in ``sbuf``/``sint`` (loop_state(): a new loop) and ``alpha``/``beta``;
+    the call returns before an iteration once the work done in this call exceeds ``work_cap`` (work: the
+    multiply-adds of the PGS sweeps, rows^2 per sweep, and of the per-iteration products; at least one
+    iteration per call), with paused = True. Called again with the same arrays it continues exactly where
+    it stopped: the loop run in pieces gives bitwise the result of one call (work_cap = inf).
+    Returns (alpha, beta, bound, al, iterations, converged, residual, paused); the work done so far is
+    sbuf[-1]."""
     nu, nf, nc = len(U_v0), len(T_v0), len(mu_g)
     nw = Lop.shape[0]
+    nal = len(a0) if nw == 0 else nw * kmax
     wr = np.zeros(len(a0))
     ng = 2 * nc
     nx = nu + nf
-    bound = np.zeros(nf)
-    prev_u = np.zeros(nu)
-    prev_b = np.zeros(nf)
+    o = 0  # the state, views of sbuf (layout of loop_state)
+    bound = sbuf[o:o + nf]
+    o += nf
+    prev_u = sbuf[o:o + nu]
+    o += nu
+    prev_b = sbuf[o:o + nf]
+    o += nf
+    gprev = sbuf[o:o + nf]
+    o += nf
+    fprev = sbuf[o:o + nf]
+    o += nf
+    nb = sbuf[o:o + nf]
+    o += nf
+    al = sbuf[o:o + nal]
+    o += nal
+    dX = sbuf[o:o + depth * nf].reshape((depth, nf))
+    o += depth * nf
+    dF = sbuf[o:o + depth * nf].reshape((depth, nf))
+    o += depth * nf
+    it, k_hist, have_prev = sint[0], sint[1], sint[2] != 0
+    ir = o  # sbuf[ir]: the residual, sbuf[ir + 1]: the work done so far
+    resid = np.inf if it == 0 else sbuf[ir]
+    work = sbuf[ir + 1]
+    work0 = work
+    it0 = it
     zeros_u = np.zeros(nu)
     inf_u = np.full(nu, 1e20)
-    al = np.zeros(len(a0) if nw == 0 else nw * kmax)
     x = np.zeros(nx)
     c = np.zeros(nu)
     cf = np.zeros(nf)
-    nb = np.zeros(nf)
-    dX = np.zeros((depth, nf))
-    dF = np.zeros((depth, nf))
-    gprev = np.zeros(nf)
-    fprev = np.zeros(nf)
-    have_prev = False
-    k_hist = 0
-    it = 0
     converged = False
-    resid = np.inf
+    per_it = 2.0 * nu * nf + len(a0) * nx + depth * (depth + 2) * nf + nx
     while True:
+        if it > it0 and work - work0 > work_cap:  # pause: the state is in sbuf/sint, alpha, beta
+            sint[0], sint[1], sint[2] = it, k_hist, 1 if have_prev else 0
+            sbuf[ir], sbuf[ir + 1] = resid, work
+            return alpha, beta, bound, al, it, False, resid, True
         it += 1
+        work += per_it
         if nu:
             allpos = True
             for i in range(nu):  # c = U qdot(0, beta) - lo (explicit loops: no small BLAS calls)
@@ -179,7 +222,7 @@ def staggered_kernel(W_U, X_UT, X_TU, U_v0, lo_U, W_T, T_v0, mu_g, a0, Mx, Lop, 
             else:
                 for i in range(nu):
                     alpha[i] = max(alpha[i], 0.0)
-                _pgs(W_U, c, zeros_u, inf_u, alpha, 0.1 * tol, 500)
+                work += _pgs(W_U, c, zeros_u, inf_u, alpha, 0.1 * tol, 500) * float(nu * nu)
         for i in range(nc):
             bound[2 * i] = mu_g[i] * alpha[i]
             bound[2 * i + 1] = mu_g[i] * alpha[i]
@@ -232,7 +275,7 @@ def staggered_kernel(W_U, X_UT, X_TU, U_v0, lo_U, W_T, T_v0, mu_g, a0, Mx, Lop, 
                 beta[i] = min(max(beta[i], -bound[i]), bound[i])
             for i in range(nf):
                 nb[i] = -bound[i]
-            _pgs(W_T, cf, nb, bound, beta, 0.1 * tol, 500)
+            work += _pgs(W_T, cf, nb, bound, beta, 0.1 * tol, 500) * float(nf * nf)
             if depth > 0:  # Anderson (see Anderson)
                 g = beta.copy()
                 f = g - b_in
@@ -279,36 +322,42 @@ def staggered_kernel(W_U, X_UT, X_TU, U_v0, lo_U, W_T, T_v0, mu_g, a0, Mx, Lop, 
                     else:
                         k_hist = 0
                         have_prev = False
-    return alpha, beta, bound, al, it, converged, resid
+    sbuf[ir + 1] = work
+    return alpha, beta, bound, al, it, converged, resid, False
 
 
-def box_qp(W, c, lo, hi, x0, tol, solver):
-    """min 1/2 x^T W x + c^T x on a box: ProxSuite (dense) or warm-started projected Gauss-Seidel."""
+def box_qp(W, c, lo, hi, x0, tol, solver, deadline=None):
+    """min 1/2 x^T W x + c^T x on a box: ProxSuite (dense) or warm-started projected Gauss-Seidel (at most
+    500 sweeps). ``deadline``: the step's budget.Deadline for the ProxSuite solve (None: no budget)."""
     if solver == "proxsuite":
-        return _qp(W, c, lo, hi, np.clip(x0, lo, hi), 1e-12)
+        return _qp(W, c, lo, hi, np.clip(x0, lo, hi), 1e-12, deadline)
     x = np.clip(x0, lo, hi)
     _pgs(W, c, lo, hi, x, tol, 500)
     return x
 
 
-def _qp(H, c, lo, hi, x0, eps):
+def _qp(H, c, lo, hi, x0, eps, deadline=None):
     n = len(c)
     qp = proxsuite.proxqp.dense.QP(n, 0, n)
     s = qp.settings
     s.eps_abs, s.eps_rel, s.verbose = eps, 0.0, False
     s.initial_guess = proxsuite.proxqp.InitialGuess.WARM_START
     qp.init(H, c, None, None, np.eye(n), lo, hi)
-    qp.solve(x0, None, None)
+    qp_solve(qp, deadline, "friction/contact QP (Staggered Projections)", x0, None, None)
     x = np.array(qp.results.x)
     if not np.all(np.isfinite(x)):
         raise StepError("friction/contact QP returned non-finite impulses")
     return np.clip(x, lo, hi)
 
 
-def solve(mech, work, kin, system: LinearSystem, cons, q, v_prev_r, h, cache, site_forces=None):
+def solve(mech, work, kin, system: LinearSystem, cons, q, v_prev_r, h, cache, site_forces=None, deadline=None):
     """Frictional contact step. Returns (Solution, FrictionReport, new cache). ``cache``: the previous
     step's friction impulses (ndarray of FrictionModel.n_slots, or None); ``work``: the step workspace's
-    contact.FrictionWork (the set-up runs on its own kinematics workspace, bisp.body_frames)."""
+    contact.FrictionWork (the set-up runs on its own kinematics workspace, bisp.body_frames).
+    ``deadline``: the step's budget.Deadline (None: no budget), checked between the iterations of the
+    Python loop and in its ProxSuite solves, and between the pieces of the compiled loop (_compiled_loop;
+    without the checks a diverging walker step ran its friction.max_iter iterations of two 500-sweep PGS
+    solves for ~50 ms of CPU time)."""
     fm = mech.friction
     st = fm.settings
     A, b = system.A, system.b
@@ -347,13 +396,13 @@ def solve(mech, work, kin, system: LinearSystem, cons, q, v_prev_r, h, cache, si
             kmax, w0, wx, Lop, bmu = 1, np.zeros(0), np.zeros((0, nu + nf)), np.zeros((0, 1, 6)), np.zeros(0)
         else:
             w0, wx, Lop, bmu = W0.reshape(-1), Wx.reshape(-1, nu + nf), fm.L, fm.bound_mu
-        alpha, beta, bound, al, it, converged, resid = staggered_kernel(
-            W_U, X_UT, X_TU, U_v0, lo_U, W_T, T_v0, mu_g, w0, wx, Lop, h, bmu, kmax, joint_fric, wU, wT, st.tol,
-            st.max_iter, st.anderson, alpha, beta)
+        alpha, beta, bound, al, it, converged, resid = _compiled_loop(
+            deadline, W_U, X_UT, X_TU, U_v0, lo_U, W_T, T_v0, mu_g, w0, wx, Lop, h, bmu, kmax, joint_fric, wU, wT,
+            st.tol, st.max_iter, st.anderson, alpha, beta)
     else:
         alpha, beta, bound, al, it, converged, resid = _python_loop(
             fm, st, W_U, X_UT, U_v0, lo_U, W_T, T_v0, mu_g, nc,
-            bisp.affine_alphas(fm, h, W0, Wx) if joint_fric else None, alpha, beta)
+            bisp.affine_alphas(fm, h, W0, Wx) if joint_fric else None, alpha, beta, deadline)
 
     if not joint_fric:
         kmax, al = 1, np.zeros(0)
@@ -428,9 +477,33 @@ def finish(v0, PX, b, RX, lam0, LamX, alpha, beta, bound, al, slots, n_slots, ga
     return v, r, lam, cache, active, max_pen, sticking, jn
 
 
-def _python_loop(fm, st, W_U, X_UT, U_v0, lo_U, W_T, T_v0, mu_g, nc, affine, alpha, beta):
+def _compiled_loop(deadline, *args):
+    """staggered_kernel(*args) in one call without a deadline; with one, in pieces with the deadline checked
+    between them (bitwise the same result): a first piece of KERNEL_FIRST_WORK (more than a normal step's
+    loop needs), then pieces sized to KERNEL_SLICE of CPU time (or the time left) by the measured CPU time
+    per unit of work. Returns (alpha, beta, bound, al, iterations, converged, residual)."""
+    W_U, T_v0, a0, Lop, kmax, depth = args[0], args[6], args[8], args[10], args[13], args[19]
+    nal = len(a0) if Lop.shape[0] == 0 else Lop.shape[0] * kmax
+    sbuf, sint = loop_state(len(W_U), len(T_v0), depth, nal)
+    if deadline is None:
+        return staggered_kernel(*args, sbuf, sint, math.inf)[:7]
+    deadline.begin()
+    cap = KERNEL_FIRST_WORK
+    while True:
+        out = staggered_kernel(*args, sbuf, sint, cap)
+        if not out[7]:
+            return out[:7]
+        deadline.check("Staggered Projections (compiled loop)", out[4])
+        per_work = deadline.used() / max(sbuf[-1], 1.0)  # s per unit (an upper bound: includes earlier solvers)
+        cap = min(KERNEL_SLICE, deadline.remaining()) / per_work if per_work > 0 else KERNEL_FIRST_WORK
+
+
+def _python_loop(fm, st, W_U, X_UT, U_v0, lo_U, W_T, T_v0, mu_g, nc, affine, alpha, beta, deadline=None):
     """The staggered loop in Python (ProxSuite inner solves, spherical-joint bounds); same steps as
-    staggered_kernel. Returns (alpha, beta, bound, al, iterations, converged, residual)."""
+    staggered_kernel, with the step's deadline checked between iterations. Returns (alpha, beta, bound,
+    al, iterations, converged, residual)."""
+    if deadline is not None:
+        deadline.begin()
     nu, nf, ng = len(U_v0), len(T_v0), 2 * nc
     wU, wT = np.maximum(np.diag(W_U), 0.0), np.maximum(np.diag(W_T), 0.0)
     acc = Anderson(st.anderson)
@@ -440,6 +513,8 @@ def _python_loop(fm, st, W_U, X_UT, U_v0, lo_U, W_T, T_v0, mu_g, nc, affine, alp
     kmax = fm.L.shape[1]
     it, converged, resid = 0, False, np.inf
     while True:
+        if deadline is not None and it:
+            deadline.check("Staggered Projections", it)
         it += 1
         # CONTACT (Eq. 11 / 17c)
         if nu:
@@ -447,7 +522,7 @@ def _python_loop(fm, st, W_U, X_UT, U_v0, lo_U, W_T, T_v0, mu_g, nc, affine, alp
             if np.all(c >= 0):
                 alpha = np.zeros(nu)
             else:
-                alpha = box_qp(W_U, c, np.zeros(nu), np.full(nu, _INF), alpha, 0.1 * st.tol, st.qp)
+                alpha = box_qp(W_U, c, np.zeros(nu), np.full(nu, _INF), alpha, 0.1 * st.tol, st.qp, deadline)
         # BISP (Eq. 15-17): joint alphas -> bounds of the joint friction rows
         if nc:
             bound[:ng] = np.repeat(mu_g * alpha[:nc], 2)
@@ -472,7 +547,7 @@ def _python_loop(fm, st, W_U, X_UT, U_v0, lo_U, W_T, T_v0, mu_g, nc, affine, alp
         if nf:
             cf = T_v0 + X_UT.T @ alpha
             b_in = beta
-            beta = box_qp(W_T, -cf, -bound, bound, beta, 0.1 * st.tol, st.qp)
+            beta = box_qp(W_T, -cf, -bound, bound, beta, 0.1 * st.tol, st.qp, deadline)
             if st.anderson:
                 beta = acc.update(b_in, beta, bound)
     return alpha, beta, bound, al, it, converged, resid

@@ -3,7 +3,8 @@ Schur complement of the KKT system (Eq. 6/7), unilateral joint limits by the QP 
 (ProxSuite). Sign convention: A qdot = b - G^T lam - C^T mu, so -G^T lam is the constraint impulse.
 With integrator.coriolis: implicit the LHS is not symmetric (LinearSystem.symmetric False): LU instead of
 Cholesky (kkt.kkt_solve_lu, numpy's LU above kkt.SMALL_N) and the joint-limit QP as a fixed point of
-symmetric QPs (_solve_qp_nonsymmetric).
+symmetric QPs (_solve_qp_nonsymmetric). Under a step budget (solvers/budget.py) every ProxSuite solve is
+capped and the step's deadline is checked between its slices (budget.qp_solve).
 """
 from __future__ import annotations
 
@@ -13,6 +14,7 @@ import eigenpy
 import numpy as np
 import proxsuite
 
+from redmax_ros.core.solvers.budget import qp_solve
 from redmax_ros.core.solvers.problem import Constraints
 from redmax_ros.core.errors import StepError
 from redmax_ros.core.solvers.problem import LinearSystem
@@ -48,12 +50,13 @@ def _cholesky(A, what):
     return llt
 
 
-def solve_direct(sys: LinearSystem, cons: Constraints, qp_eps: float = 1e-10) -> Solution:
+def solve_direct(sys: LinearSystem, cons: Constraints, qp_eps: float = 1e-10, deadline=None) -> Solution:
     """Eq. (2) with the bilateral rows of Eq. (6)/(7) (Schur complement) and, when the unconstrained
     solution crosses a joint limit, the QP of Eq. (5). Small systems (n <= kkt.SMALL_N) in one
-    compiled call (kkt.py), larger ones with Eigen's LLT."""
+    compiled call (kkt.py), larger ones with Eigen's LLT. ``deadline``: the step's budget.Deadline (the
+    QP's iteration caps and time), None for no budget."""
     if not sys.symmetric:
-        return _solve_direct_lu(sys, cons, qp_eps)
+        return _solve_direct_lu(sys, cons, qp_eps, deadline)
     A, b = sys.A, sys.b
     n = len(b)
     if n <= SMALL_N:
@@ -76,7 +79,7 @@ def solve_direct(sys: LinearSystem, cons: Constraints, qp_eps: float = 1e-10) ->
         viol, limits_ok = _violation_and_limits(cons, v)
     if limits_ok:
         return Solution(v, lam, _EMPTY if cons.C is None else np.zeros(len(cons.lo)), 1, "direct", sys, cons, viol)
-    v, lam, mu, iters = _solve_qp(A, b, cons, qp_eps)
+    v, lam, mu, iters = _solve_qp(A, b, cons, qp_eps, deadline)
     return Solution(v, lam, mu, iters, "qp", sys, cons, _violation_and_limits(cons, v)[0])
 
 
@@ -123,28 +126,31 @@ def check_rank(S, labels):
                         + ", ".join(involved))
 
 
-def _solve_qp(A, b, cons, eps):
+QP_NAME = "joint-limit QP (Eq. 5)"
+
+
+def _solve_qp(A, b, cons, eps, deadline=None):
     n, m, p = A.shape[0], cons.m, len(cons.lo)
     qp = proxsuite.proxqp.dense.QP(n, m, p)
     qp.settings.eps_abs = eps
     qp.settings.eps_rel = 0.0
     qp.settings.verbose = False
     qp.init(A, -b, cons.G if m else None, cons.g if m else None, cons.C, cons.lo, cons.hi)
-    qp.solve()
+    iters = qp_solve(qp, deadline, QP_NAME)
     status = qp.results.info.status
     if status != proxsuite.proxqp.QPSolverOutput.PROXQP_SOLVED:
         raise StepError(f"joint-limit QP (Eq. 5) failed: {status.name} (limits conflict with prescriptions?)")
     x = np.array(qp.results.x)
     if not np.all(np.isfinite(x)):
         raise StepError("joint-limit QP (Eq. 5) returned non-finite velocities")
-    return x, np.array(qp.results.y), np.array(qp.results.z), int(qp.results.info.iter)
+    return x, np.array(qp.results.y), np.array(qp.results.z), iters
 
 
 # ------------------------------------------------------------------------------------------------
 # non-symmetric LHS (integrator.coriolis: implicit; forces.coriolis_jacobian)
 
 
-def _solve_direct_lu(sys: LinearSystem, cons: Constraints, qp_eps: float) -> Solution:
+def _solve_direct_lu(sys: LinearSystem, cons: Constraints, qp_eps: float, deadline=None) -> Solution:
     """solve_direct for a non-symmetric A = M + h K_v + ...: the same Schur complement of Eq. (6)/(7)
     with LU factorisations (Y = A^-1 G^T, S = G Y), the joint limits of Eq. (5) by _solve_qp_nonsymmetric."""
     A, b = sys.A, sys.b
@@ -172,7 +178,7 @@ def _solve_direct_lu(sys: LinearSystem, cons: Constraints, qp_eps: float) -> Sol
         viol, limits_ok = _violation_and_limits(cons, v)
     if limits_ok:
         return Solution(v, lam, _EMPTY if cons.C is None else np.zeros(len(cons.lo)), 1, "direct", sys, cons, viol)
-    v, lam, mu, iters = _solve_qp_nonsymmetric(A, b, cons, qp_eps, v)
+    v, lam, mu, iters = _solve_qp_nonsymmetric(A, b, cons, qp_eps, v, deadline)
     return Solution(v, lam, mu, iters, "qp", sys, cons, _violation_and_limits(cons, v)[0])
 
 
@@ -192,17 +198,20 @@ def _check_rank_nonsymmetric(S, labels):
 QP_FIXED_POINT_MAX = 50
 
 
-def _solve_qp_nonsymmetric(A, b, cons, eps, v):
+def _solve_qp_nonsymmetric(A, b, cons, eps, v, deadline=None):
     """Eq. (5) with a non-symmetric A: the optimality conditions A v = b - G^T lam - C^T mu with the limit
     complementarity are not a QP, but with A = H + K (H symmetric part, K = h skew(K_v) small) they are
     the fixed point of the QPs  min 1/2 v^T H v - (b - K v_k)^T v  (same constraints), which converges
     linearly at the rate |H^-1 K| = O(h |qdot|). Each iterate is one ProxSuite solve; stops when the
-    velocity changes by less than the QP tolerance. iterations = total QP iterations."""
+    velocity changes by less than the QP tolerance. iterations = total QP iterations; the step's deadline
+    is checked between the fixed-point iterations (and inside each QP)."""
     H = 0.5 * (A + A.T)
     K = A - H
     total = 0
-    for _ in range(QP_FIXED_POINT_MAX):
-        x, y, z, it = _solve_qp(H, b - K @ v, cons, eps)
+    for k in range(QP_FIXED_POINT_MAX):
+        if deadline is not None and k:
+            deadline.check("joint-limit QP fixed point (implicit Coriolis)", total)
+        x, y, z, it = _solve_qp(H, b - K @ v, cons, eps, deadline)
         total += it
         dv = float(np.abs(x - v).max())
         v = x

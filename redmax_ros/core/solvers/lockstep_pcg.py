@@ -7,7 +7,8 @@ Block Jacobi Preconditioner of Alg. 1, :mod:`~redmax_ros.core.solvers.preconditi
 :func:`active_set` imposes the joint limits of Eq. (5) by a primal active set on the same dual system
 (limit rows enter as equalities at their bound, multipliers checked for sign), with Z columns computed
 only for the rows that become active. :class:`Fallback` tells the caller to redo the step with the
-direct solver.
+direct solver. Under a step budget both check the step's deadline (solvers/budget.py) between their
+iterations and raise its StepError (no fallback) when the step's time is up.
 """
 from __future__ import annotations
 
@@ -62,10 +63,16 @@ class Ops:
         return OUT
 
 
-def block_pcg(ops: Ops, B: np.ndarray, X0: np.ndarray | None, rtol: float, max_iter: int):
+PCG_NAME = "lockstep PCG (Eq. 4)"
+
+
+def block_pcg(ops: Ops, B: np.ndarray, X0: np.ndarray | None, rtol: float, max_iter: int, deadline=None):
     """Independent preconditioned CG solves A x_c = b_c for the rows b_c of B (k, n), run in lockstep.
     Each column stops when ||r_c|| <= rtol ||b_c||. Returns (X, iterations (k,), converged (k,),
-    relative residuals (k,))."""
+    relative residuals (k,)). ``deadline``: the step's budget.Deadline, checked every iteration (None: no
+    budget)."""
+    if deadline is not None:
+        deadline.begin()
     k, n = B.shape
     X = np.zeros((k, n)) if X0 is None else np.array(X0, dtype=float)
     bn = np.sqrt(np.einsum("ij,ij->i", B, B))
@@ -85,7 +92,9 @@ def block_pcg(ops: Ops, B: np.ndarray, X0: np.ndarray | None, rtol: float, max_i
     Pd = Z.copy()
     rz = np.einsum("ij,ij->i", R, Z)
     with np.errstate(divide="ignore", invalid="ignore"):
-        for _ in range(max_iter):
+        for it in range(max_iter):
+            if deadline is not None and it:
+                deadline.check(PCG_NAME, it)
             AP = ops.A(Pd, active)
             pAp = np.einsum("ij,ij->i", Pd, AP)
             active = active & (pAp > 0.0)  # A not positive definite on p: give up on that column
@@ -132,8 +141,11 @@ def spd_solve(S, rhs, labels):
         return np.linalg.lstsq(S, rhs, rcond=None)[0]
 
 
-def active_set(ops, rows, H, gH, Z, u, v, y, labels, rtol, max_iter, stats):
-    """Primal active set for lo <= v[C_idx] <= hi on top of the equality solution (Eq. 5)."""
+def active_set(ops, rows, H, gH, Z, u, v, y, labels, rtol, max_iter, stats, deadline=None):
+    """Primal active set for lo <= v[C_idx] <= hi on top of the equality solution (Eq. 5); the step's
+    deadline (or None) is checked between its iterations and in its PCG solves."""
+    if deadline is not None:
+        deadline.begin()
     idx, lo, hi = rows.C_idx, rows.lo, rows.hi
     tol = 1e-12
     mu = np.zeros(len(idx))
@@ -152,7 +164,7 @@ def active_set(ops, rows, H, gH, Z, u, v, y, labels, rtol, max_iter, stats):
         if need:
             E = np.zeros((len(need), nv))
             E[np.arange(len(need)), idx[need]] = 1.0
-            Xc, its, conv, _ = block_pcg(ops, E, None, rtol, max_iter)
+            Xc, its, conv, _ = block_pcg(ops, E, None, rtol, max_iter, deadline)
             extra += int(its.sum())
             if not conv.all():
                 raise Fallback(f"PCG did not converge on a joint-limit row in {max_iter} iterations", extra)
@@ -168,9 +180,11 @@ def active_set(ops, rows, H, gH, Z, u, v, y, labels, rtol, max_iter, stats):
         return (i, "lo" if lo[i] - c[i] > c[i] - hi[i] else "hi") if over[i] > tol else (None, None)
 
     i, side = worst_violation(v)
-    for _ in range(3 * len(idx) + 10):
+    for k in range(3 * len(idx) + 10):
         if i is None:
             break
+        if deadline is not None and k:
+            deadline.check("joint-limit active set (PCG)", k)
         active[i] = side
         ensure([i])
         act = list(active)

@@ -4,7 +4,8 @@ A backend owns a Workspace (step/workspace.py) made from the frozen Mechanism an
 step.pipeline.step and its velocity stages: :class:`DirectBackend` with the Pinocchio stages
 (pipeline.pinocchio_velocity, pin.Data), :class:`DataFreeBackend` with the data-free ones
 (data_free_stages.data_free_velocity: PCG with Alg. 1, or the dense data-free direct solver), and
-:class:`AutoBackend` choosing between them by a cost model after a short PCG probe.
+:class:`AutoBackend` choosing between them by a cost model after a short PCG probe. ``step(state, cmd,
+h, budget=None)``: ``budget`` a solvers/budget.StepBudget bounding the step's work, None for unlimited.
 """
 from __future__ import annotations
 
@@ -27,8 +28,8 @@ class DirectBackend:
         self.mech = mech
         self.workspace = Workspace(mech, pin_data=True)
 
-    def step(self, state, cmd, h):
-        return step(self.mech, self.workspace, state, cmd, h, pinocchio_velocity)
+    def step(self, state, cmd, h, budget=None):
+        return step(self.mech, self.workspace, state, cmd, h, pinocchio_velocity, budget)
 
     def at_state(self, q, t):
         self.workspace.at_state(q, t)
@@ -48,8 +49,8 @@ class DataFreeBackend:
         """The data-free velocity stages with this backend's solver, tolerance and iteration cap."""
         return data_free_velocity(mech, ws, state, cmd, tau, h, self.solver, self.rtol, self.max_iter)
 
-    def step(self, state, cmd, h):
-        return step(self.mech, self.workspace, state, cmd, h, self.velocity)
+    def step(self, state, cmd, h, budget=None):
+        return step(self.mech, self.workspace, state, cmd, h, self.velocity, budget)
 
     def at_state(self, q, t):
         self.workspace.at_state(q, t)
@@ -114,10 +115,10 @@ class AutoBackend:
         self.choice = "direct"
         self.impl = DirectBackend(self.mech) if self.mech.nv <= PIN_DATA_MAX_NV else DataFreeBackend(self.mech, "direct")
 
-    def step(self, state, cmd, h):
+    def step(self, state, cmd, h, budget=None):
         if self.choice is not None:
-            return self.impl.step(state, cmd, h)
-        new, res = self.pcg.step(state, cmd, h)
+            return self.impl.step(state, cmd, h, budget)
+        new, res = self.pcg.step(state, cmd, h, budget)
         d = res.diagnostics
         if d.solver != "pcg":
             self._choose("direct", f"PCG fell back during the probe ({d.solver})")

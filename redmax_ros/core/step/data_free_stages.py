@@ -38,7 +38,7 @@ from redmax_ros.core.solvers.direct import solve_direct
 from redmax_ros.core.solvers.lockstep_pcg import DEFAULT_RTOL, Fallback, Ops, active_set, block_pcg, default_max_iter, spd_solve
 from redmax_ros.core.solvers.pcg import MatrixFreeSystem, PointSprings
 from redmax_ros.core.step.pipeline import VelocitySolve
-from redmax_ros.core.step.state import check_inputs
+from redmax_ros.core.step.state import check_applied, check_inputs, check_rows
 
 
 @dataclasses.dataclass
@@ -75,6 +75,15 @@ def coupling_rows(mech, ws) -> np.ndarray:
     return out
 
 
+def coupling_scale(mech, ws) -> float:
+    """max_i sum_j |T_ij| (1 without couplings): max |qdot_r| <= it x max |qdot_R| (cached in ws); the scale of
+    state.check_rows for the PCG path's reduced-coordinate rows."""
+    s = ws.cache.get("coupling scale")
+    if s is None:
+        s = ws.cache["coupling scale"] = 1.0 if mech.T is None else float(np.abs(mech.T).sum(1).max())
+    return s
+
+
 def build_rows(mech, ws, cmd, q, h, hyper: bool) -> Constraints:
     """Stage 3 on the recursive kinematics: loop rows and prescribed-site Jacobians from the Context,
     then constraints.build (reduced coordinates for PCG, hyper-reduced for the dense direct solver)."""
@@ -85,22 +94,31 @@ def build_rows(mech, ws, cmd, q, h, hyper: bool) -> Constraints:
     return constraints.build(mech, ws, G_loop, J_sites, q, cmd.joint_velocities, psites, h, cmd.site_axes, hyper)
 
 
-def solve_dense(mech, ws, system: MatrixFreeSystem, b: np.ndarray, cons: Constraints, h: float):
+def solve_dense(mech, ws, system: MatrixFreeSystem, b: np.ndarray, cons: Constraints, h: float, tau=None,
+                cmd=None):
     """Data-free direct solve: dense LHS (CRBA-style pass + spring cross terms), then solve_direct.
-    ``cons`` in hyper-reduced coordinates."""
+    ``cons`` in hyper-reduced coordinates. With ``tau`` and ``cmd`` the applied torques and site forces are
+    checked against the divergence limit on the dense LHS first (state.check_applied)."""
     blocks = system.preconditioner_blocks()
     A = tf.dense_lhs(ws.tree, h, blocks, system.C, system.pa, system.pb)
     T = mech.T
     if T is not None:
         A, b = T.T @ A @ T, T.T @ b
+    if tau is not None:
+        terms = ()
+        if cmd.site_forces:
+            names = list(cmd.site_forces)
+            J = ws.tree.point_jacobians([mech.site_index[n] for n in names])[1]
+            terms = [(n, J[k].T @ cmd.site_forces[n]) for k, n in enumerate(names)]
+        check_applied(mech, ws, A, tau, h, cmd, terms)
     if not cons.m:
         cons.G = mech.no_rows
-    return solve_direct(LinearSystem(A, b), cons)
+    return solve_direct(LinearSystem(A, b), cons, deadline=ws.deadline)
 
 
 def solve_pcg(mech, ws, system: MatrixFreeSystem, b, cons: Constraints, x0, rtol, max_iter, stats):
     """Eq. (4) with lockstep PCG solves, plus the joint-limit active set. ``cons`` in reduced coordinates.
-    Returns (v_r, y_H, mu, iters)."""
+    Returns (v_r, y_H, mu, iters). The step's deadline (ws.deadline) is checked every PCG iteration."""
     ctx = ws.tree
     nv = ctx.topo.nv
     try:
@@ -123,7 +141,7 @@ def solve_pcg(mech, ws, system: MatrixFreeSystem, b, cons: Constraints, x0, rtol
         else:
             X0[1:] = 0.0
     B = np.vstack([b[None], H]) if l else b[None]
-    X, its, conv, rel = block_pcg(ops, B, X0, rtol, max_iter)
+    X, its, conv, rel = block_pcg(ops, B, X0, rtol, max_iter, ws.deadline)
     stats["solves"] = list(its)
     total = int(its.sum())
     if not conv.all():
@@ -142,7 +160,7 @@ def solve_pcg(mech, ws, system: MatrixFreeSystem, b, cons: Constraints, x0, rtol
     limits = _LimitRows(np.asarray(mech.limited, dtype=int), cons.lo, cons.hi)
     mu = np.zeros(len(limits.C_idx))
     if len(limits.C_idx):
-        v, y, mu, extra = active_set(ops, limits, H, gH, Z, u, v, y, labels, rtol, max_iter, stats)
+        v, y, mu, extra = active_set(ops, limits, H, gH, Z, u, v, y, labels, rtol, max_iter, stats, ws.deadline)
         total += extra
     return v, y, mu, total
 
@@ -179,8 +197,10 @@ def data_free_velocity(mech, ws, state, cmd, tau, h, solver="pcg", rtol=DEFAULT_
     system = MatrixFreeSystem(ctx.topo, rws, h, ctx.reduced_diag(h), ps, tf.body_damping_blocks(ctx, h))
     # 3: constraint rows (reduced coordinates for PCG)
     cons = build_rows(mech, ws, cmd, state.q, h, hyper=solver != "pcg")
-    if cons.m and not math.isfinite(cons.g.sum()):
-        check_inputs(state, tau, cmd)
+    if cons.m:
+        if not math.isfinite(cons.g.sum()):
+            check_inputs(state, tau, cmd)
+        check_rows(cons, 1.0 if solver != "pcg" else coupling_scale(mech, ws))  # before any solve
 
     # 4: solve
     label = solver
@@ -209,7 +229,7 @@ def data_free_velocity(mech, ws, state, cmd, tau, h, solver="pcg", rtol=DEFAULT_
             spent = e.args[1] if len(e.args) > 1 else 0
             cons = build_rows(mech, ws, cmd, state.q, h, hyper=True)
     if sol is None:
-        dsol = solve_dense(mech, ws, system, b, cons, h)
+        dsol = solve_dense(mech, ws, system, b, cons, h, tau, cmd)
         sol = dsol
         if label == "pcg->":
             label = "pcg->" + dsol.solver

@@ -1,15 +1,17 @@
 """One RedMax step, written once for every backend: (mech, workspace, state, commands, h) -> (State,
 StepResult).
 
+    ws.deadline = budget.start()                        # the step budget (solvers/budget.py), or None
     tau = applied_torques(mech, state, cmd, h)          # inputs checked (non-finite ones named)
     ws.extras.begin(...)                                # catalogue: J_rR of joint maps at q, load time
-    vs = velocity(mech, ws, state, cmd, tau, h)         # stages 1-4 of the backend (below)
+    vs = velocity(mech, ws, state, cmd, tau, h)         # stages 1-4 of the backend (below); inputs beyond
+                                                        # the divergence limit rejected before the solve
     check_speed(vs.sol.v)                               # divergence
     q+ = integrate(q, h J_rR qdot_R+)                   # 5: manifold update (pin.integrate)
     q+ = stabilization.project_chord(q+, G_loop)        #    loop post-stabilization
     q+, qdot_R+ = ws.extras.end(...)                    #    catalogue: coordinates, charts, projections
     effort, site forces = *G^T lam / h                  # 6: required torques and forces (Eq. 7)
-    energies, violations -> Diagnostics                 #    one entry point (energy.py)
+    energies, violations -> Diagnostics                 #    one implementation (energy.py)
 
 The velocity stages are what really differs between backends (MJX's "two implementations behind one
 entry point"): :func:`pinocchio_velocity` here (kinematics.compute on pin.Data -> forces.assemble (Eq.
@@ -17,6 +19,11 @@ entry point"): :func:`pinocchio_velocity` here (kinematics.compute on pin.Data -
 and step.data_free_stages.data_free_velocity (the recursive passes, PCG with Alg. 1 or the dense
 data-free direct solver). The returned State is new and the input is never modified, so a StepError
 leaves the caller's state exactly as it was; the workspace is scratch.
+
+Bounded work: with a ``budget`` (solvers/budget.StepBudget) the step's Deadline is ``ws.deadline`` while
+it runs; the iterative solvers check it between their iterations and raise StepError("step budget
+exceeded: ...") past it. Inputs whose step must diverge (a prescribed velocity or an applied force beyond
+the divergence limit, step/state.py) are rejected after the kinematics and forces, before any solve.
 """
 from __future__ import annotations
 
@@ -33,7 +40,8 @@ from redmax_ros.core.errors import StepError
 from redmax_ros.core.friction import staggered
 from redmax_ros.core.solvers.direct import solve_direct
 from redmax_ros.core.solvers.kkt import max_row_residual
-from redmax_ros.core.step.state import Diagnostics, State, StepResult, applied_torques, check_inputs, check_speed
+from redmax_ros.core.step.state import (Diagnostics, State, StepResult, applied_torques, check_applied, check_inputs,
+                                        check_rows, check_speed)
 
 
 @dataclass
@@ -50,10 +58,19 @@ class VelocitySolve:
     friction_cache: np.ndarray | None = None  # warm start of the next step's friction impulses
 
 
-def step(mech, ws, state: State, cmd, h: float, velocity) -> tuple:
+def step(mech, ws, state: State, cmd, h: float, velocity, budget=None) -> tuple:
     """Advance one step of Eq. (2) with the backend's ``velocity`` stages. Returns (State, StepResult);
-    raises StepError on failure (the input state is never modified)."""
+    raises StepError on failure (the input state is never modified). ``budget``: a StepBudget (CPU time of
+    the step's iterative solvers, QP iteration caps) or None (unlimited)."""
     t0 = time.perf_counter()
+    ws.deadline = None if budget is None else budget.start()
+    try:
+        return _step(mech, ws, state, cmd, h, velocity, t0)
+    finally:
+        ws.deadline = None
+
+
+def _step(mech, ws, state: State, cmd, h: float, velocity, t0) -> tuple:
     tau = applied_torques(mech, state, cmd, h)
     if ws.extras is not None:  # catalogue: time of the timed loads, J_rR of spline/exp joints at q
         ws.extras.begin(mech, ws, state)
@@ -66,7 +83,7 @@ def step(mech, ws, state: State, cmd, h: float, velocity) -> tuple:
         raise StepError("non-finite energy after the step")
     diag = Diagnostics(ek, ep, es, ek + ep + es, viol_pos, vs.violation_vel, vs.iterations, vs.solver,
                        time.perf_counter() - t0, vs.sol, vs.friction)
-    new = State(state.t + h, q_new, v_hyper, vs.friction_cache)
+    new = state.advanced(h, q_new, v_hyper, vs.friction_cache)
     return new, StepResult(new.t, q_new, v_new, effort, site_forces, diag)
 
 
@@ -128,19 +145,23 @@ def pinocchio_velocity(mech, ws, state: State, cmd, tau, h) -> VelocitySolve:
     v_r = ws.to_reduced(state.v)
     kin = kinematics.compute(mech, ws, state.q, v_r, extra)  # 1
     system = forces.assemble(mech, ws, kin, state.q, v_r, tau, h, sf)  # 2
+    check_applied(mech, ws, system.A, tau, h, cmd,
+                  [(n, kin.J[kin.row[mech.site_index[n]]].T @ f) for n, f in cmd.site_forces.items()] if sf else ())
     G_loop = constraints.loop_rows_of(mech, kin.J) if len(mech.loop_ab) else None
     J_sites = site_jacobian_rows(mech, ws, kin, psites) if psites else None
     cons = constraints.build(mech, ws, G_loop, J_sites, state.q, cmd.joint_velocities, psites, h,
                              cmd.site_axes)  # 3
-    if cons.m and not math.isfinite(cons.g @ cons.g):
-        check_inputs(state, tau, cmd)
+    if cons.m:
+        if not math.isfinite(cons.g @ cons.g):
+            check_inputs(state, tau, cmd)
+        check_rows(cons)  # prescribed velocities no step below the divergence limit can meet
     if mech.friction is None:
-        sol = solve_direct(system, cons)  # 4
+        sol = solve_direct(system, cons, deadline=ws.deadline)  # 4
         fric = fcache = None
         viol_vel = sol.violation
     else:  # 4': Staggered Projections / BISP (Alg. 2/3) for ground contact and joint friction
         sol, fric, fcache = staggered.solve(mech, ws.friction, kin, system, cons, state.q, v_r, h,
-                                            state.friction_cache, sf)
+                                            state.friction_cache, sf, ws.deadline)
         viol_vel = max_row_residual(cons.G, sol.v, cons.g)
     return VelocitySolve(sol, cons.joint_rows, cons.site_rows,
                          cons.G[cons.loop_rows] if len(mech.loop_ab) else None, viol_vel, sol.solver,

@@ -1,5 +1,25 @@
 """What a step takes and gives: State (immutable), Commands, Diagnostics, StepResult; the input checks and
-the divergence limit shared by every backend (SI units: m, rad, s, N, N m, J)."""
+the divergence limit shared by every backend (SI units: m, rad, s, N, N m, J).
+
+Divergence is the step's velocity beyond MAX_SPEED (check_speed, after the solve). Inputs that cannot give
+a step below it are rejected before any solve ("step diverged (rejected before solving): ..."), as their
+solves are the slow ones (the QP of Eq. 5 cannot reach its absolute tolerance at their scale):
+
+* the state's velocity beyond MAX_SPEED (applied_torques);
+* a bilateral row G_i qdot = g_i (prescribed joint or site velocity, Eq. 7) with |g_i| > MAX_SPEED
+  sum_j |G_ij|: every qdot with max |qdot| <= MAX_SPEED has |G_i qdot| <= MAX_SPEED sum_j |G_ij|, so no
+  solution is below the limit (check_rows; exact, never rejects a step that could pass check_speed);
+* an applied joint torque or site force whose impulse alone would change the velocity of the free
+  (unconstrained) system by more than MAX_SPEED in one step: A dv = h f gives h |f_k| <= sum_j |A_kj|
+  max |dv| for every DOF k, so h |f_k| > MAX_SPEED sum_j |A_kj| (A: the LHS of Eq. 2 at this state,
+  inertia + armature + h D + h^2 K) means max |dv| > MAX_SPEED (check_applied). Components on prescribed
+  joints are left out (their multipliers take them exactly). A joint limit, a loop or contact could still
+  hold such a force, but it is 1e6 times what changes the DOF's velocity by 1 rad/s (m/s) in one step
+  (hand, h = 1 ms, at q0: from 4.2e4 N m on thumb_ip to 1.7e7 N m on the wrist and 9.5e7 N m on the elbow;
+  walker: from 2.4e6 N m) and its reaction is beyond the solvers' precision (it is what made the
+  joint-limit QP run for 64 s). Checked on the Pinocchio and dense data-free paths (where A is formed); the PCG path solves
+  at any scale in its capped iterations, and its step fails by check_speed.
+"""
 from __future__ import annotations
 
 import math
@@ -8,8 +28,10 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from redmax_ros.core.errors import StepError
+from redmax_ros.core.jit import njit
 
 MAX_SPEED = 1e6  # |qdot| above this (rad/s or m/s) is reported as divergence
+_UP_FRONT = "step diverged (rejected before solving)"
 
 
 @dataclass(frozen=True)
@@ -18,6 +40,15 @@ class State:
     q: np.ndarray  # (nq,) Pinocchio configuration
     v: np.ndarray  # (ndof,) hyper-reduced velocity qdot_R (= qdot_r without couplings)
     friction_cache: np.ndarray | None = None  # warm start of the friction impulses (staggered.py)
+    k: int = 0  # steps taken since the time origin t0
+    t0: float | None = None  # time origin [s] (None: t); t = t0 + k h after k steps of h, one rounding
+
+    def advanced(self, h: float, q, v, friction_cache=None) -> "State":
+        """The state after one step of h: t = t0 + (k + 1) h, computed from the step count, not by
+        accumulating h (after 380,910 steps of 1 ms the sum gave 380.909999998 s; t0 + k h is the float
+        nearest to the exact time, so round(t * 1e9) is the exact nanosecond count when h is)."""
+        t0 = self.t if self.t0 is None else self.t0
+        return State(t0 + (self.k + 1) * h, q, v, friction_cache, self.k + 1, t0)
 
 
 @dataclass
@@ -78,17 +109,138 @@ def check_inputs(state, tau, cmd):
 
 
 def applied_torques(mech, state, cmd, h) -> np.ndarray:
-    """tau = constant joint torques + commanded ones (nv,); StepError on a bad step size or a non-finite
-    input (named)."""
+    """tau = constant joint torques + commanded ones (nv,); StepError on a bad step size, a non-finite
+    input (named) or a state velocity beyond MAX_SPEED."""
     if not (h > 0 and math.isfinite(h)):
         raise StepError(f"time step must be positive and finite, got {h}")
     tau = mech.torque0 if cmd.joint_torques is None else mech.torque0 + cmd.joint_torques
-    if not math.isfinite(state.q @ state.q + state.v @ state.v + tau @ tau):  # cheap test; names it below
+    vv = state.v @ state.v
+    if not math.isfinite(state.q @ state.q + vv + tau @ tau):  # cheap test; names it below
         check_inputs(state, tau, cmd)
+    if vv > MAX_SPEED * MAX_SPEED:
+        k = int(np.argmax(np.abs(state.v)))
+        if abs(state.v[k]) > MAX_SPEED:
+            raise StepError(f"{_UP_FRONT}: the state's velocity {state.v[k]:.3g} (DOF {k}) is beyond the limit "
+                            f"{MAX_SPEED:g}")
     for f in cmd.site_forces.values():
         if not np.all(np.isfinite(f)):
             check_inputs(state, tau, cmd)
     return tau
+
+
+@njit
+def _row_beyond(G, g, limit):
+    """The first row i with |g_i| > limit sum_j |G_ij| > 0 (G_i qdot = g_i needs max |qdot| > limit), or -1."""
+    for i in range(len(g)):
+        gi = abs(g[i])
+        if gi == 0.0:
+            continue
+        s = 0.0
+        for j in range(G.shape[1]):
+            s += abs(G[i, j])
+        if s > 0.0 and gi > limit * s:
+            return i
+    return -1
+
+
+def check_rows(cons, scale: float = 1.0) -> None:
+    """StepError naming the first bilateral row (prescribed joint or site velocity) that no velocity with
+    max |qdot| <= MAX_SPEED meets: |g_i| > MAX_SPEED sum_j |G_ij|. ``scale``: bound of max |G-coordinates
+    velocity| / max |qdot| (1 when the rows are in the coordinates check_speed tests; max_i sum_j |T_ij|
+    for reduced-coordinate rows and hyper-reduced qdot, T = J_rR). Rows acting on no DOF are left to the
+    solver's rank check."""
+    i = _row_beyond(cons.G, cons.g, MAX_SPEED * scale)
+    if i >= 0:
+        s = float(np.abs(cons.G[i]).sum()) * scale
+        raise StepError(f"{_UP_FRONT}: {cons.labels[i]}: velocity {cons.g[i]:.3g} needs max |qdot| >= "
+                        f"{abs(cons.g[i]) / s:.3g} (limit {MAX_SPEED:g})")
+
+
+@njit
+def _impulse_beyond(A, T, f, mask, h, limit):
+    """The first DOF k of A with h |F_k| > limit sum_j |A_kj| (then A dv = h F has max |dv| > limit), or -1;
+    F = T^T (mask * f) (an empty T: identity, an empty mask: ones)."""
+    n = A.shape[0]
+    nr = len(f)
+    for k in range(n):
+        if T.shape[0]:
+            F = 0.0
+            for d in range(nr):
+                F += T[d, k] * (f[d] if mask.shape[0] == 0 else f[d] * mask[d])
+        else:
+            F = f[k] if mask.shape[0] == 0 else f[k] * mask[k]
+        t = h * abs(F)
+        if t <= limit * abs(A[k, k]):  # sum_j |A_kj| >= |A_kk|: cannot be beyond
+            continue
+        s = 0.0
+        for j in range(n):
+            s += abs(A[k, j])
+        if t > limit * s:
+            return k
+    return -1
+
+
+_NONE = np.zeros(0)
+_NO_T = np.zeros((0, 0))
+
+
+def _free_mask(mech, ws, prescribed) -> np.ndarray | None:
+    """(nv,) 1.0 on the reduced DOFs of joints not prescribed, 0.0 on prescribed ones (cached per set), or
+    None when nothing is prescribed."""
+    if not prescribed:
+        return None
+    key = ("free dofs", *prescribed)
+    mask = ws.cache.get(key)
+    if mask is None:
+        mask = np.ones(mech.nv)
+        for name in prescribed:
+            j = mech.joint_index[name]
+            mask[j.idx_v:j.idx_v + j.nv] = 0.0
+        ws.cache[key] = mask
+    return mask
+
+
+def check_applied(mech, ws, A, tau, h, cmd, site_terms=()) -> None:
+    """StepError when an applied joint torque (``tau``, reduced, nv) or site force (``site_terms``: [(site,
+    J_site^T f (nv,))]) would alone change the free system's velocity by more than MAX_SPEED in one step:
+    h |f_k| > MAX_SPEED sum_j |A_kj| on a DOF k of ``A`` (the LHS of Eq. 2, hyper-reduced by the
+    workspace's J_rR when it has couplings). Components on prescribed joints are left out. One compiled
+    pass per source (the torques; each site force; all together)."""
+    mask = _free_mask(mech, ws, cmd.joint_velocities)
+    mk = _NONE if mask is None else mask
+    T = _NO_T if ws.T is None else ws.T
+    if not site_terms:  # the usual case: one compiled pass (~1 us on the hand)
+        k = _impulse_beyond(A, T, tau, mk, h, MAX_SPEED)
+        if k >= 0:
+            raise StepError(_applied_message(mech, ws, A, h, cmd, "torque", None, tau, mask, k))
+        return
+    sources = [("torque", None, tau)] + [("force", name, f) for name, f in site_terms]
+    if len(sources) > 2 or tau @ tau != 0.0:
+        sources.append(("together", None, sum(f for _, _, f in sources)))
+    for kind, site, f in sources:
+        k = _impulse_beyond(A, T, f, mk, h, MAX_SPEED)
+        if k >= 0:
+            raise StepError(_applied_message(mech, ws, A, h, cmd, kind, site, f, mask, k))
+
+
+def _applied_message(mech, ws, A, h, cmd, kind, site, f, mask, k) -> str:
+    fm = f if mask is None else f * mask
+    T = ws.T
+    fR = fm if T is None else T.T @ fm
+    s = float(np.abs(A[k]).sum())
+    what = f"impulse h |f| = {h * abs(fR[k]):.3g} > {MAX_SPEED:g} x {s:.3g} (the DOF's row of the LHS of Eq. 2)"
+    if kind == "torque":
+        d = k if T is None else int(np.argmax(np.abs(T[:, k] * fm)))
+        j = next(j for j in mech.joints if j.idx_v <= d < j.idx_v + j.nv)
+        unit = {"revolute": "N m", "universal": "N m", "spherical": "N m", "prismatic": "N"}.get(j.type, "N m or N")
+        comp = f" (DOF {d - j.idx_v} of {j.nv})" if j.nv > 1 else ""
+        name = f"applied torque of joint '{j.name}'{comp} = {f[d]:.3g} {unit}"
+    elif kind == "force":
+        name = f"applied force on site '{site}' (|f| = {float(np.linalg.norm(cmd.site_forces[site])):.3g} N)"
+    else:
+        name = "applied torques and site forces together"
+    return (f"{_UP_FRONT}: {name} would change the velocity by more than the limit {MAX_SPEED:g} in one step: "
+            f"{what}")
 
 
 def check_speed(v) -> None:

@@ -11,7 +11,9 @@ the Mechanism and passes it to every stage, ``f(mech, ws, ...)``. It holds
 * ``cache``: per-prescription-set row layouts, site sets, the coupling rows of the PCG path, the
   zero-gravity model of the implicit Coriolis term;
 * ``extras``: the workspace's runtime copy of the catalogue hooks (dynamics/catalogue_hooks.py);
-* ``friction``: the friction stage's scratch (friction/contact.FrictionWork).
+* ``friction``: the friction stage's scratch (friction/contact.FrictionWork);
+* ``deadline``: the running step's solvers/budget.Deadline (set by step.pipeline.step for the step's
+  duration; None without a budget and between steps).
 
 A workspace is not thread-safe; two workspaces of one Mechanism step independently.
 """
@@ -32,6 +34,7 @@ class Workspace:
         self.tree = Context(mech, self.T, self.cache)
         self.extras = None if mech.extras is None else mech.extras.runtime(mech)
         self.friction = None if mech.friction is None else make_work(mech, mech.friction, self.T)
+        self.deadline = None
         if self.extras is not None:
             self.extras.at_state(self, mech.q0, 0.0)
 
