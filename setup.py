@@ -73,7 +73,7 @@ setup(
     entry_points={
         "console_scripts": [
             "redmax_run = redmax_ros.runner:main",
-            "redmax_node = redmax_ros.node.main:main",
+            "redmax_node = redmax_ros.node.main:cli",
             "redmax_bench = redmax_bench.cli:main",
         ],
     },

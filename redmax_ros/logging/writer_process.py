@@ -42,7 +42,10 @@ def main(argv=None) -> int:
     sys.stdout = sys.stderr
 
     def report(**kw):
-        os.write(status_fd, (json.dumps(kw) + "\n").encode())
+        try:
+            os.write(status_fd, (json.dumps(kw) + "\n").encode())
+        except OSError:  # the node is gone (it exited first): nothing to report to, the file is complete
+            pass
 
     cfg = json.loads(argv[0])
     try:

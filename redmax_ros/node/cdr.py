@@ -1,18 +1,35 @@
-"""Fast CDR encoders for the per-step messages (joint_states, /clock, solver_stats).
+"""CDR for every message the node sends: fast encoders for the per-step messages (joint_states,
+/clock, solver_stats) and ``serialize_message`` for any other message.
 
 rclpy's message objects and ``serialize_message`` cost ~30-50 us per message in Python, which at
 1 kHz is a large share of a step. These encoders write the same bytes (plain little-endian CDR as
 rmw_fastrtps_cpp produces: 4-byte encapsulation header 00 01 00 00, alignment relative to the end
-of that header, doubles aligned to 8) from a per-scene template, patching only the numbers.
-test/test_node_cdr.py checks them byte for byte against ``rclpy.serialization``.
+of that header, doubles aligned to 8, zero padding) from a per-scene template, patching only the
+numbers. test/node/test_node_cdr.py checks every byte but the padding against
+``rclpy.serialization`` and the exact length with rosbags (no trailing bytes).
+
+``serialize_message`` here replaces rclpy's for the node's other messages: rclpy's (rmw_fastrtps'
+``rmw_serialize``) returns a buffer as long as Fast CDR's *estimated* size, not the serialized
+data, and the estimate counts 8-byte alignment for empty float64 sequences that Fast CDR does not
+write. A JointState with names and velocities only (prescribed_joints) came out 4-12 bytes longer
+than its CDR, the tail uninitialized memory, which rosbags rejects ("CDR message size mismatch": it
+allows at most 3 trailing bytes); rclpy also leaves alignment padding uninitialized. Ours writes
+exactly the bytes rclpy's ``publish`` puts on the wire (Fast CDR, XCDRv1) with zero padding;
+test/logging/test_log_all_topics_decode.py checks it against rclpy's wire bytes and serializer,
+rosbags, and a whole node log with mcap_ros2 and rosbags.
 """
 from __future__ import annotations
 
+import array
+import importlib
 import struct
+import sys
+from itertools import chain
+from operator import attrgetter
 
 import numpy as np
-from rclpy.serialization import serialize_message
-from sensor_msgs.msg import JointState
+from rclpy.serialization import serialize_message as _rclpy_serialize_message
+from rosidl_parser import definition as idl
 
 from redmax_ros.logging.mcap_log import MESSAGE_HEAD, OP_MESSAGE
 
@@ -60,7 +77,8 @@ class _W:
     def f64_seq(self, n) -> int:
         """Writes a length and n zero doubles; returns the offset of the first double."""
         self.u32(n)
-        self.align(8)  # Fast CDR aligns even an empty sequence
+        if n:  # Fast CDR aligns a sequence's first element: an empty sequence has no padding
+            self.align(8)
         off = len(self.b)
         self.b += b"\x00" * (8 * n)
         return off
@@ -122,11 +140,6 @@ class JointStateEncoder:
         return self._encode_buffer(t, position, velocity, effort)
 
     def _encode_buffer(self, t, position, velocity, effort) -> bytes:
-        if self.n == 0:  # Fast CDR pads empty double sequences lazily: let rclpy do this rare case
-            m = JointState()
-            m.header.stamp.sec, m.header.stamp.nanosec = _split_time(t)
-            m.header.frame_id = self.frame_id
-            return serialize_message(m)
         n = self.n
         for view, arr in zip(self._views, (position, velocity, effort)):
             if len(arr) != n or np.ndim(arr) != 1:
@@ -251,3 +264,249 @@ class StepRecords:
                        float(diag.violation_vel), float(diag.E_kin), float(diag.E_pot), float(diag.E_spring),
                        float(diag.E_total), float(diag.wall_time))
         return b"".join((self._head.pack(op, 22 + len(js), hj.index + 1, sj, log_ns, log_ns), js, rest))
+
+
+# ------------------------------------------------------------------------------------------------
+# any message: serialize_message
+
+_BASIC = {  # rosidl BasicType.typename -> struct code (char/wchar/long double: not supported)
+    "boolean": "?", "octet": "c", "uint8": "B", "int8": "b", "uint16": "H", "int16": "h", "uint32": "I",
+    "int32": "i", "uint64": "Q", "int64": "q", "float": "f", "double": "d", "short": "h", "unsigned short": "H",
+    "long": "i", "unsigned long": "I", "long long": "q", "unsigned long long": "Q",
+}
+# array.array typecodes whose tobytes() are the CDR of a sequence of that struct code (+ itemsize)
+_ARRAY_CODES = {"B": "B", "b": "b", "H": "H", "h": "h", "I": "IL", "i": "il", "Q": "QL", "q": "ql", "f": "f", "d": "d"}
+_LITTLE = sys.byteorder == "little"
+_ZEROS = [bytes(n) for n in range(8)]
+
+
+class _Unsupported(Exception):
+    pass
+
+
+def _align(b, n, pad):
+    """Zero padding to a multiple of n (1, 2, 4, 8) from the end of the encapsulation header."""
+    k = (4 - len(b)) % n
+    if k:
+        if pad is not None:
+            pad.extend(range(len(b), len(b) + k))
+        b += _ZEROS[k]
+
+
+def _prim_bytes(v, code, size, n):
+    """The n primitives of v (array.array, numpy array, list, bytes) in little-endian."""
+    if _LITTLE and type(v) is array.array and v.typecode in _ARRAY_CODES.get(code, "") and v.itemsize == size:
+        return v.tobytes()
+    if isinstance(v, np.ndarray) and code != "c":
+        return np.ascontiguousarray(v, dtype=np.dtype(code).newbyteorder("<")).tobytes()
+    if code == "c":  # octet: bytes objects of length 1 (or one bytes object)
+        return bytes(v) if isinstance(v, (bytes, bytearray)) else b"".join(v)
+    if isinstance(v, (bytes, bytearray)) and code in "Bb":
+        return bytes(v)
+    return struct.pack(f"<{n}{code}", *v)
+
+
+def _message_class(t):
+    return getattr(importlib.import_module(".".join(t.namespaces)), t.name)
+
+
+def _leaves(cls, prefix=""):
+    """The fields of cls, nested messages flattened (CDR gives a nested struct no alignment of its
+    own): ("p", path, code) for a primitive, ("x", path, type) for anything else."""
+    names = list(cls.get_fields_and_field_types())
+    if not names:  # an empty message: rosidl's structure_needs_at_least_one_member, a uint8
+        yield ("p", None, "B")
+        return
+    for name, t in zip(names, cls.SLOT_TYPES):
+        path = prefix + name
+        if isinstance(t, idl.BasicType):
+            if t.typename not in _BASIC:
+                raise _Unsupported(t.typename)
+            yield ("p", path, _BASIC[t.typename])
+        elif isinstance(t, idl.NamespacedType):
+            yield from _leaves(_message_class(t), path + ".")
+        else:
+            yield ("x", path, t)
+
+
+def _run(paths, codes):
+    """Consecutive primitives as one struct.pack: one Struct per offset mod 8 (padding as 'x')."""
+    variants = []
+    for mod in range(8):
+        fmt, pos, pads = "<", mod, []
+        for c in codes:
+            size = struct.calcsize(c)
+            k = (-pos) % size
+            pads.extend(range(pos - mod, pos - mod + k))
+            fmt += "x" * k + c
+            pos += k + size
+        variants.append((struct.Struct(fmt), pads))
+    if None in paths:  # with the member of an empty message (always 0)
+        getters = [(lambda m: 0) if p is None else attrgetter(p) for p in paths]
+        get = lambda m: tuple(g(m) for g in getters)  # noqa: E731
+    elif len(paths) == 1:
+        one = attrgetter(paths[0])
+        get = lambda m: (one(m),)  # noqa: E731
+    else:
+        get = attrgetter(*paths)
+
+    def enc(m, b, pad):
+        st, pads = variants[(len(b) - 4) & 7]
+        if pad is not None:
+            pad.extend(len(b) + p for p in pads)
+        b += st.pack(*get(m))
+    enc.codes = codes
+    enc.get = get
+    return enc
+
+
+def _string(b, s, pad):
+    data = s.encode()
+    _align(b, 4, pad)
+    b += _U32.pack(len(data) + 1)
+    b += data
+    b.append(0)
+
+
+def _strings(seq, b, pad):
+    for s in seq:
+        _string(b, s, pad)
+
+
+def _compile(cls):
+    """The encoder of message class cls: enc(msg, bytearray, padding list or None)."""
+    ops, prims = [], []
+
+    def flush():
+        if prims:
+            ops.append(_run([p for p, _ in prims], [c for _, c in prims]))
+            prims.clear()
+
+    for kind, path, t in _leaves(cls):
+        if kind == "p":
+            prims.append((path, t))
+            continue
+        flush()
+        get = attrgetter(path)
+        if isinstance(t, idl.AbstractWString):
+            raise _Unsupported("wstring")
+        if isinstance(t, idl.AbstractString):
+            ops.append(lambda m, b, pad, get=get: _string(b, get(m), pad))
+            continue
+        fixed = isinstance(t, idl.Array)
+        vt = t.value_type
+        if isinstance(vt, idl.AbstractWString):
+            raise _Unsupported("wstring")
+        if isinstance(vt, idl.BasicType):
+            if vt.typename not in _BASIC:
+                raise _Unsupported(vt.typename)
+            ops.append(_prim_seq(get, _BASIC[vt.typename], t.size if fixed else None))
+        elif isinstance(vt, idl.AbstractString):
+            ops.append(_seq(get, _strings, t.size if fixed else None))
+        else:
+            ops.append(_msg_seq(get, _message_class(vt), t.size if fixed else None))
+    flush()
+    if len(ops) == 1:
+        return ops[0]
+
+    def enc(m, b, pad):
+        for op in ops:
+            op(m, b, pad)
+    return enc
+
+
+def _count(b, n, fixed, pad):
+    if fixed is None:
+        _align(b, 4, pad)
+        b += _U32.pack(n)
+    elif n != fixed:
+        raise ValueError(f"expected {fixed} elements, got {n}")
+
+
+def _prim_seq(get, code, fixed):
+    size = struct.calcsize(code)
+
+    def enc(m, b, pad):
+        v = get(m)
+        n = len(v)
+        _count(b, n, fixed, pad)
+        if n:  # Fast CDR aligns the first element only: nothing for an empty sequence
+            _align(b, size, pad)
+            b += _prim_bytes(v, code, size, n)
+    return enc
+
+
+def _seq(get, write, fixed):
+    def enc(m, b, pad):
+        v = get(m)
+        _count(b, len(v), fixed, pad)
+        write(v, b, pad)
+    return enc
+
+
+def _msg_seq(get, cls, fixed):
+    el = _encoder(cls)
+    if el is False:
+        raise _Unsupported(cls.__name__)
+    codes = getattr(el, "codes", None)
+    if codes and len({struct.calcsize(c) for c in codes}) == 1:
+        # elements of primitives of one size (Vector3, Point, ColorRGBA, Time, ...): no padding
+        # after the first, so one pack for the whole sequence
+        size, fmt, el_get = struct.calcsize(codes[0]), "".join(codes), el.get
+
+        def enc(m, b, pad):
+            v = get(m)
+            n = len(v)
+            _count(b, n, fixed, pad)
+            if n:
+                _align(b, size, pad)
+                b += struct.pack("<" + fmt * n, *chain.from_iterable(map(el_get, v)))
+        return enc
+
+    def enc(m, b, pad):
+        v = get(m)
+        _count(b, len(v), fixed, pad)
+        for x in v:
+            el(x, b, pad)
+    return enc
+
+
+_ENCODERS: dict = {}
+
+
+def _encoder(cls):
+    enc = _ENCODERS.get(cls)
+    if enc is None:
+        try:
+            enc = _compile(cls)
+        except _Unsupported:
+            enc = False
+        _ENCODERS[cls] = enc
+    return enc
+
+
+def serialize_message(msg) -> bytes:
+    """``rclpy.serialization.serialize_message`` without its trailing bytes: the CDR of any ROS 2
+    message exactly as rclpy's publish puts it on the wire over rmw_fastrtps_cpp (encapsulation
+    CDR_LE, XCDRv1 alignment, zero padding). Encoders are built per message class from rosidl's
+    introspection on first use. Message types with wstring, char or long double fields (none that
+    the node sends) fall back to rclpy's serializer."""
+    enc = _ENCODERS.get(type(msg))
+    if enc is None:
+        enc = _encoder(type(msg))
+    if enc is False:
+        return _rclpy_serialize_message(msg)
+    b = bytearray(ENCAPSULATION)
+    enc(msg, b, None)
+    return bytes(b)
+
+
+def padding_of(msg) -> list:
+    """Offsets of the alignment padding in ``serialize_message(msg)`` (rclpy leaves those bytes
+    uninitialized: the tests compare everything else)."""
+    enc = _encoder(type(msg))
+    if enc is False:
+        raise TypeError(f"{type(msg).__name__} is not supported")
+    pad = []
+    enc(msg, bytearray(ENCAPSULATION), pad)
+    return pad

@@ -8,7 +8,14 @@ were handed in (a FIFO job queue), so
 * in lockstep the same sequence of commands and step requests gives bitwise-identical states.
 
 Jobs that arrive while a multi-step request runs wait until it finishes (they are applied at a
-deterministic step). The node (``main.py``) translates ROS messages into calls on this class and
+deterministic step).
+
+Commands (joint_commands, point_commands) are validated in the thread that receives them, against
+the scene description, and coalesced: the latest value per joint, torque and site waits in a pending
+table, and one queued job (never more) applies the whole table before the next step or request. A
+flood of commands therefore costs the stepping thread one table per step, whatever the rate;
+invalid ones never reach it. The counts are in /diagnostics (commands_received, commands_coalesced,
+command_errors). The node (``main.py``) translates ROS messages into calls on this class and
 implements the ``sink`` that publishes and logs what the engine produces.
 
 Simulation states follow ROS 2 ``simulation_interfaces``: STOPPED (paused and reset), PLAYING
@@ -24,7 +31,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from redmax_ros.core import CommandError, SceneError, Simulator, State, StepError
+from redmax_ros.core import CommandError, SceneError, SceneNotFound, Simulator, State, StepBudget, StepError
 
 from .convert import CommandRejected, SceneInfo, joint_command, point_command
 from .pacing import Pacer, RateMeter, decimation
@@ -72,15 +79,17 @@ class NullSink:
 class Engine:
     def __init__(self, sink, scene="hand", overrides=(), *, initial_state=PLAYING, real_time_factor=1.0,
                  publish_rate=0.0, marker_rate=0.0, command_timeout=0.0, diagnostics_period=1.0,
-                 max_steps_per_request=1_000_000, publish_solver_stats=True):
+                 max_steps_per_request=1_000_000, publish_solver_stats=True, scene_dirs=(), step_budget_ms=50.0):
         self.sink = sink
         self.base_overrides = list(overrides)
+        self.scene_dirs = [str(d) for d in scene_dirs]  # load requests: scenes/ and these only (_load_scene)
         self.rtf = float(real_time_factor)
         self.publish_rate = float(publish_rate)
         self.marker_rate = float(marker_rate)
         self.command_timeout = float(command_timeout)
         self.diagnostics_period = float(diagnostics_period)
         self.max_steps_per_request = int(max_steps_per_request)
+        self.step_budget = StepBudget.from_ms(step_budget_ms)  # every scene's steps (_adopt); None: unlimited
         self.state = initial_state
         self.sim = self._load(scene, [])  # raises SceneError: the node refuses to start
         self._jobs = collections.deque()
@@ -94,6 +103,11 @@ class Engine:
         self.last_diag = None
         self.failures = 0
         self.command_errors = 0
+        self.commands_received = 0
+        self.commands_coalesced = 0
+        self._pending_lock = threading.Lock()
+        self._batch = None  # the open batch of pending commands: ("joint" | "torque" | "site", name) -> value
+        self._batch_job = False  # a queued job will apply the open batch
         self._adopt(self.sim)
 
     # ------------------------------------------------------------------ thread and job queue
@@ -116,6 +130,8 @@ class Engine:
         Simulator. If nothing is queued and the simulation is not busy (paused, or between two
         free-run steps), the calling thread runs it at once (no thread hop, lower latency);
         otherwise it is queued for the simulation thread. Either way requests keep their order."""
+        if fn != self._apply_batch:
+            self._close_batch()  # commands that arrive from now on are applied after this request
         fut = Future()
         with self._cv:
             if not self._running:
@@ -151,6 +167,7 @@ class Engine:
 
     def call(self, fn, *args, timeout=None):
         """``submit(fn, *args).result(timeout)``; when it can run inline, without the Future."""
+        self._close_batch()
         with self._cv:
             inline = self._running and not self._jobs and not self._busy
             if inline:
@@ -197,11 +214,13 @@ class Engine:
                     self._run_job(*job)
                 elif step_due and self.state == PLAYING:
                     try:
+                        self._apply_open_batch()
                         out = self._advance(1, lockstep=False)
                     except Exception as e:  # a sink failure must not kill the simulation thread
                         out = Outcome(OPERATION_FAILED, f"{type(e).__name__}: {e}")
                     if not out.ok:
                         self.state = PAUSED
+                        self._close_batch()  # commands received while playing: a job applies them now
                         self._safe(self.sink.sim_state, self.state)
                         self._safe(self.sink.warn, f"free-run stopped, simulation paused: {out.message}")
                 now = time.monotonic()
@@ -235,6 +254,7 @@ class Engine:
 
     def _adopt(self, sim):
         self.sim = sim
+        sim.budget = self.step_budget
         self.info = SceneInfo(sim.describe(), getattr(getattr(sim, "spec", None), "solver", ""))
         self.step_index = 0
         self.cmd_times = {}  # ("joint"|"torque"|"site", name) -> sim time of the command
@@ -259,23 +279,31 @@ class Engine:
 
     # ------------------------------------------------------------------ stepping
     def _expire_commands(self):
+        """Commands older than command_timeout (sim time) end: a commanded joint or site the scene
+        prescribes itself (the walker's crank, the hand's held elbow) goes back to the scene's
+        prescription, any other one to passive dynamics; a commanded torque goes back to zero."""
         if self.command_timeout <= 0 or not self.cmd_times:
             return
         t = self.sim.time
         expired = [k for k, t0 in self.cmd_times.items() if t - t0 >= self.command_timeout - 1e-12]
         if not expired:
             return
+        spec = self.sim.spec
+        restored, released = [], []
         for kind, name in expired:
             del self.cmd_times[(kind, name)]
             if kind == "joint":
-                self.sim.release_joints([name])
+                self.sim.restore_prescriptions(joints=[name])
+                (restored if name in spec.prescribed_joints else released).append(f"joint '{name}'")
             elif kind == "site":
-                self.sim.release_sites([name])
+                self.sim.restore_prescriptions(sites=[name])
+                (restored if name in spec.prescribed_sites else released).append(f"site '{name}'")
             else:
                 self.sim.set_joint_torques({name: np.zeros(self.info.joint_nv[name])})
-        what = ", ".join(f"{k} '{n}'" for k, n in expired)
-        self.sink.warn(f"command timeout ({self.command_timeout:g} s sim time) at t = {t:.6g} s: "
-                       f"released {what} to passive dynamics")
+                released.append(f"torque '{name}'")
+        what = "; ".join(([f"released {', '.join(released)} to passive dynamics"] if released else [])
+                         + ([f"returned {', '.join(restored)} to the scene's prescription"] if restored else []))
+        self.sink.warn(f"command timeout ({self.command_timeout:g} s sim time) at t = {t:.6g} s: {what}")
         self._publish_prescriptions()
 
     def _advance(self, n, lockstep, feedback=None, cancelled=None) -> Outcome:
@@ -283,6 +311,9 @@ class Engine:
         for i in range(n):
             if cancelled is not None and cancelled():
                 return Outcome(OK, "canceled", steps=i, t=sim.time, extra={"canceled": True})
+            if not self._running:  # the node is shutting down (SIGINT/SIGTERM): end a long request now
+                return Outcome(OPERATION_FAILED, f"the node is shutting down: stopped after {i} of {n} steps",
+                               steps=i, t=sim.time)
             self._expire_commands()
             try:
                 res = sim.step(1)
@@ -309,7 +340,8 @@ class Engine:
         vals.update({
             "state": STATE_NAMES.get(self.state, "?"), "scene": self.info.name, "sim_time": self.sim.time,
             "steps": self.step_index, "dt": self.sim.dt, "step_failures": self.failures,
-            "command_errors": self.command_errors,
+            "command_errors": self.command_errors, "commands_received": self.commands_received,
+            "commands_coalesced": self.commands_coalesced,
         })
         if d is not None:
             vals.update({"solver": d.solver, "solver_iterations": d.iterations, "residual": d.residual,
@@ -320,11 +352,74 @@ class Engine:
 
     # ------------------------------------------------------------------ requests (any thread)
     def joint_command(self, msg):
-        """sensor_msgs/JointState command; errors go to sink.command_error (nothing changes)."""
-        self.submit(self._joint_command, msg)
+        """sensor_msgs/JointState command (any thread): validated here, then coalesced into the pending
+        table; errors go to sink.command_error (nothing changes)."""
+        info = self.info
+        self.commands_received += 1
+        try:
+            velocities, torques = joint_command(msg, info)
+            for j in velocities:
+                if j not in info.prescribable_joints:
+                    raise CommandRejected(f"joint command: joint '{j}' is not prescribable in scene '{info.name}' "
+                                          f"(prescribable: {', '.join(info.prescribable_joints)})")
+        except (CommandRejected, CommandError) as e:
+            self._reject(str(e))
+            return
+        self._enqueue([(("joint", j), v) for j, v in velocities.items()]
+                      + [(("torque", j), v) for j, v in torques.items()])
 
     def point_command(self, msg):
-        self.submit(self._point_command, msg)
+        """redmax_msgs/PointVelocityCommand (any thread): validated here, then coalesced."""
+        self.commands_received += 1
+        try:
+            sites = point_command(msg, self.info)
+        except (CommandRejected, CommandError) as e:
+            self._reject(str(e))
+            return
+        self._enqueue([(("site", s), v) for s, v in sites.items()])
+
+    def _enqueue(self, items):
+        """Add validated commands to the open batch (the latest value per key wins). While PLAYING the
+        simulation thread applies the batch before its next step (no job, no thread hop: a flood costs
+        the stepping thread one batch per step); otherwise the batch gets one job, queued after every
+        request submitted before it (in lockstep the command is applied, and acknowledged on
+        prescribed_joints, before the next request)."""
+        with self._pending_lock:
+            batch = self._batch
+            if batch is None:
+                batch = self._batch = {}
+            for key, value in items:
+                if key in batch:
+                    self.commands_coalesced += 1
+                batch[key] = value
+            schedule = self.state != PLAYING and not self._batch_job
+            if schedule:
+                self._batch_job = True
+        if schedule:
+            self.submit(self._apply_batch, batch)
+
+    def _close_batch(self):
+        """A request is being submitted: commands received before it are applied before it (the open
+        batch gets its job now unless it has one), commands received after it go into a new batch."""
+        with self._pending_lock:
+            batch, self._batch = self._batch, None
+            unscheduled = batch is not None and not self._batch_job
+            self._batch_job = False
+        if unscheduled:
+            self.submit(self._apply_batch, batch)
+
+    def _apply_open_batch(self):
+        """Simulation thread, before a free-run step: apply the open batch unless a job has it."""
+        if self._batch is not None and not self._batch_job:
+            with self._pending_lock:
+                batch = self._batch if not self._batch_job else None
+            if batch is not None:
+                self._apply_batch(batch)
+
+    @property
+    def queued_jobs(self) -> int:
+        """Requests (and command batches) waiting for the simulation thread."""
+        return len(self._jobs)
 
     def step(self, n, feedback=None, cancelled=None, timeout=None) -> Outcome:
         """Blocking: n steps while PAUSED, stays PAUSED."""
@@ -355,36 +450,33 @@ class Engine:
         self.command_errors += 1
         self.sink.command_error(text)
 
-    def _joint_command(self, msg):
+    def _apply_batch(self, batch):
+        """Apply a batch of commands (latest per joint, torque, site) at once: one prescription update
+        and one prescribed_* publication, whatever number of messages it came in."""
+        with self._pending_lock:
+            if self._batch is batch:
+                self._batch = None
+                self._batch_job = False
+            pending = dict(batch)
+        if not pending:
+            return
+        velocities = {n: v for (k, n), v in pending.items() if k == "joint"}
+        torques = {n: v for (k, n), v in pending.items() if k == "torque"}
+        sites = {n: v for (k, n), v in pending.items() if k == "site"}
         try:
-            velocities, torques = joint_command(msg, self.info)
             if velocities:
                 self.sim.prescribe_joints(velocities)
             if torques:
                 self.sim.set_joint_torques(torques)
-        except (CommandRejected, CommandError) as e:
+            if sites:
+                self.sim.prescribe_sites(sites)
+        except CommandError as e:  # validated against another scene (a load came in between)
             self._reject(str(e))
-            return False
+            return
         t = self.sim.time
-        for j in velocities:
-            self.cmd_times[("joint", j)] = t
-        for j in torques:
-            self.cmd_times[("torque", j)] = t
+        for key in pending:
+            self.cmd_times[key] = t
         self._publish_prescriptions()
-        return True
-
-    def _point_command(self, msg):
-        try:
-            sites = point_command(msg, self.info)
-            self.sim.prescribe_sites(sites)
-        except (CommandRejected, CommandError) as e:
-            self._reject(str(e))
-            return False
-        t = self.sim.time
-        for s in sites:
-            self.cmd_times[("site", s)] = t
-        self._publish_prescriptions()
-        return True
 
     def _step(self, n, feedback, cancelled):
         if self.state != PAUSED:
@@ -443,10 +535,10 @@ class Engine:
     def _load_scene(self, scene, overrides):
         if not scene:
             return Outcome(NOT_FOUND, "no scene given")
-        try:
-            sim = self._load(scene, overrides)
-        except SceneError as e:
-            code = NOT_FOUND if "no such scene" in str(e) else INVALID_SCENE
+        try:  # confined (docs/node.md, "Security"): the start scene (self._load) is the operator's choice
+            sim = Simulator.load(scene, self.base_overrides + list(overrides), allowed_dirs=self.scene_dirs)
+        except SceneError as e:  # SceneNotFound: no such scene, or outside scenes/ and scene_dirs
+            code = NOT_FOUND if isinstance(e, SceneNotFound) else INVALID_SCENE
             return Outcome(code, f"scene not loaded, '{self.info.name}' kept: {e}")
         except Exception as e:  # anything else the core raises while building: keep the old scene
             return Outcome(INVALID_SCENE, f"scene not loaded, '{self.info.name}' kept: "
@@ -502,4 +594,6 @@ class Engine:
             self.max_steps_per_request = int(kw["max_steps_per_request"])
         if "diagnostics_period" in kw:
             self.diagnostics_period = float(kw["diagnostics_period"])
+        if "step_budget_ms" in kw:
+            self.step_budget = self.sim.budget = StepBudget.from_ms(float(kw["step_budget_ms"]))
         return Outcome(OK, "")

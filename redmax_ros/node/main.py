@@ -14,6 +14,7 @@ helper node, step_simulation by a thread of its own without an executor (see _st
 from __future__ import annotations
 
 import os
+import signal
 import sys
 import threading
 import time
@@ -28,7 +29,9 @@ from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
-from rclpy.serialization import deserialize_message, serialize_message
+from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy_impl
+from rclpy.signals import SignalHandlerOptions
+from rclpy.serialization import deserialize_message
 from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import JointState
 from visualization_msgs.msg import MarkerArray
@@ -48,7 +51,7 @@ from redmax_ros.logging.mcap_log import McapLogger
 
 from . import engine as eng
 from . import step_server
-from .cdr import JointStateEncoder, SolverStatsEncoder, StepRecords, encode_clock
+from .cdr import JointStateEncoder, SolverStatsEncoder, StepRecords, encode_clock, serialize_message
 from .convert import StateMessages, description_msg, diagnostics_msg, markers_msg, point_prescriptions_msg
 from .convert import prescriptions_msg, time_msg
 from .sender import Sender
@@ -66,6 +69,15 @@ QOS_MARKERS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1, reliability=R
                          durability=DurabilityPolicy.VOLATILE)
 QOS_DIAGNOSTICS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10, reliability=ReliabilityPolicy.RELIABLE,
                              durability=DurabilityPolicy.VOLATILE)
+def service_qos(depth: int) -> QoSProfile:
+    """Services and the action: reliable, volatile, a request queue of ``depth`` (parameter
+    request_queue_depth). The middleware keeps at most this many unanswered requests per service and
+    drops the ones beyond it without telling the client; rclpy's default is 10, which lost 5 of 16
+    concurrent step_simulation calls."""
+    return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=int(depth), reliability=ReliabilityPolicy.RELIABLE,
+                      durability=DurabilityPolicy.VOLATILE)
+
+
 QOS_LATCHED = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1, reliability=ReliabilityPolicy.RELIABLE,
                          durability=DurabilityPolicy.TRANSIENT_LOCAL)
 
@@ -106,6 +118,11 @@ PARAMETERS = {
                          "Change at runtime with the load_scene service.", read_only=True)),
     "scene_overrides": (Parameter.Type.STRING_ARRAY,
                         _d("Core overrides applied to every scene load, e.g. ['params.n=20'].", read_only=True)),
+    "scene_dirs": (Parameter.Type.STRING_ARRAY,
+                   _d("Directories load_scene may read scenes from besides the package's scenes/ (names and "
+                      "paths resolve inside them; symlinks leaving them, '..' above them, other paths are "
+                      "refused with NOT_FOUND). The start scene ('scene') is not restricted.", read_only=True,
+                      constraints="existing directories")),
     "dt": (0.0, _d("Time step h [s]; 0 = the scene's own.", 0.0, 0.1, read_only=True)),
     "solver": ("", _d("Solver: '' (scene default), direct, pcg or auto.", read_only=True,
                       constraints="one of '', direct, pcg, auto")),
@@ -124,6 +141,15 @@ PARAMETERS = {
     "diagnostics_period": (1.0, _d("Wall seconds between /diagnostics messages.", 0.05, 60.0)),
     "max_steps_per_request": (1_000_000, _d("Largest step count accepted by step_simulation / simulate_steps.",
                                             1, 1_000_000_000, integer=True)),
+    "step_budget_ms": (50.0, _d("Work one step may do: CPU milliseconds of its iterative solvers (joint-limit QP, "
+                                "friction iterations, PCG; JIT compilation excluded) with ProxSuite iteration caps. "
+                                "Past it the step fails with 'step budget exceeded', the state stays as it was "
+                                "(free-run pauses). 0 = unlimited.", 0.0, 60000.0)),
+    "request_queue_depth": (1000, _d("Requests each service (and the simulate_steps action) queues while it "
+                                     "serves one: concurrent requests beyond this many are dropped by the "
+                                     "middleware, below it every request is answered in arrival order. Also the "
+                                     "depth of the action's feedback topic.", 10, 100000, read_only=True,
+                                     integer=True)),
     "frame_id": ("world", _d("Frame of joint-state-independent outputs (point forces, markers).", read_only=True)),
     "log_path": ("", _d("Directory for MCAP logs ('' = no logging). Each run writes "
                         "<log_path>/<scene>_<date>_<time>/<scene>_<i>.mcap.", read_only=True)),
@@ -136,7 +162,7 @@ PARAMETERS = {
                                  0.0, 1.0e7, read_only=True)),
 }
 RUNTIME = ("real_time_factor", "publish_rate", "marker_rate", "command_timeout", "diagnostics_period",
-           "max_steps_per_request")
+           "max_steps_per_request", "step_budget_ms")
 
 
 def _check_value(name, v):
@@ -147,6 +173,8 @@ def _check_value(name, v):
         return f"must be one of {', '.join(SOLVERS[1:])} or '' (scene default), got {v!r}"
     if name == "scene" and not v:
         return "must not be empty"
+    if name == "scene_dirs" and not all(d and os.path.isdir(d) for d in v):
+        return f"every entry must be an existing directory, got {list(v)!r}"
     if isinstance(v, float) and v != v:
         return "must not be NaN"
     return None
@@ -168,7 +196,8 @@ class _StepHelper:
 
     def __init__(self, main: "RedmaxNode", name: str):
         self.node = _helper_node(main, "step")
-        self.server = step_server.StepServer(self.node, name, main._step_request, on_error=main._publish_error)
+        self.server = step_server.StepServer(self.node, name, main._step_request, on_error=main._publish_error,
+                                             qos_profile=main.qos_service)
 
     def start(self):
         self.server.start()
@@ -274,7 +303,8 @@ class RedmaxNode(Node):
             initial_state=eng.PLAYING if p["mode"] == "free_run" else eng.PAUSED,
             real_time_factor=p["real_time_factor"], publish_rate=p["publish_rate"],
             marker_rate=p["marker_rate"], command_timeout=p["command_timeout"],
-            diagnostics_period=p["diagnostics_period"], max_steps_per_request=p["max_steps_per_request"])
+            diagnostics_period=p["diagnostics_period"], max_steps_per_request=p["max_steps_per_request"],
+            scene_dirs=list(p["scene_dirs"] or []), step_budget_ms=p["step_budget_ms"])
 
         # --- logging
         if p["log_path"]:
@@ -283,15 +313,22 @@ class RedmaxNode(Node):
         # --- services and action (reentrant: a long step request does not block the others)
         g = ReentrantCallbackGroup()
         self._service_group = g
-        self.create_service(ResetSimulation, "reset_simulation", self._srv_reset, callback_group=g)
-        self.create_service(GetSimulationState, "get_simulation_state", self._srv_get_state, callback_group=g)
-        self.create_service(SetSimulationState, "set_simulation_state", self._srv_set_state, callback_group=g)
-        self.create_service(LoadScene, "load_scene", self._srv_load, callback_group=g)
-        self.create_service(DescribeScene, "describe_scene", self._srv_describe, callback_group=g)
-        self.create_service(ReleaseCommands, "release_commands", self._srv_release, callback_group=g)
+        self.qos_service = sq = service_qos(p["request_queue_depth"])
+        self.create_service(ResetSimulation, "reset_simulation", self._srv_reset, callback_group=g, qos_profile=sq)
+        self.create_service(GetSimulationState, "get_simulation_state", self._srv_get_state, callback_group=g,
+                            qos_profile=sq)
+        self.create_service(SetSimulationState, "set_simulation_state", self._srv_set_state, callback_group=g,
+                            qos_profile=sq)
+        self.create_service(LoadScene, "load_scene", self._srv_load, callback_group=g, qos_profile=sq)
+        self.create_service(DescribeScene, "describe_scene", self._srv_describe, callback_group=g, qos_profile=sq)
+        self.create_service(ReleaseCommands, "release_commands", self._srv_release, callback_group=g, qos_profile=sq)
+        # feedback after every step: a reliable feedback topic as deep as the request queue (clients that
+        # want every message subscribe with a depth as large; rclpy's default 10 dropped some)
         self._action = ActionServer(self, SimulateSteps, "simulate_steps", execute_callback=self._act_execute,
                                     goal_callback=lambda goal: GoalResponse.ACCEPT,
-                                    cancel_callback=lambda gh: CancelResponse.ACCEPT, callback_group=g)
+                                    cancel_callback=lambda gh: CancelResponse.ACCEPT, callback_group=g,
+                                    goal_service_qos_profile=sq, result_service_qos_profile=sq,
+                                    cancel_service_qos_profile=sq, feedback_pub_qos_profile=sq)
         self.add_post_set_parameters_callback(self._apply_parameters)
 
         self.engine.start()
@@ -339,7 +376,8 @@ class RedmaxNode(Node):
             group = MutuallyExclusiveCallbackGroup()
             for short, (cls, cb) in self._inputs.items():
                 self._subscribe(self, short, cls, cb, group)
-            self.create_service(StepSimulation, "step_simulation", self._srv_step, callback_group=self._service_group)
+            self.create_service(StepSimulation, "step_simulation", self._srv_step, callback_group=self._service_group,
+                                qos_profile=self.qos_service)
             return
         commands = _EventsHelper(self, "commands")
         for short, (cls, cb) in self._inputs.items():
@@ -349,7 +387,7 @@ class RedmaxNode(Node):
             step = _StepHelper(self, step_name)
         else:
             step = _EventsHelper(self, "step")
-            step.node.create_service(StepSimulation, step_name, self._srv_step)
+            step.node.create_service(StepSimulation, step_name, self._srv_step, qos_profile=self.qos_service)
         self._helpers = [commands, step]
         for h in self._helpers:
             h.start()
@@ -568,7 +606,7 @@ class RedmaxNode(Node):
         if out.ok:
             self.get_logger().info(f"loaded scene '{self.engine.info.name}'")
         else:
-            self.get_logger().error(f"load_scene '{req.scene}': {out.message}")
+            self.get_logger().error(f"load_scene {req.scene[:200]!r}: {out.message}")  # repr: the caller's text
         resp.description = self._description()
         return resp
 
@@ -631,6 +669,8 @@ class RedmaxNode(Node):
         if getattr(self, "_closed", False):
             return
         self._closed = True
+        if getattr(self, "engine", None) is not None:
+            self.engine.stop(timeout=0.0)  # first: a running step request ends at its next step
         for h in getattr(self, "_helpers", []):
             h.close()
         self._helpers = []
@@ -645,31 +685,49 @@ class RedmaxNode(Node):
 
 
 def main(argv=None):
+    """Run the node until SIGINT/SIGTERM or set_simulation_state(QUITTING). The signals only set a flag
+    (rclpy's own handlers are not installed: they shut the context down while the simulation thread
+    still publishes, which printed RCLError and rosout failures on every Ctrl-C); the loop then stops
+    the simulation thread, finishes the MCAP log and shuts rclpy down, in that order."""
     args = sys.argv if argv is None else argv
     # The simulation thread and the executor threads share the GIL; a short switch interval
     # (default 5 ms) bounds how long a command or a service request waits for a running step.
     sys.setswitchinterval(float(os.environ.get("REDMAX_SWITCH_INTERVAL", "0.0005")))
-    rclpy.init(args=args)
-    node = None
+    stop = threading.Event()
+
+    def on_signal(signum, frame):
+        stop.set()
+
+    try:
+        rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
+    except _rclpy_impl.RCLError as e:  # e.g. '-p log_path:=' (an empty value is not ROS argument syntax)
+        print(f"redmax_node: cannot parse the ROS arguments: {str(e).split(', at ')[0]}. An empty string "
+              "parameter is written -p name:=\"''\" (e.g. -p log_path:=\"''\": no log).", file=sys.stderr)
+        return 2
+    previous = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
+    node = executor = None
     try:
         try:
             node = RedmaxNode()
         except (SceneError, ValueError, rclpy.exceptions.InvalidParameterValueException) as e:
             print(f"redmax_node: cannot start: {e}", file=sys.stderr)
             return 2
+        if stop.is_set():  # a signal during start-up
+            return 0
         executor = MultiThreadedExecutor(num_threads=4)
         executor.add_node(node)
-        try:
-            while rclpy.ok() and not node.quit_event.is_set():
-                executor.spin_once(timeout_sec=0.2)
-            if node.quit_event.is_set():  # let the set_simulation_state(QUITTING) response go out
-                end = time.monotonic() + 0.5
-                while rclpy.ok() and time.monotonic() < end:
-                    executor.spin_once(timeout_sec=0.05)
-        except (KeyboardInterrupt, ExternalShutdownException):
-            pass
+        while rclpy.ok() and not stop.is_set() and not node.quit_event.is_set():
+            executor.spin_once(timeout_sec=0.1)
+        if node.quit_event.is_set() and not stop.is_set():  # let the set_simulation_state(QUITTING) response go out
+            end = time.monotonic() + 0.5
+            while rclpy.ok() and time.monotonic() < end:
+                executor.spin_once(timeout_sec=0.05)
+        return 0
+    except ExternalShutdownException:
         return 0
     finally:
+        if executor is not None:
+            executor.shutdown(timeout_sec=1.0)
         if node is not None:
             node.close()
             try:
@@ -678,7 +736,21 @@ def main(argv=None):
                 pass
         if rclpy.ok():
             rclpy.shutdown()
+        for s, h in previous.items():
+            signal.signal(s, h)
+
+
+def cli():
+    """The ``redmax_node`` console script: main(), then exit without the interpreter's teardown. Once
+    main() returned, the simulation thread has stopped, the MCAP log is complete and rclpy is shut
+    down; what remained was 3-7 s of C-level teardown (module and DDS/numba/Pinocchio static
+    destructors, measured on this machine at load ~9 from the signal to the process end), so the
+    process ends at once instead (exit within 1 s of SIGINT/SIGTERM)."""
+    code = main()
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os._exit(code)
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    cli()

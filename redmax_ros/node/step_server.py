@@ -92,7 +92,7 @@ class StepServer:
     """Serve ``StepSimulation`` named ``name`` on ``node`` (an rclpy Node that no executor spins)
     from a thread of its own. ``on_error(text)`` reports a failed take/send (never raises)."""
 
-    def __init__(self, node, name, handler, on_error=None):
+    def __init__(self, node, name, handler, on_error=None, qos_profile=None):
         fns = _rcl()
         if fns is None:
             raise RuntimeError("librcl not found through ctypes")
@@ -101,7 +101,9 @@ class StepServer:
         self.handler = handler
         self.on_error = on_error
         # created by rclpy (type support, QoS, name resolution, graph), never added to an executor
-        self.service = node.create_service(StepSimulation, name, lambda req, resp: resp)
+        # (qos_profile: the request queue; requests beyond its depth would be dropped by the middleware)
+        kw = {} if qos_profile is None else {"qos_profile": qos_profile}
+        self.service = node.create_service(StepSimulation, name, lambda req, resp: resp, **kw)
         self._context = node.context
         self._guard = _rclpy.GuardCondition(self._context.handle)
         self._ws = _rclpy.WaitSet(0, 1, 0, 0, 1, 0, self._context.handle)

@@ -1,5 +1,15 @@
-"""The node's fast CDR encoders write exactly the bytes rclpy's serializer writes."""
+"""The node's fast CDR encoders write the CDR of the message: every byte but the alignment padding
+equal to rclpy's serializer, the padding zero, and exactly the message's length.
+
+rclpy's ``serialize_message`` (rmw_fastrtps' ``rmw_serialize``) is not a byte-exact reference: it
+leaves alignment padding uninitialized, and its buffer is as long as Fast CDR's size *estimate*,
+which for empty float64 sequences exceeds the data by 4-12 bytes of uninitialized memory (an empty
+JointState: 44 bytes for a 36-byte message). rosbags rejects a payload with more than 3 bytes after
+the message ("CDR message size mismatch"), so the length is checked with rosbags: it must read the
+payload and write back exactly the same bytes.
+"""
 import math
+from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
@@ -15,18 +25,41 @@ from redmax_msgs.msg import SolverStats  # noqa: E402
 from redmax_ros.node.cdr import JointStateEncoder, SolverStatsEncoder, encode_clock  # noqa: E402
 from redmax_ros.node.convert import time_msg  # noqa: E402
 
+ROOT = Path(__file__).resolve().parents[2]
 
-def same_bytes(ours, ref, padding):
-    """Equal length and equal bytes except alignment padding (rclpy leaves it uninitialized)."""
-    if len(ours) != len(ref):
-        return False
+
+@pytest.fixture(scope="module")
+def store():
+    """rosbags' Jazzy typestore plus redmax_msgs from msg_defs/."""
+    from rosbags.typesys import Stores, get_types_from_msg, get_typestore
+
+    ts = get_typestore(Stores.ROS2_JAZZY)
+    types = {}
+    for f in sorted((ROOT / "msg_defs" / "redmax_msgs" / "msg").glob("*.msg")):
+        types.update(get_types_from_msg(f.read_text(), f"redmax_msgs/msg/{f.stem}"))
+    ts.register(types)
+    return ts
+
+
+def check_cdr(ours, ref, padding, store, msgtype):
+    """``ours`` is the CDR of the message rclpy serialized as ``ref``: no longer than rclpy's buffer,
+    equal to it except at the alignment padding (which rclpy leaves uninitialized; ours is zero),
+    and exactly the message's length: rosbags reads it (no more than 3 trailing bytes allowed) and
+    its serializer writes back the same bytes, so nothing trails at all."""
+    assert ours[:4] == b"\x00\x01\x00\x00"  # CDR_LE
+    assert len(ours) <= len(ref), (len(ours), len(ref))
     pad = set(padding)
-    return all(a == b for i, (a, b) in enumerate(zip(ours, ref)) if i not in pad)
+    assert all(4 <= i < len(ours) for i in pad), sorted(pad)
+    assert [i for i in range(len(ours)) if i not in pad and ours[i] != ref[i]] == []
+    assert all(ours[i] == 0 for i in pad)
+    back = store.deserialize_cdr(ours, msgtype)  # raises "CDR message size mismatch" on > 3 trailing bytes
+    assert bytes(store.serialize_cdr(back, msgtype)) == ours
+    return back
 
 
 @pytest.mark.parametrize("names,frame", [(["elbow", "wrist[0]", "wrist[1]", "ab"], ""), (["hinge"], "world"),
                                           ([f"j{i}" for i in range(23)], "x"), ([], "")])
-def test_joint_state_bytes(names, frame):
+def test_joint_state_bytes(names, frame, store):
     rng = np.random.default_rng(len(names))
     enc = JointStateEncoder(names, frame)
     for t in (0.0, 0.001, 1.2345678901, 12345.000000001):
@@ -45,16 +78,19 @@ def test_joint_state_bytes(names, frame):
             q[0] = 0.0
             ref.position = q.tolist()
             got = enc.encode(t, q, v, e)
-        assert same_bytes(got, serialize_message(ref), enc.padding)
+        back = check_cdr(got, serialize_message(ref), enc.padding, store, "sensor_msgs/msg/JointState")
+        assert list(back.name) == names and back.header.frame_id == frame
+        assert back.position.tolist() == q.tolist() and back.effort.tolist() == e.tolist()
 
 
-def test_clock_bytes():
+def test_clock_bytes(store):
     for t in (0.0, 0.001, 3.999999999, 1e6 + 0.5):
-        assert encode_clock(t) == serialize_message(Clock(clock=time_msg(t)))
+        assert encode_clock(t) == serialize_message(Clock(clock=time_msg(t)))  # no padding: all bytes
+        check_cdr(encode_clock(t), serialize_message(Clock(clock=time_msg(t))), [], store, "rosgraph_msgs/msg/Clock")
 
 
 @pytest.mark.parametrize("solver", ["direct", "pcg", "", "a-much-longer-solver-name"])
-def test_solver_stats_bytes(solver):
+def test_solver_stats_bytes(solver, store):
     d = SimpleNamespace(E_kin=1.5, E_pot=-2.25, E_spring=0.125, E_total=-0.625, violation_pos=1e-12,
                         violation_vel=3e-15, residual=2e-16, iterations=7, solver=solver, wall_time=2.5e-4)
     enc = SolverStatsEncoder("world")
@@ -64,7 +100,8 @@ def test_solver_stats_bytes(solver):
     ref.header.stamp = time_msg(0.042)
     ref.header.frame_id = "world"
     got = enc.encode(0.042, 123456789012, d)
-    assert same_bytes(got, serialize_message(ref), enc.padding)
+    back = check_cdr(got, serialize_message(ref), enc.padding, store, "redmax_msgs/msg/SolverStats")
+    assert back.solver == solver and back.step == 123456789012 and back.step_wall_time == 2.5e-4
     assert deserialize_message(got, SolverStats) == ref
 
 

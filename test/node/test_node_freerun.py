@@ -47,9 +47,24 @@ def test_free_run_command_velocity_torque_and_timeout(client):
     # holding the elbow at 0.25 rad/s takes a torque (its exact value against the core is checked
     # bitwise in test_node_lockstep.py); joints not named keep moving passively
     assert all(abs(js.effort[ie]) > 1e-3 for js in held)
-    # the timeout (0.3 s sim time) releases the elbow with one warning
+    # the timeout (0.3 s sim time) ends the command with one warning; the hand scene holds the elbow
+    # itself (prescribed: elbow 0), so the elbow goes back to the scene's prescription, not to passive
+    # dynamics (a joint the scene does not prescribe is released: test_node_lockstep.py)
     c.wait_for(lambda: any("command timeout" in e and "elbow" in e for e in c.errors()), what="timeout")
-    c.wait_for(lambda: "elbow" not in list(c.prescribed[-1].name), what="released")
+    assert any("returned joint 'elbow' to the scene's prescription" in e for e in c.errors())
+
+    def scene_held(m):
+        names = list(m.name)
+        return "elbow" in names and m.velocity[names.index("elbow")] == 0.0
+    c.wait_for(lambda: scene_held(c.prescribed[-1]), what="elbow back to the scene's prescription")
+    with c.lock:
+        t_back = _t(c.prescribed[-1])
+    c.wait_for(lambda: _t(c.joint_states[-1]) > t_back + 0.05, what="states after the timeout")
+    dt = c.describe().dt
+    with c.lock:
+        after = [js for js in c.joint_states if t_back + dt <= _t(js) < t_back + 0.05]
+    bad = [(_t(js), js.velocity[ie]) for js in after if abs(js.velocity[ie]) > 1e-9]
+    assert after and not bad, f"t_back = {t_back}: {bad[:5]}"
 
 
 def test_pause_and_play(client):

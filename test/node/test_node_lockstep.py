@@ -29,8 +29,14 @@ NS = f"/lockstep{os.getpid()}"  # a namespace of our own, in case another run sh
 
 
 @pytest.fixture(scope="module")
-def node(ros):
-    node, shutdown = run_node_in_thread(PARAMS, namespace=NS)
+def scene_dir(tmp_path_factory):
+    """A directory load_scene may read (parameter scene_dirs; docs/node.md, "Security")."""
+    return tmp_path_factory.mktemp("scenes")
+
+
+@pytest.fixture(scope="module")
+def node(ros, scene_dir):
+    node, shutdown = run_node_in_thread({**PARAMS, "scene_dirs": [str(scene_dir)]}, namespace=NS)
     yield node
     shutdown()
 
@@ -345,7 +351,7 @@ def test_bad_commands_are_rejected_and_change_nothing(fresh):
     assert sum("unknown joint 'nope'" in e for e in fresh.errors()) == n == 1
 
 
-def test_bad_requests_return_clear_results(fresh, tmp_path):
+def test_bad_requests_return_clear_results(fresh, scene_dir):
     r = fresh.step(0)
     assert r.result.result == Result.OPERATION_FAILED and "steps must be in [1," in r.result.error_message
     r = fresh.step(10**12)
@@ -353,7 +359,7 @@ def test_bad_requests_return_clear_results(fresh, tmp_path):
     r = fresh.load("no_such_scene")
     assert r.result.result == Result.NOT_FOUND and "no such scene" in r.result.error_message
     assert r.description.name == "hand"  # old scene kept
-    bad = tmp_path / "broken.yaml"
+    bad = scene_dir / "broken.yaml"
     bad.write_text("name: broken\nbodies: [ {name: x, shape: {type: blob}} ]\njoints: 7\n")
     r = fresh.load(str(bad))
     assert r.result.result == 101 and "broken.yaml" in r.result.error_message  # INVALID_SCENE
