@@ -1,5 +1,5 @@
-"""redmax_bench node: the ROS node's latency, per-step service overhead, real-time factor and the
-cost of MCAP logging.
+"""redmax_bench node: the ROS node's latency, per-step service overhead, real-time factor, the
+cost of MCAP logging, the real-time factor under command floods and query latency.
 
 The machine is shared (2 cores here), so every section interleaves what it compares, repeats it
 and reports medians with the 1-minute load average at the time. Clients are this process (rclpy
@@ -27,6 +27,21 @@ message) so the client measures the node rather than its own decoding.
     separates the writer's cost from the cost of producing what it records). Order rotated each
     round; medians of steps/s, of per-round ratios, of process CPU per step and of the writer
     process's CPU per step.
+(e) free-run real-time factor under a flood of commands: node subprocess (hand, h = 1 ms,
+    joint_states every step) at real_time_factor 0 and then 1 (set through the parameter service);
+    a flooder subprocess (its own GIL) publishes joint_commands at 10 kHz for 5 s: valid (the wrist's
+    two DOFs, a slowly varying small velocity) or invalid (an unknown joint), interleaved with
+    unflooded windows per round (none, valid, invalid). RTF = sim-time advance / wall time over the
+    window from the raw joint_states stamps (and, as a check, the mean of the node's /diagnostics
+    windows), in the flood, in its last 2 s and in the 3 s after it, per 0.5 s bins, and the longest
+    stall; ratio flooded / unflooded per round (issue 17: >= 0.8); commands_received/coalesced and
+    command_errors from /diagnostics; CPU % of the node (and of its busiest threads), of the flooder
+    and of this process from /proc.
+(f) query latency: get_simulation_state, describe_scene and a parameter get (GetParameters on
+    <ns>/redmax/get_parameters), each called from this process (spinning its own executor until the
+    answer), in lockstep idle, while a long step_simulation(20000) request runs (queries sent while
+    it runs count there, answered before it ended or not), and in free-run as fast as possible; the
+    conditions interleaved per round; median/p95/max (issue 17: <= 50 ms, measured, not asserted).
 
 Writes node.json into --out (default bench/results under the current directory).
 
@@ -37,6 +52,9 @@ subcommand runs without ROS).
 from __future__ import annotations
 
 import argparse
+import bisect
+import json
+import math
 import os
 import resource
 import signal
@@ -50,7 +68,7 @@ import time
 
 from redmax_ros.core import Simulator
 from redmax_ros.logging.mcap_log import McapLogger
-from redmax_bench.common import add_out_argument, write_json
+from redmax_bench.common import add_out_argument, results_dir, write_json
 
 os.environ.setdefault("ROS_DOMAIN_ID", str(101 - os.getpid() % 20))
 os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
@@ -362,14 +380,18 @@ def bench_step_service(scene, n, dt, rounds):
 # ------------------------------------------------------------------------------------------------
 # (c) free-run real-time factor, node subprocess, logging off/on alternated
 
-def _diag_listener(node, ns):
+def _diag_listener(node, ns, stamp=False):
+    """The node's /diagnostics values (strings) per report; with stamp, "_t" = arrival (time.monotonic)."""
     from diagnostic_msgs.msg import DiagnosticArray  # optional: diagnostic_msgs (ROS)
 
     out = []
 
     def cb(m):
         if m.status and m.status[0].name.startswith(ns + "/"):  # not another simulation on this graph
-            out.append({kv.key: kv.value for kv in m.status[0].values})
+            d = {kv.key: kv.value for kv in m.status[0].values}
+            if stamp:
+                d["_t"] = time.monotonic()
+            out.append(d)
     node.create_subscription(DiagnosticArray, "/diagnostics", cb, 10)
     return out
 
@@ -561,6 +583,501 @@ def bench_logging_inprocess(scene, dt, rounds, window, writers=("process", "thre
 
 
 # ------------------------------------------------------------------------------------------------
+# (e) free-run real-time factor under a flood of commands
+
+def _flooder(ns):
+    """A joint_commands flooder (run as a subprocess for section (e), so that publishing does not
+    compete with this process's clients, nor anything with the node's GIL). Waits for the node's
+    subscription and prints 'ready'; then for each line 'valid|invalid RATE SECONDS' on stdin
+    publishes at RATE Hz for SECONDS (reliable, keep last 10, as the node's subscription; paced on
+    time.monotonic: each message is sent at most 0.2 ms before it is due, the loop sleeps otherwise
+    (a pure busy wait took a whole core from the node on the 2-core machine: 100 % vs ~27 % CPU at
+    10 kHz, no subscriber), and catches up at most 5 ms when it falls behind) and prints
+    'SENT T0 T1' (time.monotonic: CLOCK_MONOTONIC, the same clock in every process)."""
+    import rclpy  # optional: rclpy
+    from rclpy.node import Node  # optional: rclpy
+    from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy  # optional: rclpy
+    from rclpy.serialization import serialize_message  # optional: rclpy
+    from sensor_msgs.msg import JointState  # optional: sensor_msgs (ROS)
+
+    rclpy.init()
+    node = Node("redmax_bench_flooder", namespace=ns)
+    pub = node.create_publisher(JointState, "joint_commands", QoSProfile(
+        history=HistoryPolicy.KEEP_LAST, depth=10, reliability=ReliabilityPolicy.RELIABLE))
+    # valid: the wrist's two DOFs, v = 0.05 sin(2 pi t / 5 s) [rad/s] at 10 kHz (pre-serialized, 500 levels)
+    valid = [serialize_message(JointState(name=["wrist[0]", "wrist[1]"],
+                                          velocity=[0.05 * math.sin(2 * math.pi * k / 500), 0.0]))
+             for k in range(500)]
+    invalid = serialize_message(JointState(name=["no_such_joint"], velocity=[1.0]))
+    end = time.monotonic() + 60
+    while pub.get_subscription_count() == 0 and time.monotonic() < end:
+        time.sleep(0.01)
+    print("ready", pub.get_subscription_count(), flush=True)
+    for line in sys.stdin:
+        parts = line.split()
+        if not parts or parts[0] == "quit":
+            break
+        kind, rate, seconds = parts[0], float(parts[1]), float(parts[2])
+        period, per_level, lead = 1.0 / rate, max(1, int(rate * 5.0 / 500)), 2e-4
+        n = k = 0
+        t0 = time.monotonic()
+        stop = t0 + seconds
+        due = t0
+        while True:
+            now = time.monotonic()
+            if now >= stop:
+                break
+            if due > now + lead:  # ahead of schedule: sleep (a busy wait would take a core from the node)
+                time.sleep(due - now - lead)
+                continue
+            pub.publish(invalid if kind == "invalid" else valid[(k // per_level) % 500])
+            n += 1
+            k += 1
+            due += period
+            if now - due > 5e-3:  # preempted: do not burst to catch up more than 5 ms
+                due = now - 5e-3
+        t1 = time.monotonic()
+        print(n, t0, t1, flush=True)
+    node.destroy_node()
+    rclpy.shutdown()
+    return 0
+
+
+class _Stamps:
+    """Raw joint_states subscription recording (arrival time.monotonic, header stamp [s]) per message:
+    the sim time the node had reached at each wall instant, without deserializing."""
+
+    def __init__(self, node, topic):
+        from rclpy.qos import QoSProfile, ReliabilityPolicy  # optional: rclpy
+        from sensor_msgs.msg import JointState  # optional: sensor_msgs (ROS)
+
+        self.wall, self.sim = [], []
+        node.create_subscription(JointState, topic, self._cb,
+                                 QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE), raw=True)
+
+    def _cb(self, data):
+        sec, nsec = struct.unpack_from("<iI", data, 4)  # CDR: 4-byte encapsulation, then header.stamp
+        self.wall.append(time.monotonic())
+        self.sim.append(sec + 1e-9 * nsec)
+
+    def sim_at(self, t):
+        """Sim time of the newest message received by wall time t (None before the first)."""
+        i = bisect.bisect_right(self.wall, t) - 1
+        return self.sim[i] if i >= 0 else None
+
+    def rtf(self, a, b):
+        s0, s1 = self.sim_at(a), self.sim_at(b)
+        return None if s0 is None or s1 is None or b <= a else (s1 - s0) / (b - a)
+
+    def max_gap(self, a, b):
+        """Longest wall interval in [a, b] without a new state (a stall of the stepping)."""
+        i, j = bisect.bisect_left(self.wall, a), bisect.bisect_right(self.wall, b)
+        ts = [a] + self.wall[i:j] + [b]
+        return max(y - x for x, y in zip(ts, ts[1:]))
+
+
+def _threads_cpu(pid):
+    """{tid: (comm, CPU seconds)} of every thread of process pid."""
+    out = {}
+    tck = os.sysconf("SC_CLK_TCK")
+    try:
+        tids = os.listdir(f"/proc/{pid}/task")
+    except OSError:
+        return out
+    for tid in tids:
+        try:
+            with open(f"/proc/{pid}/task/{tid}/stat") as f:
+                s = f.read()
+        except OSError:
+            continue
+        fields = s[s.rindex(")") + 2:].split()
+        out[int(tid)] = (s[s.index("(") + 1:s.rindex(")")], (int(fields[11]) + int(fields[12])) / tck)
+    return out
+
+
+class _CpuWindow:
+    """CPU % (of one core) of the node process, its threads, the flooder and this process over a window."""
+
+    def __init__(self, node_pid, flooder_pid):
+        self.pids = {"node": node_pid, "flooder": flooder_pid, "bench": os.getpid()}
+        self.t0 = time.monotonic()
+        self.c0 = {k: _cpu_seconds(f"/proc/{p}/stat") for k, p in self.pids.items()}
+        self.th0 = _threads_cpu(node_pid)
+
+    def close(self):
+        dt = max(time.monotonic() - self.t0, 1e-9)
+        c1 = {k: _cpu_seconds(f"/proc/{p}/stat") for k, p in self.pids.items()}
+        th1 = _threads_cpu(self.pids["node"])
+        out = {f"{k}_cpu_pct": round(100 * (c1[k] - self.c0[k]) / dt, 1) for k in self.pids}
+        threads = sorted(((100 * (c - self.th0[t][1]) / dt, t, name) for t, (name, c) in th1.items() if t in self.th0),
+                         reverse=True)
+        out["node_threads_cpu_pct"] = [{"tid": t, "comm": name, "cpu_pct": round(p, 1)} for p, t, name in threads[:6]
+                                       if p >= 0.5]
+        return out
+
+
+def _diag_delta(diags, a, b, key):
+    """Increase of a cumulative /diagnostics counter between the last report received by a and the
+    last received by b."""
+    before = [d for d in diags if d["_t"] <= a]
+    after = [d for d in diags if d["_t"] <= b]
+    if not before or not after:
+        return None
+    return int(float(after[-1].get(key, 0))) - int(float(before[-1].get(key, 0)))
+
+
+def _diag_mean(diags, a, b, key, period):
+    """Mean of a per-window /diagnostics value over the reports whose window lies in [a, b]."""
+    xs = [float(d[key]) for d in diags if a + period <= d["_t"] <= b and key in d]
+    return statistics.fmean(xs) if xs else None
+
+
+def _param_msg(name, value):
+    from rclpy.parameter import Parameter  # optional: rclpy
+    return Parameter(name, value=value).to_parameter_msg()
+
+
+def _flood_window(stamps, diags, cpu, flooder, kind, rate, seconds, post, period):
+    """One flood (kind 'valid'/'invalid') of `seconds` at `rate` Hz, then `post` s of quiet; or,
+    kind 'none', `seconds` s of quiet (the unflooded reference)."""
+    if kind == "none":
+        a = time.monotonic()
+        w = cpu()
+        time.sleep(seconds)
+        b = time.monotonic()
+        r = {"kind": kind, "t0": a, "t1": b, "rtf": stamps.rtf(a, b), "max_stall_s": stamps.max_gap(a, b),
+             "diag_rtf": _diag_mean(diags, a, b, "real_time_factor", period),
+             "step_wall_ms": _ms(_diag_mean(diags, a, b, "mean_step_wall_time", period)), **w.close()}
+        return r
+    w = cpu()
+    flooder.stdin.write(f"{kind} {rate} {seconds}\n")
+    flooder.stdin.flush()
+    line = flooder.stdout.readline().split()
+    if len(line) != 3:
+        raise RuntimeError(f"the flooder did not answer: {line}")
+    sent, a, b = int(line[0]), float(line[1]), float(line[2])
+    load = w.close()
+    w2 = cpu()
+    time.sleep(max(0.0, b + post - time.monotonic()) + 0.05)
+    after = w2.close()
+    bins = [stamps.rtf(a + 0.5 * i, a + 0.5 * (i + 1)) for i in range(int(round((b - a + post) / 0.5)))]
+    return {"kind": kind, "t0": a, "t1": b, "sent": sent, "rate_hz": sent / (b - a),
+            "rtf": stamps.rtf(a, b), "rtf_last_2s": stamps.rtf(b - 2.0, b), "rtf_post": stamps.rtf(b, b + post),
+            "max_stall_s": stamps.max_gap(a, b + post),
+            "diag_rtf": _diag_mean(diags, a, b, "real_time_factor", period),
+            "diag_rtf_post": _diag_mean(diags, b, b + post, "real_time_factor", period),
+            "step_wall_ms": _ms(_diag_mean(diags, a, b, "mean_step_wall_time", period)),
+            "commands_received": _diag_delta(diags, a, b + post, "commands_received"),
+            "commands_coalesced": _diag_delta(diags, a, b + post, "commands_coalesced"),
+            "command_errors": _diag_delta(diags, a, b + post, "command_errors"),
+            "rtf_bins_0.5s": [None if x is None else round(x, 3) for x in bins], **load,
+            "post_cpu": after}
+
+
+def _ms(x):
+    return None if x is None else 1e3 * x
+
+
+def bench_flood(scene, dt, rate, seconds, post, quiet, rounds_by_rtf):
+    """Free-run RTF of one node subprocess under floods of valid and invalid joint_commands from a
+    flooder process, interleaved with unflooded windows (none, valid, invalid per round), at each
+    real_time_factor in rounds_by_rtf ({rtf: rounds}, set at run time through the parameter
+    service)."""
+    from rclpy.node import Node  # optional: rclpy
+    from rcl_interfaces.srv import SetParameters  # optional: rcl_interfaces (ROS)
+
+    ns = f"/bench_flood{os.getpid()}"
+    period = 0.5
+    t_start = time.monotonic()
+    phases = {}
+    first_rtf = next(iter(rounds_by_rtf))
+    proc = _start_node(ns, {"scene": scene, "mode": "free_run", "real_time_factor": float(first_rtf), "dt": dt,
+                            "publish_rate": 0.0, "marker_rate": 0.0, "diagnostics_period": period})
+    flooder = subprocess.Popen([sys.executable, "-m", "redmax_bench.node", "_flooder", ns], stdin=subprocess.PIPE,
+                               stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
+    node = Node("redmax_bench_flood", namespace=ns)
+    stamps = _Stamps(node, "joint_states")
+    diags = _diag_listener(node, ns, stamp=True)
+    setp = node.create_client(SetParameters, "redmax/set_parameters")
+    spin = _Spinner(node)
+    out = {"scene": scene, "dt": dt, "target_rate_hz": rate, "flood_s": seconds, "post_s": post, "quiet_s": quiet,
+           "node_params": {"mode": "free_run", "publish_rate": 0.0, "command_timeout": "default (0.5 s sim)"},
+           "by_rtf": []}
+    try:
+        _wait_for(lambda: len(diags) > 0 and len(stamps.wall) > 0, 60, "the node")
+        ready = flooder.stdout.readline().split()
+        if not ready or ready[0] != "ready":
+            raise RuntimeError(f"the flooder did not start: {ready}")
+        phases["start_up"] = time.monotonic() - t_start
+
+        def cpu():
+            return _CpuWindow(proc.pid, flooder.pid)
+
+        for rtf, rounds in rounds_by_rtf.items():
+            if rtf != first_rtf:
+                assert setp.wait_for_service(timeout_sec=10), "no parameter service"
+                fut = setp.call_async(SetParameters.Request(parameters=[_param_msg("real_time_factor", float(rtf))]))
+                _wait_for(fut.done, 10, "set_parameters")
+                assert fut.result().results[0].successful, fut.result().results[0].reason
+            time.sleep(1.0 if rtf != first_rtf else 0.5)
+            runs = []
+            for r in range(rounds):
+                for kind in ("none", "valid", "invalid"):
+                    length = quiet if kind == "none" else seconds
+                    runs.append(dict(_flood_window(stamps, diags, cpu, flooder, kind, rate, length, post, period),
+                                     round=r, load=_load()))
+                if proc.poll() is not None:
+                    raise RuntimeError(f"the node exited: {_stderr_tail(proc)}")
+            out["by_rtf"].append(_flood_summary(rtf, runs))
+        phases["measuring"] = time.monotonic() - t_start - phases["start_up"]
+    finally:
+        try:
+            flooder.stdin.write("quit\n")
+            flooder.stdin.flush()
+            flooder.wait(10)
+        except (OSError, ValueError, subprocess.TimeoutExpired):
+            flooder.kill()
+        spin.close()
+        node.destroy_node()
+        _stop(proc)
+    out["wall_s"] = {**{k: round(v, 2) for k, v in phases.items()}, "total": round(time.monotonic() - t_start, 2)}
+    return out
+
+
+def _flood_summary(rtf, runs):
+    by = {k: [x for x in runs if x["kind"] == k] for k in ("none", "valid", "invalid")}
+    none = by["none"]
+    s = {"real_time_factor": rtf, "rounds": len(none), "conditions": {}, "runs": runs}
+    for kind, rs in by.items():
+        c = {"rtf": _median([x["rtf"] for x in rs]), "diag_rtf": _median([x["diag_rtf"] for x in rs]),
+             "per_round_rtf": [None if x["rtf"] is None else round(x["rtf"], 3) for x in rs],
+             "max_stall_s": max((x["max_stall_s"] for x in rs), default=None),
+             "step_wall_ms": _median([x["step_wall_ms"] for x in rs]),
+             "node_cpu_pct": _median([x["node_cpu_pct"] for x in rs]),
+             "flooder_cpu_pct": _median([x["flooder_cpu_pct"] for x in rs]),
+             "bench_cpu_pct": _median([x["bench_cpu_pct"] for x in rs]), "load": _median([x["load"] for x in rs])}
+        if kind != "none":
+            ratios = [x["rtf"] / n["rtf"] for x, n in zip(rs, none) if x["rtf"] is not None and n["rtf"]]
+            post = [x["rtf_post"] / n["rtf"] for x, n in zip(rs, none) if x["rtf_post"] is not None and n["rtf"]]
+            c.update({"ratio": _median(ratios), "per_round_ratio": [round(q, 3) for q in ratios],
+                      "rtf_last_2s": _median([x["rtf_last_2s"] for x in rs]),
+                      "rtf_post": _median([x["rtf_post"] for x in rs]), "post_ratio": _median(post),
+                      "diag_rtf_post": _median([x["diag_rtf_post"] for x in rs]),
+                      "rate_hz": _median([x["rate_hz"] for x in rs]),
+                      "commands_received": _median([x["commands_received"] for x in rs]),
+                      "commands_coalesced": _median([x["commands_coalesced"] for x in rs]),
+                      "command_errors": _median([x["command_errors"] for x in rs]),
+                      "sent": _median([x["sent"] for x in rs]),
+                      "rtf_bins_0.5s_median": [_median([x["rtf_bins_0.5s"][i] for x in rs
+                                                        if i < len(x["rtf_bins_0.5s"])])
+                                               for i in range(max(len(x["rtf_bins_0.5s"]) for x in rs))]})
+        threads = {}
+        for x in rs:
+            for t in x["node_threads_cpu_pct"]:
+                threads.setdefault((t["tid"], t["comm"]), []).append(t["cpu_pct"])
+        c["node_threads_cpu_pct"] = sorted(({"tid": t, "comm": n, "cpu_pct": _median(v)}
+                                            for (t, n), v in threads.items()), key=lambda d: -d["cpu_pct"])[:5]
+        s["conditions"][kind] = c
+    # the simulation thread: the busiest one without a flood (Python threads are all named "python")
+    busiest = s["conditions"]["none"]["node_threads_cpu_pct"]
+    s["simulation_thread_tid"] = busiest[0]["tid"] if busiest else None
+    return s
+
+
+def _print_flood(res):
+    print(f"    target {res['target_rate_hz']:g} Hz, {res['flood_s']:g} s floods, RTF also in the {res['post_s']:g} s "
+          f"after each; unflooded windows {res['quiet_s']:g} s; RTF = sim-time advance / wall time from joint_states "
+          "stamps (diag = mean of the node's /diagnostics windows); medians over rounds")
+    head = (f"      {'condition':9s} {'sent/s':>7s} {'RTF':>6s} {'(diag)':>7s} {'ratio':>6s} {'last2s':>6s} "
+            f"{'after':>6s} {'ratio':>6s} {'stall s':>7s} {'recv':>6s} {'coalesc':>7s} {'errors':>6s} "
+            f"{'step ms':>7s} {'CPU% node/flooder/bench':>23s} {'load':>5s}")
+    for b in res["by_rtf"]:
+        paced = "paced" if b["real_time_factor"] else "as fast as possible"
+        print(f"    real_time_factor {b['real_time_factor']:g} ({paced}), {b['rounds']} rounds:")
+        print(head)
+        for kind, c in b["conditions"].items():
+            g = (lambda k, d=3: _f(c.get(k), d)) if kind != "none" else (lambda k, d=3: "-")
+            cpu = f"{_f(c['node_cpu_pct'], 0)}/{_f(c['flooder_cpu_pct'], 0)}/{_f(c['bench_cpu_pct'], 0)}"
+            print(f"      {kind:9s} {g('rate_hz', 0):>7s} {_f(c['rtf'], 3):>6s} {'(' + _f(c['diag_rtf'], 3) + ')':>7s} "
+                  f"{g('ratio'):>6s} {g('rtf_last_2s'):>6s} {g('rtf_post'):>6s} {g('post_ratio'):>6s} "
+                  f"{_f(c['max_stall_s'], 3):>7s} {g('commands_received', 0):>6s} {g('commands_coalesced', 0):>7s} "
+                  f"{g('command_errors', 0):>6s} {_f(c['step_wall_ms'], 3):>7s} {cpu:>23s} {_f(c['load']):>5s}")
+        for kind in ("valid", "invalid"):
+            c = b["conditions"][kind]
+            print(f"      {kind:7s}: per-round ratio {', '.join(_f(q, 3) for q in c['per_round_ratio'])}; RTF per 0.5 s "
+                  f"from flood start: {' '.join(_f(x, 2) for x in c['rtf_bins_0.5s_median'])}")
+        sim = b["simulation_thread_tid"]
+        for kind, c in b["conditions"].items():
+            print(f"      {kind:7s}: node threads CPU%: " + ", ".join(
+                f"{'simulation' if t['tid'] == sim else t['comm']}[{t['tid']}] {t['cpu_pct']:.0f}"
+                for t in c["node_threads_cpu_pct"]))
+    print(f"    section wall time [s]: {res.get('wall_s')}")
+
+
+# ------------------------------------------------------------------------------------------------
+# (f) query latency: idle, during a long step request, in free-run
+
+class _Caller:
+    """Service clients of one node, called from this thread: it spins its own executor until the
+    answer (as _StepClient)."""
+
+    def __init__(self, ns, name):
+        from rclpy.node import Node  # optional: rclpy
+
+        self.node = Node(name, namespace=ns)
+        self.ex = _executor()
+        self.ex.add_node(self.node)
+
+    def client(self, srv, name):
+        return self.node.create_client(srv, name)
+
+    def call(self, cli, req, timeout=10.0):
+        """(response or None on timeout, seconds)."""
+        t0 = time.perf_counter()
+        fut = cli.call_async(req)
+        self.ex.spin_until_future_complete(fut, timeout_sec=timeout)
+        dt = time.perf_counter() - t0
+        if not fut.done():
+            cli.remove_pending_request(fut)
+            return None, dt
+        return fut.result(), dt
+
+    def close(self):
+        try:
+            self.ex.remove_node(self.node)
+            self.ex.shutdown()
+        except Exception:
+            pass
+        self.node.destroy_node()
+
+
+def _lat_stats(xs):
+    xs = sorted(xs)
+    if not xs:
+        return {"n": 0, "median_ms": None, "p95_ms": None, "max_ms": None}
+    return {"n": len(xs), "median_ms": 1e3 * statistics.median(xs), "p95_ms": 1e3 * xs[int(0.95 * (len(xs) - 1))],
+            "max_ms": 1e3 * xs[-1]}
+
+
+def bench_query(scene, dt, calls, rounds, long_steps, gap):
+    """Latency of get_simulation_state, describe_scene and a parameter get on one node subprocess:
+    (i) idle lockstep, (ii) while step_simulation(long_steps) runs (lockstep), (iii) free-run as fast
+    as possible; `calls` calls per query and condition per round, round-robin over the queries,
+    `gap` s apart, the conditions interleaved per round."""
+    from rclpy.node import Node  # optional: rclpy
+    from rcl_interfaces.srv import GetParameters  # optional: rcl_interfaces (ROS)
+    from redmax_msgs.msg import SimulationState  # optional: redmax_msgs (ROS)
+    from redmax_msgs.srv import DescribeScene, GetSimulationState  # optional: redmax_msgs (ROS)
+    from redmax_msgs.srv import SetSimulationState, StepSimulation  # optional: redmax_msgs (ROS)
+
+    ns = f"/bench_query{os.getpid()}"
+    proc = _start_node(ns, {"scene": scene, "mode": "lockstep", "real_time_factor": 0.0, "dt": dt,
+                            "publish_rate": 0.0, "marker_rate": 0.0, "command_timeout": 0.0})
+    q = _Caller(ns, "redmax_bench_query")
+    queries = {"get_simulation_state": (q.client(GetSimulationState, "get_simulation_state"),
+                                        GetSimulationState.Request()),
+               "describe_scene": (q.client(DescribeScene, "describe_scene"), DescribeScene.Request()),
+               "get_parameters": (q.client(GetParameters, "redmax/get_parameters"),
+                                  GetParameters.Request(names=["real_time_factor", "dt"]))}
+    set_state = q.client(SetSimulationState, "set_simulation_state")
+    step_node = Node("redmax_bench_long_step", namespace=ns)
+    step_cli = step_node.create_client(StepSimulation, "step_simulation")
+    spin = _Spinner(step_node)
+    conds = ("idle_lockstep", "during_step", "free_run")
+    lat = {c: {k: [] for k in queries} for c in conds}
+    extra = {"timeouts": {c: 0 for c in conds}, "answered_while_step_ran": 0, "queries_during_step": 0,
+             "long_steps": [], "wrong_results": 0}
+    state = {"fut": None, "t0": None}
+
+    def start_step():
+        state["t0"] = time.monotonic()
+        state["fut"] = step_cli.call_async(StepSimulation.Request(steps=long_steps))
+        time.sleep(0.2)  # let it reach the node and start
+
+    def finish_step(wait=True):
+        fut = state["fut"]
+        if fut is None:
+            return
+        if wait:
+            _wait_for(fut.done, 300, "the long step request")
+        if fut.done():
+            r = fut.result()
+            extra["long_steps"].append({"result": int(r.result.result), "completed_steps": int(r.completed_steps),
+                                        "wall_s": round(state.get("t_done", time.monotonic()) - state["t0"], 3)})
+        state["fut"] = None
+
+    def on_done(_fut):
+        state["t_done"] = time.monotonic()
+
+    def set_sim_state(s):
+        r, _ = q.call(set_state, SetSimulationState.Request(state=SimulationState(state=s)))
+        assert r is not None and r.result.result in (1, 101), "set_simulation_state failed"
+
+    try:
+        for cli, _ in queries.values():
+            assert cli.wait_for_service(timeout_sec=60), "the node did not come up"
+        assert step_cli.wait_for_service(timeout_sec=30) and set_state.wait_for_service(timeout_sec=30)
+        for cli, req in queries.values():  # warm-up (first-call costs, discovery)
+            for _ in range(5):
+                q.call(cli, req)
+        for r in range(rounds):
+            for c in (conds if r % 2 == 0 else conds[::-1]):
+                if c == "free_run":
+                    set_sim_state(1)  # PLAYING
+                    time.sleep(0.5)
+                for i in range(calls * len(queries)):
+                    key = list(queries)[i % len(queries)]
+                    cli, req = queries[key]
+                    if c == "during_step":
+                        if state["fut"] is None or state["fut"].done():
+                            finish_step(wait=False)
+                            state.pop("t_done", None)
+                            start_step()
+                            state["fut"].add_done_callback(on_done)
+                    resp, t = q.call(cli, req)
+                    if resp is None:
+                        extra["timeouts"][c] += 1
+                        continue
+                    if c == "during_step":
+                        extra["queries_during_step"] += 1
+                        extra["answered_while_step_ran"] += not state["fut"].done()
+                    if key != "get_parameters" and resp.result.result != 1:
+                        extra["wrong_results"] += 1
+                    lat[c][key].append(t)
+                    time.sleep(gap)
+                if c == "during_step":
+                    finish_step()
+                if c == "free_run":
+                    set_sim_state(2)  # PAUSED
+                    time.sleep(0.2)
+            if proc.poll() is not None:
+                raise RuntimeError(f"the node exited: {_stderr_tail(proc)}")
+        load = _load()
+    finally:
+        spin.close()
+        step_node.destroy_node()
+        q.close()
+        _stop(proc)
+    return {"scene": scene, "dt": dt, "calls_per_round": calls, "rounds": rounds, "long_step_request": long_steps,
+            "gap_s": gap, "latency": {c: {k: _lat_stats(v) for k, v in d.items()} for c, d in lat.items()},
+            "all_ms": {c: {k: [round(1e3 * x, 3) for x in v] for k, v in d.items()} for c, d in lat.items()},
+            **extra, "load": load}
+
+
+def _print_query(r):
+    print(f"    {'condition':14s} {'query':22s} {'n':>4s} {'median':>8s} {'p95':>8s} {'max':>8s}  [ms]")
+    for c, d in r["latency"].items():
+        for k, s in d.items():
+            print(f"    {c:14s} {k:22s} {s['n']:4d} {_f(s['median_ms'], 2):>8s} {_f(s['p95_ms'], 2):>8s} "
+                  f"{_f(s['max_ms'], 2):>8s}")
+    ls = r["long_steps"]
+    print(f"    long step_simulation({r['long_step_request']}) requests: {len(ls)}, wall "
+          f"{', '.join(_f(x['wall_s'], 2) for x in ls)} s, results {sorted({x['result'] for x in ls})}; "
+          f"{r['answered_while_step_ran']}/{r['queries_during_step']} queries answered while it ran; "
+          f"timeouts {r['timeouts']}; load {r['load']}")
+
+
+# ------------------------------------------------------------------------------------------------
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog="redmax_bench node", description=__doc__.split("\n\n")[0])
@@ -573,8 +1090,19 @@ def main(argv=None) -> int:
     ap.add_argument("--rtf-rounds", type=int, default=5, help="runs per scene and logging setting in (c)")
     ap.add_argument("--log-rounds", type=int, default=12, help="rounds of windows in (d)")
     ap.add_argument("--log-window", type=float, default=1.5, help="window length [s] in (d)")
-    ap.add_argument("--only", nargs="+", choices=["latency", "service", "rtf", "logging"],
-                    help="run only these sections")
+    ap.add_argument("--flood-rate", type=float, default=10000.0, help="commands/s of the flooder in (e)")
+    ap.add_argument("--flood-seconds", type=float, default=5.0, help="length of each flood in (e)")
+    ap.add_argument("--flood-post", type=float, default=3.0, help="seconds measured after each flood in (e)")
+    ap.add_argument("--flood-quiet", type=float, default=1.5, help="length of each unflooded window in (e)")
+    ap.add_argument("--flood-rounds", type=int, default=3,
+                    help="rounds (none, valid, invalid) at real_time_factor 0 in (e)")
+    ap.add_argument("--flood-paced-rounds", type=int, default=2,
+                    help="rounds at real_time_factor 1 in (e) (0: skip; 2 keeps the section under ~90 s)")
+    ap.add_argument("--query-calls", type=int, default=20, help="calls per query, condition and round in (f)")
+    ap.add_argument("--query-rounds", type=int, default=3, help="interleaved rounds in (f)")
+    ap.add_argument("--query-long-steps", type=int, default=20000, help="steps of the long request in (f)")
+    ap.add_argument("--only", nargs="+", choices=["latency", "service", "rtf", "logging", "flood", "query"],
+                    help="run only these sections (node.json then keeps the other sections of an earlier run)")
     ap.add_argument("--quick", action="store_true", help="small sample counts (smoke run)")
     ap.add_argument("--no-write", action="store_true", help="do not write node.json")
     add_out_argument(ap)
@@ -582,7 +1110,9 @@ def main(argv=None) -> int:
     if a.quick:
         a.latency_samples, a.service_steps, a.service_rounds = 30, 50, 2
         a.seconds, a.rtf_rounds, a.log_rounds, a.log_window = 3.0, 1, 2, 1.0
-    want = set(a.only or ["latency", "service", "rtf", "logging"])
+        a.flood_seconds, a.flood_post, a.flood_quiet, a.flood_rounds, a.flood_paced_rounds = 2.0, 1.0, 1.0, 1, 1
+        a.query_calls, a.query_rounds, a.query_long_steps = 10, 1, 5000
+    want = set(a.only or ["latency", "service", "rtf", "logging", "flood", "query"])
 
     import rclpy  # optional: rclpy
     rclpy.init()
@@ -643,11 +1173,34 @@ def main(argv=None) -> int:
                 print(f"    {c:8s}: {o['steps_per_second']:.0f} steps/s, process CPU {o['process_cpu_us_per_step']:.0f} "
                       f"us/step (writer process {o['writer_process_cpu_us_per_step']:.0f}){extra}, load {o['load']}")
             del off
+        if "flood" in want:
+            print(f"(e) free-run real-time factor under a flood of joint_commands from another process (hand, "
+                  f"h = {a.dt:g} s, joint_states every step): none / valid / invalid interleaved per round")
+            rounds = {0.0: a.flood_rounds}
+            if a.flood_paced_rounds:
+                rounds[1.0] = a.flood_paced_rounds
+            r = bench_flood("hand", a.dt, a.flood_rate, a.flood_seconds, a.flood_post, a.flood_quiet, rounds)
+            out["flood"] = r
+            _print_flood(r)
+        if "query" in want:
+            print(f"(f) query latency (hand, h = {a.dt:g} s): idle lockstep / during step_simulation("
+                  f"{a.query_long_steps}) / free-run as fast as possible, {a.query_rounds} rounds x "
+                  f"{a.query_calls} calls per query, interleaved")
+            r = bench_query("hand", a.dt, a.query_calls, a.query_rounds, a.query_long_steps, 0.005)
+            out["query"] = r
+            _print_query(r)
     finally:
         rclpy.shutdown()
     out["load_at_end"] = list(os.getloadavg())
     if not a.no_write:
-        p = write_json(a.out, "node", {"args": {**vars(a), "out": None if a.out is None else str(a.out)}, **out})
+        payload = {"args": {**vars(a), "out": None if a.out is None else str(a.out)}, **out}
+        if a.only:  # keep the sections of an earlier run that this one did not repeat
+            try:
+                old = json.loads((results_dir(a.out) / "node.json").read_text())
+            except (OSError, ValueError):
+                old = {}
+            payload = {**{k: v for k, v in old.items() if k not in ("machine", "date")}, **payload}
+        p = write_json(a.out, "node", payload)
         print(f"wrote {p}")
     return 0
 
@@ -657,4 +1210,6 @@ if __name__ == "__main__":
         sys.exit(_floor_server(sys.argv[2], sys.argv[3]))
     if len(sys.argv) > 1 and sys.argv[1] == "_raw_subscriber":
         sys.exit(_raw_subscriber(sys.argv[2]))
+    if len(sys.argv) > 1 and sys.argv[1] == "_flooder":
+        sys.exit(_flooder(sys.argv[2]))
     sys.exit(main())

@@ -51,6 +51,7 @@ from redmax_ros.logging.mcap_log import McapLogger
 
 from . import engine as eng
 from . import step_server
+from .command_reader import CommandReader
 from .cdr import JointStateEncoder, SolverStatsEncoder, StepRecords, encode_clock, serialize_message
 from .convert import StateMessages, description_msg, diagnostics_msg, markers_msg, point_prescriptions_msg
 from .convert import prescriptions_msg, time_msg
@@ -379,9 +380,17 @@ class RedmaxNode(Node):
             self.create_service(StepSimulation, "step_simulation", self._srv_step, callback_group=self._service_group,
                                 qos_profile=self.qos_service)
             return
-        commands = _EventsHelper(self, "commands")
-        for short, (cls, cb) in self._inputs.items():
-            self._subscribe(commands.node, self._topic_by_short[short], cls, cb, None)
+        if os.environ.get("REDMAX_COMMAND_READER", "burst") == "events":
+            commands = _EventsHelper(self, "commands")
+            for short, (cls, cb) in self._inputs.items():
+                self._subscribe(commands.node, self._topic_by_short[short], cls, cb, None)
+        else:  # command_reader.CommandReader: one thread, drains in bursts (floods, issue 17)
+            cnode = _helper_node(self, "commands")
+            subs, cbs = [], []
+            for short, (cls, cb) in self._inputs.items():
+                subs.append(self._subscribe(cnode, self._topic_by_short[short], cls, cb, None))
+                cbs.append(cb)
+            commands = CommandReader(cnode, subs, cbs, on_error=self._publish_error)
         step_name = self.resolve_service_name("step_simulation")
         if os.environ.get("REDMAX_STEP_SERVER", "raw") != "events" and step_server.available():
             step = _StepHelper(self, step_name)
