@@ -5,6 +5,8 @@
 CSV columns: t; q:<joint> and v:<joint> (``[i]`` per component of multi-DOF joints); E_kin, E_pot,
 E_spring, E_total [J]; violation (max loop-closure residual [m]); tau:<joint> for prescribed joints
 (required torque [N m] or force [N]) and f:<site>[i] for prescribed sites (required force [N], world).
+Prescriptions, joint trajectories included, are scene values: ``--set 'prescribed={joints: {hinge: {position:
+{type: sine, amplitude: 0.4, frequency: 0.5}, b: 5}}}'`` (docs/scenes.md, Constraints).
 """
 from __future__ import annotations
 

@@ -15,13 +15,14 @@ import numpy as np
 
 from redmax_ros.core.dynamics.energy import energies
 from redmax_ros.core.dynamics.tree_kinematics import Context, all_site_positions, body_poses
-from redmax_ros.core.errors import CommandError, StepError
+from redmax_ros.core.errors import CommandError, SceneError, StepError
 from redmax_ros.core.model.dof_positions import DofPositions
 from redmax_ros.core.model.mechanism import Mechanism
-from redmax_ros.core.scene.loader import load_scene
+from redmax_ros.core.scene.loader import load_scene, parse_joint_trajectory
 from redmax_ros.core.scene.spec import SceneSpec
 from redmax_ros.core.solvers.budget import StepBudget
 from redmax_ros.core.step.backends import make_backend
+from redmax_ros.core.step import trajectory
 from redmax_ros.core.step.compile import compile_scene
 from redmax_ros.core.step.state import Commands, State, StepResult
 
@@ -87,6 +88,13 @@ class Simulator:
         self.backend = make_backend(self.mech, solver or spec.solver)
         self._query = Context(self.mech)  # kinematics for body poses, spring ends, energies between steps
         self.dt = float(spec.dt)
+        for name, traj in spec.prescribed_trajectories.items():
+            entry = f"prescribed.joints.{name}"
+            if name not in self.mech.joint_index:
+                raise SceneError(spec.source, entry, f"unknown joint '{name}'")
+            problem = trajectory.trajectory_problem(self.mech, name, traj)
+            if problem:
+                raise SceneError(spec.source, entry, problem)
         self.reset()
 
     @classmethod
@@ -139,6 +147,7 @@ class Simulator:
             site_velocities={k: np.array(v, float) for k, v in self.spec.prescribed_sites.items()},
             site_axes={k: np.array(P, float) for k, P in self.spec.prescribed_site_axes.items()},
             joint_torques=np.zeros(m.nv),
+            joint_trajectories=dict(self.spec.prescribed_trajectories),
         )
         self.last: StepResult | None = None
 
@@ -187,11 +196,42 @@ class Simulator:
             raise CommandError(f"{what} '{name}': non-finite value {arr.tolist()}")
         return arr
 
-    def prescribe_joints(self, velocities: dict) -> None:
-        """Prescribe joint velocities [rad/s or m/s] (Eq. 7, *G_r). All-or-nothing."""
-        new = {n: self._joint_vector(n, v, self.mech.prescribable_joints, "prescribed velocity of joint")
-               for n, v in velocities.items()}
-        self.commands.joint_velocities.update(new)
+    def _joint_trajectory(self, name, d):
+        """A validated JointTrajectory from ``{position: <time function(s)>, b: 5}`` (CommandError)."""
+        m = self.mech
+        self._joint_vector(name, np.zeros(m.joint_index[name].nv) if name in m.joint_index else 0.0,
+                           m.prescribable_joints, "trajectory of joint")  # unknown / not prescribable
+        try:
+            traj = parse_joint_trajectory(f"trajectory of joint '{name}'", d, m.joint_index[name].nv)
+        except SceneError as e:
+            raise CommandError(f"{e.entry}: {e.problem}") from None
+        problem = trajectory.trajectory_problem(m, name, traj)
+        if problem:
+            raise CommandError(problem)
+        return traj
+
+    def prescribe_joints(self, prescriptions: dict) -> None:
+        """Prescribe joint motions (hybrid dynamics, Eq. 7, *G_r; notes §2.10). All-or-nothing. A value is
+
+        * a velocity [rad/s or m/s] (a number, or nv of them): the row *G_r qdot_r = value, held; or
+        * a trajectory ``{position: <time function, or a list of nv>, b: 5}`` in the scene grammar
+          (docs/scenes.md, scene/timefunctions.py): each step's row is *G_r qdot_r = qdot_p(t_k+1) +
+          b (q_p(t_k+1) - q_k), b >= 0 [1/s] (step/trajectory.py).
+
+        Either replaces the joint's previous prescription; the required torque is ``StepResult.effort``."""
+        vel, traj = {}, {}
+        for n, v in prescriptions.items():
+            if isinstance(v, dict):
+                traj[n] = self._joint_trajectory(n, v)
+            else:
+                vel[n] = self._joint_vector(n, v, self.mech.prescribable_joints, "prescribed velocity of joint")
+        cmd = self.commands
+        for n in vel:
+            cmd.joint_trajectories.pop(n, None)
+        for n in traj:
+            cmd.joint_velocities.pop(n, None)
+        cmd.joint_velocities.update(vel)
+        cmd.joint_trajectories.update(traj)
 
     def release_joints(self, names) -> None:
         for n in names:
@@ -199,6 +239,7 @@ class Simulator:
                 raise CommandError(f"unknown joint '{n}'")
         for n in names:
             self.commands.joint_velocities.pop(n, None)
+            self.commands.joint_trajectories.pop(n, None)
 
     def prescribe_sites(self, velocities: dict, axes: dict | None = None) -> None:
         """Prescribe site (point) velocities, world frame [m/s] (Eq. 7, *G_m = point Jacobian).
@@ -251,10 +292,12 @@ class Simulator:
                 raise CommandError(f"unknown site '{n}'")
         spec, cmd = self.spec, self.commands
         for n in joints:
+            cmd.joint_velocities.pop(n, None)
+            cmd.joint_trajectories.pop(n, None)
             if n in spec.prescribed_joints:
                 cmd.joint_velocities[n] = np.array(spec.prescribed_joints[n], float)
-            else:
-                cmd.joint_velocities.pop(n, None)
+            elif n in spec.prescribed_trajectories:
+                cmd.joint_trajectories[n] = spec.prescribed_trajectories[n]
         for n in sites:
             cmd.site_axes.pop(n, None)
             if n in spec.prescribed_sites:
@@ -265,7 +308,20 @@ class Simulator:
                 cmd.site_velocities.pop(n, None)
 
     def prescribed_joints(self) -> dict:
-        return {k: v.copy() for k, v in self.commands.joint_velocities.items()}
+        """Prescribed joint -> the velocity its rows impose on the next step [rad/s, m/s]: the held value,
+        or for a trajectory qdot_p(t_k+1) + b (q_p(t_k+1) - q_k) at the current state (step order:
+        velocities, then trajectories)."""
+        out = {k: v.copy() for k, v in self.commands.joint_velocities.items()}
+        if self.commands.joint_trajectories:
+            t1 = self.state.time_after(self.dt)
+            for k, tr in self.commands.joint_trajectories.items():
+                out[k] = trajectory.joint_rate(self.mech, k, tr, self.state.q, t1)
+        return out
+
+    def joint_trajectories(self) -> dict:
+        """Joints following a position trajectory -> their scene.timefunctions.JointTrajectory (``position(t)``,
+        ``velocity(t)``, ``b``)."""
+        return dict(self.commands.joint_trajectories)
 
     def prescribed_sites(self) -> dict:
         return {k: v.copy() for k, v in self.commands.site_velocities.items()}

@@ -288,8 +288,9 @@ def test_dof_positions_report_file_values_and_rotations():
 
 CONSERVATIVE = ["revolute", "fixed", "planar_translation", "translational", "spherical", "spherical_euler",
                 "spherical_euler_switch", "spherical_exp", "universal", "composite", "free2d", "free3d", "spline_curve", "spline_surface",
-                "mesh_cube", "mesh_wedge", "composite_body", "gear_loop"]
-DISSIPATIVE = ["prismatic", "direction_spring", "spring_damper"]  # implicit springs: energy decays
+                "mesh_cube", "mesh_wedge", "composite_body", "gear_loop", "explicit_spring",
+                "spline_loop"]
+DISSIPATIVE = ["prismatic", "direction_spring", "spring_damper", "body_damping"]  # implicit springs/dampers: energy decays
 
 
 def test_catalogue_scenes_listed():
@@ -331,10 +332,10 @@ def test_energy_error_is_first_order(name):
 #   forces, limit impacts, the momentum projection or the implicit Coriolis force remove energy).
 #   GYROSCOPIC: several coupled rotation DOFs with the explicit Coriolis force (the default; the
 #   IMPLICIT_CORIOLIS scenes run with integrator.coriolis: explicit here): it adds energy at a rate O(h).
-SYMPLECTIC = ["revolute", "fixed", "composite_body", "mesh_cube"]
+SYMPLECTIC = ["revolute", "fixed", "composite_body", "mesh_cube", "explicit_spring"]
 IMPLICIT_CORIOLIS = ["spherical", "spherical_euler", "spherical_euler_switch", "spherical_exp", "universal",
                      "composite"]
-DECAYING = ["gear_loop", "spline_curve", "spline_surface", "planar_translation", "translational", "limits_multi",
+DECAYING = ["gear_loop", "spline_curve", "spline_loop", "spline_surface", "planar_translation", "translational", "limits_multi",
             "free3d", "spherical", "spherical_euler", "universal", "composite"]
 GYROSCOPIC = IMPLICIT_CORIOLIS + ["mesh_wedge"]
 MONOTONE = DISSIPATIVE + ["free3d", "planar_translation", "translational", "spherical_exp", "spherical_euler_switch"]
@@ -352,6 +353,7 @@ def test_implicit_coriolis_scenes():
 def test_energy_classes_cover_the_catalogue():
     names = {s.split("/", 1)[1] for s in list_scenes() if s.startswith("catalogue/")}
     inputs = {"gear", "timed_torque", "timed_wrench"}  # driven: test_energy_balance_with_input
+    inputs |= {"trajectory"}  # driven by a trajectory prescription (test_trajectory_prescription.py)
     assert set(SYMPLECTIC + DECAYING + GYROSCOPIC + DISSIPATIVE + ["free2d"]) | inputs == names
 
 

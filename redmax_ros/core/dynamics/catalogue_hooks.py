@@ -100,6 +100,7 @@ class Extras:
         self.ds_k = np.array([s.stiffness for s in ds])
         self.ds_c = np.array([s.damping for s in ds])
         self.ds_rest = np.array([np.nan if s.rest is None else s.rest for s in ds])
+        self.ds_implicit = np.array([s.implicit for s in ds], dtype=bool)
         # -- momentum projection roots: (joint id, root velocity slice, subtree joint ids)
         self.momentum_roots = []
         for js in mech.spec.joints:
@@ -199,13 +200,17 @@ class Extras:
             _, Jc, Jw, _ = frame_jacobian(mech, ws.data, fid)
             f += Jc.T @ F + Jw.T @ Tq
         if len(self.ds_ab):
-            for (a, b), d, k, c, L0 in zip(self.ds_ab, self.ds_dir, self.ds_k, self.ds_c, self.ds_rest):
+            for (a, b), d, k, c, L0, imp in zip(self.ds_ab, self.ds_dir, self.ds_k, self.ds_c, self.ds_rest,
+                                                self.ds_implicit):
                 xa, Ja = _site(mech, ws.data, a)
                 xb, Jb = _site(mech, ws.data, b)
                 Jd = d @ (Ja - Jb)  # (nv,)
                 s = float(d @ (xa - xb))
-                A += (h * c + h * h * k) * np.outer(Jd, Jd)
-                f += Jd * (-k * (s - L0))
+                if imp:  # K = k d d^T, D = c d d^T through the site Jacobians (Eq. 2)
+                    A += (h * c + h * h * k) * np.outer(Jd, Jd)
+                    f += Jd * (-k * (s - L0))
+                else:  # implicit: false: the whole force at step k, nothing on the LHS (notes §1.9)
+                    f += Jd * (-k * (s - L0) - c * float(Jd @ v_r))
 
     def rows(self, ws):
         """Bilateral rows of the linear constraints in hyper-reduced coordinates (rhs 0)."""

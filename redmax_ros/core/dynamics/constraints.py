@@ -134,7 +134,10 @@ def build(mech, ws, G_loop, J_sites, q, prescribed_joints: dict, prescribed_site
     g = np.empty(lay.m)
     if lay.loop_rows.stop:
         G[lay.loop_rows] = G_loop if T is None else G_loop @ T
-        g[lay.loop_rows] = 0.0
+        if mech.loop_baumgarte:  # Baumgarte: phi_dot = G qdot = -b phi(q_k), phi decays as (1 - b h)^k
+            g[lay.loop_rows] = -mech.loop_baumgarte * ws.tree.loop_phi_at(q)[0]
+        else:  # post-stabilization: the velocity-level rows, q+ projected after the step
+            g[lay.loop_rows] = 0.0
     if prescribed_joints:
         G[lay.joint_block] = lay.G_joints
         g[lay.joint_block] = _stack(prescribed_joints.values())

@@ -9,7 +9,9 @@ with stiffness written positive here (K = -df/dx). Terms and where they come fro
   * reduced implicit joint springs/dampers K_r, D_r (Sueda's notes §2.6, joint stiffness/damping).
   * maximal implicit point-to-point springs/dampers between sites, projected through the point
     Jacobians (Eq. S2.4), with the full 3x3 spring stiffness including the change of spring direction.
-  * body damping D_m = c diag(m I3, I_com) per body (maximal, implicit).
+  * body damping per body (maximal, implicit; notes §1.9.1, f = -D phi): D_m = c diag(m I3, I_com)
+    (form 'mass') or D_m = c I6 on the body twist at the COM (form 'twist', the reference's), both as
+    c diag(m_d I3, I_d) with mech.body_damping_mass/inertia.
   * explicit joint torques (reduced) and constant world wrenches (maximal).
   * opt-in (integrator.coriolis: implicit): the Coriolis/gyroscopic part of nle linearised about qdot^(k),
     h K_v on the LHS and h K_v qdot^(k) on the RHS with K_v = d nle / d qdot (then A is not symmetric).
@@ -76,7 +78,7 @@ def assemble(mech, ws, kin: Kinematics, q, v_r, tau, h, site_forces=None) -> Lin
     if mech.has_stiffness:
         f -= mech.stiffness * joint_displacement(mech, q)
     if len(mech.spring_ab):  # maximal implicit springs: J^T (h D_m + h^2 K_m) J, J^T f_m
-        fs, K, D, Jd, _ = spring_terms(mech, kin.X, kin.J)
+        fs, K, D, Jd, _ = spring_terms(mech, kin.X, kin.J, v_r)  # implicit: false springs: K = D = 0, f at step k
         P, nv = Jd.shape[0], Jd.shape[2]
         W = np.matmul(h * D + (h * h) * K, Jd)
         Jf = Jd.reshape(3 * P, nv)
@@ -84,10 +86,10 @@ def assemble(mech, ws, kin: Kinematics, q, v_r, tau, h, site_forces=None) -> Lin
         f += Jf.T @ fs.reshape(3 * P)
     if len(mech.damped_bodies) or mech.extras is not None:
         A = np.zeros_like(M) if A is None else A
-    for bi in mech.damped_bodies:  # body damping D_m = c diag(m I3, I_com), implicit
+    for bi in mech.damped_bodies:  # body damping D_m = c diag(m_d I3, I_d) at the COM, implicit
         _, Jc, Jw, R = frame_jacobian(mech, data, mech.body_com_fid[bi])
-        Iw = R @ mech.body_inertia[bi] @ R.T
-        A += (h * mech.body_damping[bi]) * (mech.body_mass[bi] * Jc.T @ Jc + Jw.T @ Iw @ Jw)
+        Iw = R @ mech.body_damping_inertia[bi] @ R.T
+        A += (h * mech.body_damping[bi]) * (mech.body_damping_mass[bi] * Jc.T @ Jc + Jw.T @ Iw @ Jw)
     for bi, fw in zip(mech.wrench_body, mech.wrench_fw):  # constant world wrenches at the COM
         _, Jc, Jw, _ = frame_jacobian(mech, data, mech.body_com_fid[bi])
         f += Jc.T @ fw[:3] + Jw.T @ fw[3:]

@@ -26,6 +26,7 @@ class Kinematics:
     row: dict  # site index -> row in X, J
     X: np.ndarray  # (K,3) site positions, world frame [m]
     J: np.ndarray  # (K,3,nv) site point Jacobians, world frame
+    v: np.ndarray | None = None  # (nv,) the reduced velocity they were computed at
 
 
 def site_positions(mech, data, idx=None) -> np.ndarray:
@@ -108,7 +109,7 @@ def compute(mech, ws, q, v, extra_sites=()) -> Kinematics:
             hit = ws.cache[key] = (s2, {s: k for k, s in enumerate(s2)})
         sites, row = hit
     X, J = site_jacobians(mech, ws, sites, q)
-    return Kinematics(M=data.M.reshape(nv, nv), nle=data.nle.reshape(nv), sites=sites, row=row, X=X, J=J)
+    return Kinematics(M=data.M.reshape(nv, nv), nle=data.nle.reshape(nv), sites=sites, row=row, X=X, J=J, v=v)
 
 
 def frame_jacobian(mech, data, fid):

@@ -134,7 +134,9 @@ def _spring_cross_kernel(parents, idx_v, nv_j, St, ja, pa, jb, pb, C, A):
 
 
 def body_damping_blocks(ctx: Context, h: float) -> np.ndarray | None:
-    """Maximal 6x6 blocks h D_m per joint (world twists), D_m = c diag(m I3, R I_com R^T) at the COM."""
+    """Maximal 6x6 blocks h D_m per joint (world twists), D_m = c diag(m_d I3, R I_d R^T) at the COM:
+    (m_d, I_d) = (m, I_com) for body-damping form 'mass', (1, I3) for form 'twist' (D_m = c I6 on the
+    body twist, notes §1.9.1); the same D_m as forces.assemble."""
     if not len(ctx.damp_jid):
         return None
     ws = ctx.ws

@@ -71,12 +71,13 @@ class Context:
         self.spring_jb = np.ascontiguousarray(self.site_jid[sb])
         self.spring_oa = np.ascontiguousarray(self.site_local[sa])
         self.spring_ob = np.ascontiguousarray(self.site_local[sb])
-        # body damping D_m = c diag(m I3, I_com) at the COM, per damped body (joint frame data)
+        # body damping D_m = c diag(m_d I3, I_d) at the COM, per damped body (joint frame data);
+        # (m_d, I_d) = (m, I_com) for form 'mass', (1, I3) for form 'twist' (D_m = c I6)
         db = np.asarray(mech.damped_bodies, dtype=int)
         self.damp_jid = np.asarray(mech.body_jid, dtype=np.int64)[db] if len(db) else np.zeros(0, np.int64)
         self.damp_com = mech.body_com[db] if len(db) else np.zeros((0, 3))
-        self.damp_I = np.array([mech.body_inertia[i] for i in db]).reshape(-1, 3, 3)
-        self.damp_m = mech.body_mass[db] if len(db) else np.zeros(0)
+        self.damp_I = np.array([mech.body_damping_inertia[i] for i in db]).reshape(-1, 3, 3)
+        self.damp_m = mech.body_damping_mass[db] if len(db) else np.zeros(0)
         self.damp_c = mech.body_damping[db] if len(db) else np.zeros(0)
         # constant world wrenches at body COMs
         wb = np.asarray(mech.wrench_body, dtype=int)

@@ -63,7 +63,7 @@ def static_external(mech, kin, ext: ExternalForces, data, site_forces=None):
     """Explicit maximal forces of the step (springs at q, constant wrenches, commanded site forces)."""
     out = ext.base
     if len(mech.spring_ab):
-        fs, *_ = spring_terms(mech, kin.X, kin.J)
+        fs, *_ = spring_terms(mech, kin.X, kin.J, kin.v)
         a, b = mech.spring_ab[:, 0], mech.spring_ab[:, 1]
         xa, xb = kin.X[mech.spring_rows[:, 0]], kin.X[mech.spring_rows[:, 1]]
         ext.add(out, mech.site_jid[a], fs, xa)
@@ -262,7 +262,7 @@ def static_external_world(mech, kin, ws, site_forces=None):
     at q, constant body wrenches, commanded site forces."""
     out = np.zeros((mech.model.njoints, 6))
     if len(mech.spring_ab):
-        fs, *_ = spring_terms(mech, kin.X, kin.J)
+        fs, *_ = spring_terms(mech, kin.X, kin.J, kin.v)
         a, b = mech.spring_ab[:, 0], mech.spring_ab[:, 1]
         xa, xb = kin.X[mech.spring_rows[:, 0]], kin.X[mech.spring_rows[:, 1]]
         np.add.at(out, mech.site_jid[a], np.hstack([fs, _cross(xa, fs)]))

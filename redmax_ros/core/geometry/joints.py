@@ -318,13 +318,14 @@ def ref_spherical_exp(q, qd):
     return pin.SE3(R, np.zeros(3)), S, Sd
 
 
-def reparameterize_exp(q, qd):
-    """Grassia's reparameterisation (§2.5.8): if ||q|| > pi, q <- (1 - 2 pi/||q||) q (the same rotation,
-    ||q_new|| = 2 pi - ||q||) and qdot <- S(q_new)^-1 S(q) qdot (the same angular velocity).
-    Returns (q, qdot, changed)."""
+def reparameterize_exp(q, qd, threshold=math.pi):
+    """Grassia's reparameterisation (§2.5.8): if ||q|| > threshold, q <- (1 - 2 pi/||q||) q (the same
+    rotation, ||q_new|| = 2 pi - ||q||) and qdot <- S(q_new)^-1 S(q) qdot (the same angular velocity).
+    ``threshold`` in [pi, 2 pi) (scene key reparam_threshold; pi by default, the RedMax reference uses
+    1.5 pi): at or above pi the new norm is below it, so the map is applied once. Returns (q, qdot, changed)."""
     q, qd = np.asarray(q, float), np.asarray(qd, float)
     n = float(np.linalg.norm(q))
-    if n <= math.pi:
+    if n <= threshold:
         return q, qd, False
     q2 = (1.0 - 2.0 * math.pi / n) * q
     _, S1, _ = exp_jacobian(q)

@@ -8,6 +8,10 @@ S is the body Jacobian [Q^-1 dQ/dq] and dS/dq its derivative, so that Sdot = (dS
   Q(s) = C_i exp(dC_{i+1} Bt_2(u)) exp(dC_{i+2} Bt_3(u)) exp(dC_{i+3} Bt_4(u)), dC_k = log(C_{k-1}^-1 C_k),
   with the cumulative basis functions Bt (Eq. 2.72). The parameter runs over s in [0, n - 3];
   consecutive segments join with C2 continuity (B-spline property, kept by the cumulative form).
+  A *cyclic* curve (``cyclic: true``, issue 13 item 6) wraps the control frames around: segment
+  i = floor(s) mod n uses C_i .. C_{i+3} with indices mod n and dC_0 = log(C_{n-1}^-1 C_0), so
+  Q(s + n) = Q(s) for every real s (no domain ends). The joins are the same identity as between any
+  two segments (C_{i-1} exp(dC_i) = C_i, here also for i = 0), so the closed curve is C2 everywhere.
 * Spline surface joint (2 DOF, §2.5.13): a grid of control values (x, y, z, rx, ry, rz) of size
   n1 x n2 (each >= 4); on patch (i, j) each of the six components is the tensor-product B-spline
   f_k(q1, q2) = q1^T B^T C_k B q2 (Eq. 2.75) and Q = prod_k exp(e_k f_k) (Eq. 2.78), translations
@@ -46,29 +50,40 @@ def _segment(s, n):
 
 
 class SplineCurve:
-    """Spline curve joint geometry: control frames (list of pin.SE3), parameter domain [0, n - 3]."""
+    """Spline curve joint geometry: control frames (list of pin.SE3), parameter domain [0, n - 3];
+    ``cyclic``: the frames wrap around (period n in s, no domain ends)."""
 
-    def __init__(self, frames):
+    def __init__(self, frames, cyclic=False):
         self.C = [pin.SE3(M) for M in frames]
+        self.cyclic = bool(cyclic)
         if len(self.C) < 4:
             raise ValueError("a spline curve needs at least 4 control frames")
-        self.dC = [None] + [log6(self.C[k - 1].inverse() * self.C[k]) for k in range(1, len(self.C))]
+        n = len(self.C)
+        self.dC = [log6(self.C[n - 1].inverse() * self.C[0]) if self.cyclic else None] + \
+            [log6(self.C[k - 1].inverse() * self.C[k]) for k in range(1, n)]
 
     @property
     def domain(self):
+        if self.cyclic:
+            return -np.inf, np.inf
         return 0.0, float(len(self.C) - 3)
 
     def eval(self, s):
         """(Q (SE3), S (6,1), dS/ds (6,1)) at parameter s (Alg. 3)."""
-        i, u = _segment(float(s), len(self.C))
+        n = len(self.C)
+        if self.cyclic:
+            f = np.floor(float(s))
+            i, u = int(f) % n, float(s) - f
+        else:
+            i, u = _segment(float(s), n)
         p, dp, ddp = _powers(u)
         b, db, ddb = B_CUM @ p, B_CUM @ dp, B_CUM @ ddp
-        xi = self.dC[i + 1]
+        xi = self.dC[(i + 1) % n]
         Q = self.C[i] * exp6(xi * b[1])
         S = xi * db[1]
         dS = xi * ddb[1]
         for k in (2, 3):
-            xi = self.dC[i + k]
+            xi = self.dC[(i + k) % n]
             E = exp6(xi * b[k])
             Q = Q * E
             A = Ad(E.inverse())

@@ -21,7 +21,7 @@ dependent* J_rR (§2.7, Eq. 2.88-2.90):
 * after the configuration update the coordinates are integrated as in the notes
   (g+ = g + h gdot+, which pin.integrate does on the coordinate joint) and the carrier is set to
   exactly Q(g+), so the body never leaves the spline/sphere; ``spherical_exp`` coordinates are
-  reparameterised when ||g|| > pi (Grassia; joints.reparameterize_exp), which also maps gdot, and a
+  reparameterised when ||g|| > the joint's reparam_threshold (default pi; Grassia; joints.reparameterize_exp), which also maps gdot, and a
   switching ``spherical_euler`` joint changes chart when its rotation enters the home chart's
   singular band (euler_charts.select), with g from R and gdot mapped by Eq. 2.40. Its current chart
   is a function of the carrier's rotation, so it is recovered from any configuration (reset,
@@ -35,6 +35,7 @@ direct pipeline (pin.Data, forces.py) supports mapped joints.
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -256,15 +257,16 @@ class Maps:
         return q
 
     def reparameterize(self, q, vR, T):
-        """Grassia's reparameterisation of spherical_exp coordinates with ||g|| > pi; maps gdot through
-        the hyper-reduced columns of the coordinate joint. Returns True if anything changed."""
+        """Grassia's reparameterisation of spherical_exp coordinates with ||g|| > the joint's
+        reparam_threshold (default pi; notes §2.5.8); maps gdot through the hyper-reduced columns of the
+        coordinate joint. Returns True if anything changed."""
         changed = False
         for m in self.items:
             if m.spec.type != "spherical_exp":
                 continue
             Tg = T[m.gv]
             gd = Tg @ vR
-            g2, gd2, ch = jt.reparameterize_exp(q[m.gq], gd)
+            g2, gd2, ch = jt.reparameterize_exp(q[m.gq], gd, m.spec.extra.get("reparam_threshold", math.pi))
             if ch:
                 cols = [int(np.flatnonzero(Tg[i])[0]) for i in range(m.k)]
                 q[m.gq] = g2

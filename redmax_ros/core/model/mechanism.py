@@ -71,7 +71,7 @@ class Mechanism:
     v0: np.ndarray  # (ndof,) initial hyper-reduced velocity
     q_rest: np.ndarray  # (nq,) rest configuration of the joint springs
     damped_bodies: np.ndarray  # indices of bodies with body damping
-    body_damping: np.ndarray  # (B,) body damping rate c [1/s]: D_m = c diag(m I3, I_com)
+    body_damping: np.ndarray  # (B,) body damping coefficient c: D_m = c diag(m_d I3, I_d) (body_damping_mass/inertia)
     body_support: np.ndarray  # (B,nv) bool: velocity DOFs that move each body
     wrench_body: np.ndarray  # (W,) body indices
     wrench_fw: np.ndarray  # (W,6) force, torque (world frame)
@@ -98,7 +98,13 @@ class Mechanism:
     friction: object = None  # contact.FrictionModel (ground contact, joint friction) or None
     joint_support: np.ndarray | None = None  # (njoints, nv) bool: DOFs moving each joint's body (row 0: world)
     coriolis_implicit: bool = False  # integrator.coriolis: implicit (forces.coriolis_jacobian; docs/scenes.md)
+    loop_baumgarte: float = 0.0  # [1/s] b of Baumgarte loop stabilization (G qdot+ = -b phi); 0: post-stabilization
     maps: object = None  # joint_maps.Maps (spline/exp/Euler-chart joints) as built, or None (compile only)
+    # body damping D_m = c diag(m_d I3, I_d) at each body's COM (joint frame; scene/bodies.body_damping):
+    # form 'mass': m_d = m, I_d = I_com; form 'twist' (D_m = c I6 on the body twist): m_d = 1, I_d = I3
+    body_damping_mass: np.ndarray | None = None  # (B,)
+    body_damping_inertia: list = field(default_factory=list)  # (B,) of (3,3)
+    spring_explicit: np.ndarray | None = None  # (P,) bool: springs with implicit: false (no K/D in Eq. 2's LHS)
 
     @property
     def nq(self) -> int:
@@ -250,6 +256,9 @@ def build_mechanism(spec: SceneSpec) -> Mechanism:
         Is = [M.rotation @ inertia_of[n].inertia @ M.rotation.T for n, M in zip(body_names, body_pl)]
     body_damping = np.array([inertia_of[n].damping if n in inertia_of else 0.0 for n in body_names])
     damped = np.flatnonzero(body_damping > 0)
+    twist_damped = [n in inertia_of and inertia_of[n].damping_form == "twist" for n in body_names]
+    damp_mass = np.array([1.0 if t else m for t, m in zip(twist_damped, masses)], dtype=float)
+    damp_inertia = [np.eye(3) if t else np.asarray(I, float) for t, I in zip(twist_damped, Is)]
     support_of = support_table(model)  # (njoints, nv) bool, one pass (model.joints[j] copies are slow)
     body_support = support_of[body_jid].reshape(-1, nv)
 
@@ -329,6 +338,8 @@ def build_mechanism(spec: SceneSpec) -> Mechanism:
         T=T, coupling_names=cnames, stiffness=stiffness, damping=damping, torque0=torque0, lower=lower, upper=upper,
         limited=limited, limited_q=limited_q, q0=q0, v0=v0r, q_rest=q_rest, damped_bodies=damped,
         body_damping=body_damping, body_support=body_support,
+        body_damping_mass=damp_mass, body_damping_inertia=damp_inertia,
+        spring_explicit=np.array([not s.implicit for s in spec.springs], dtype=bool),
         wrench_body=wrench_body, wrench_fw=wrench_fw, prescribable_joints=list(pj), prescribable_sites=list(ps),
         joint_index=joint_index, site_index=site_index, site_fid=site_fid, body_com_fid=com_fid,
         jac_sites=jac_sites, jac_row=jac_row, has_stiffness=bool(stiffness.any()),
@@ -336,7 +347,8 @@ def build_mechanism(spec: SceneSpec) -> Mechanism:
         joint_support=support_of,
         spring_rows=np.array([[jac_row[a], jac_row[b]] for a, b in spring_ab], dtype=int).reshape(-1, 2),
         loop_rows_ab=np.array([[jac_row[a], jac_row[b]] for a, b in loop_ab], dtype=int).reshape(-1, 2),
-        coriolis_implicit=spec.coriolis == "implicit", maps=maps, **limit,
+        coriolis_implicit=spec.coriolis == "implicit", maps=maps,
+        loop_baumgarte=float(spec.baumgarte_b) if spec.stabilization == "baumgarte" else 0.0, **limit,
     )
 
 

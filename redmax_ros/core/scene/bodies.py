@@ -29,6 +29,28 @@ BODY_KEYS = {"name", "parts", "shape", "density", "mass", "damping", "rgba", "fr
 PART_KEYS = {"name", "shape", "density", "mass", "com", "inertia", "pos", "rpy"}
 
 
+DAMPING_FORMS = ("mass", "twist")
+
+
+def body_damping(v, entry, value):
+    """The body-damping entry of a body: ``damping: c`` (mass-proportional) or
+    ``damping: {c: c, form: mass | twist}``. Returns (c, form). Both forms are maximal damping
+    matrices D_m of Eq. (2) (notes §1.9.1, damping force f = -D phi, D = -df/dphi), implicit:
+      * ``mass`` (default): D_m = c diag(m I3, I_com) at the COM, c in 1/s (every body's velocity
+        decays at the rate c, independent of its size);
+      * ``twist``: the reference's wrench -c phi on all six components of the body twist
+        phi = (omega, nu) in the body frame at the COM, D_m = c I6 (c in N m s for the angular and
+        N s/m for the linear part; c I6 is invariant under a rotation of the frame, so the design and
+        principal frames give the same D_m)."""
+    if isinstance(value, dict):
+        v.keys(f"{entry} damping", value, {"c", "form"}, required=("c",))
+        form = value.get("form", "mass")
+        if form not in DAMPING_FORMS:
+            v.err(entry, f"'damping.form' must be one of {list(DAMPING_FORMS)}, got {form!r}")
+        return v.number(entry, "damping.c", value["c"], nonneg=True), form
+    return v.number(entry, "damping", value, nonneg=True), "mass"
+
+
 def handles(d) -> bool:
     """True for body entries this module validates (composite or mesh bodies)."""
     if not isinstance(d, dict):
@@ -119,13 +141,13 @@ def validate_body(v, entry, d, base_dir):
     ev = np.linalg.eigvalsh(I)
     if ev[0] <= 0:
         v.err(entry, f"inertia is not positive definite (eigenvalues {ev.tolist()}); a flat or degenerate body?")
-    damping = v.number(entry, "damping", d.get("damping", 0.0), nonneg=True)
+    damping, dform = body_damping(v, entry, d.get("damping", 0.0))
     rgba = tuple(v.vector(entry, "rgba", d.get("rgba", [0.7, 0.7, 0.75, 1.0]), 4))
     shape["frame"] = frame
     if frame == "principal":
         R, w = principal_frame(c, I)
         shape["principal"] = (R, np.asarray(c, float))  # principal frame in the design frame
-    return BodySpec(d["name"], float(m), np.asarray(c, float), I, shape, damping, rgba)
+    return BodySpec(d["name"], float(m), np.asarray(c, float), I, shape, damping, rgba, dform)
 
 
 def _pose(M: pin.SE3):

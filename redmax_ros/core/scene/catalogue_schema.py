@@ -7,6 +7,7 @@ name the file and entry of every problem).
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -39,8 +40,8 @@ SUB_TYPES = {"revolute": (1, 1), "prismatic": (1, 1), "universal": (2, 2), "sphe
 COMMON_KEYS = {"name", "type", "parent", "child", "placement", "body_placement", "q0", "v0", "limits", "stiffness",
                "rest", "damping", "armature", "torque"}
 SPECIFIC_KEYS = {"planar_translation": {"axes"}, "translational": set(), "spherical_euler": {"chart", "switch_charts"},
-                 "spherical_exp": set(), "free2d": set(), "free3d": {"conserve_momentum"}, "composite": {"joints"},
-                 "spline_curve": {"control_frames"}, "spline_surface": {"control_grid"}}
+                 "spherical_exp": {"reparam_threshold"}, "free2d": set(), "free3d": {"conserve_momentum"}, "composite": {"joints"},
+                 "spline_curve": {"control_frames", "cyclic"}, "spline_surface": {"control_grid"}}
 
 
 def coordinate_dofs(jtype: str, nv: int, parts=()) -> list:
@@ -125,6 +126,14 @@ def validate_joint(v, entry, d, base_dir=None):
                     v.err(entry, f"'{k}' is not allowed with switch_charts: true (the angles jump at a chart "
                                  "switch; euler_charts.py)")
             extra["switch_charts"] = True
+    elif t == "spherical_exp" and "reparam_threshold" in d:
+        # Grassia's reparameterisation q <- (1 - 2 pi/||q||) q when ||q|| > threshold (notes §2.5.8; the
+        # reference uses 1.5 pi). ||q_new|| = 2 pi - ||q|| is then below the threshold only if it is >= pi,
+        # and S(q) is singular on the 2 pi shell: pi <= threshold < 2 pi.
+        thr = v.number(entry, "reparam_threshold", d["reparam_threshold"])
+        if not (math.pi <= thr < 2.0 * math.pi):
+            v.err(entry, f"'reparam_threshold' must be in [pi, 2 pi) rad = [3.14159..., 6.28318...), got {thr}")
+        extra["reparam_threshold"] = thr
     elif t == "composite":
         subs = d["joints"]
         if not isinstance(subs, list) or len(subs) < 2:
@@ -134,7 +143,10 @@ def validate_joint(v, entry, d, base_dir=None):
         nv = sum(p.extra["nv"] for p in parts)
         nq0 = sum(p.extra["nq0"] for p in parts)
     elif t == "spline_curve":
-        extra["geometry"], lo_hi = _curve(v, entry, d["control_frames"])
+        cyclic = d.get("cyclic", False)
+        if not isinstance(cyclic, bool):
+            v.err(entry, f"'cyclic' must be true or false, got {cyclic!r}")
+        extra["geometry"], lo_hi = _curve(v, entry, d["control_frames"], cyclic)
     elif t == "spline_surface":
         extra["geometry"], lo_hi = _surface(v, entry, d["control_grid"])
     extra["nv"], extra["nq0"] = nv, nq0
@@ -181,15 +193,17 @@ def validate_joint(v, entry, d, base_dir=None):
                      extra)
 
 
-def _curve(v, entry, frames):
+def _curve(v, entry, frames, cyclic=False):
     if not isinstance(frames, list) or len(frames) < 4:
         v.err(entry, "'control_frames' must list at least 4 frames ({pos: [x, y, z], rpy: [r, p, y]})")
     Ms = [placement(*v.pose(f"{entry} control_frames[{i}]", "control frame", f)) for i, f in enumerate(frames)]
-    for i in range(1, len(Ms)):
+    for i in range(0 if cyclic else 1, len(Ms)):  # cyclic: also the wrap-around pair (n-1, 0)
         dR = Ms[i - 1].rotation.T @ Ms[i].rotation
         if np.arccos(np.clip((np.trace(dR) - 1) / 2, -1, 1)) > 3.0:
-            v.err(entry, f"control frames {i - 1} and {i} differ by a rotation near pi (log is ambiguous)")
-    curve = SplineCurve(Ms)
+            v.err(entry, f"control frames {(i - 1) % len(Ms)} and {i} differ by a rotation near pi (log is ambiguous)")
+    if cyclic and np.allclose(Ms[-1].homogeneous, Ms[0].homogeneous, atol=1e-12):
+        v.err(entry, "a cyclic curve wraps around by itself: do not repeat the first control frame at the end")
+    curve = SplineCurve(Ms, cyclic)
     lo, hi = curve.domain
     return curve, (np.array([lo]), np.array([hi]))
 
@@ -227,6 +241,7 @@ class DirectionSpringSpec:
     stiffness: float  # N/m
     damping: float  # N s/m
     rest: float | None  # m (signed length along direction); None = initial
+    implicit: bool = True  # False: explicit force -(k (s - L0) + c d.(v_a - v_b)) d at step k, no K/D in Eq. (2)'s LHS
 
 
 @dataclass
@@ -313,12 +328,15 @@ def _constraint(v, entry, d, spec):
 def _force(v, entry, d, spec, sites, bodies, cat):
     t = d.get("type")
     if t == "spring_damper":
-        v.keys(entry, d, {"name", "type", "a", "b", "stiffness", "damping", "rest_length"})
+        v.keys(entry, d, {"name", "type", "a", "b", "stiffness", "damping", "rest_length", "implicit"})
         s = v.spring(entry, {k: x for k, x in d.items() if k != "type"}, sites)
         spec.springs.append(s if isinstance(s, SpringSpec) else s)
     elif t == "direction_spring":
-        v.keys(entry, d, {"name", "type", "a", "b", "direction", "stiffness", "damping", "rest_length"},
+        v.keys(entry, d, {"name", "type", "a", "b", "direction", "stiffness", "damping", "rest_length", "implicit"},
                required=("a", "b", "direction"))
+        implicit = d.get("implicit", True)
+        if not isinstance(implicit, bool):
+            v.err(entry, f"'implicit' must be true or false, got {implicit!r}")
         a, b = v.site_ref(entry, "a", d, sites), v.site_ref(entry, "b", d, sites)
         if a == b:
             v.err(entry, "a spring needs two different sites")
@@ -327,7 +345,7 @@ def _force(v, entry, d, spec, sites, bodies, cat):
             d["name"], a, b, v.axis(entry, "direction", d["direction"]),
             v.number(entry, "stiffness", d.get("stiffness", 0.0), nonneg=True),
             v.number(entry, "damping", d.get("damping", 0.0), nonneg=True),
-            None if rl is None else v.number(entry, "rest_length", rl)))
+            None if rl is None else v.number(entry, "rest_length", rl), implicit))
     elif t == "wrench":
         v.keys(entry, d, {"name", "type", "body", "site", "force", "torque"}, required=("body",))
         if d["body"] not in bodies or d["body"] == "world":

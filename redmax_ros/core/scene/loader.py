@@ -16,7 +16,7 @@ import pinocchio as pin
 
 from redmax_ros.core.errors import SceneError, SceneNotFound
 from redmax_ros.core.geometry.inertia import shape_inertia, shape_volume
-from redmax_ros.core.scene import bodies, catalogue_schema, contact_schema, files
+from redmax_ros.core.scene import bodies, catalogue_schema, contact_schema, files, timefunctions
 from redmax_ros.core.scene import builders, builders_friction, builders_large  # noqa: F401  (register the shipped builders)
 from redmax_ros.core.scene.registry import BUILDERS
 from redmax_ros.core.scene.spec import (CORE_JOINT_TYPES, WORLD, BodySpec, CouplingSpec, JointSpec, LoopSpec, SceneSpec, SiteSpec,
@@ -148,6 +148,12 @@ def load_scene(name_or_path: str, overrides=(), *, allowed_dirs=None) -> SceneSp
         raise SceneError(src, "", "top level must be a mapping")
     raw.setdefault("name", path.stem)
     return scene_from_dict(raw, src, overrides, base_dir=path.parent, confine_files=allowed_dirs is not None)
+
+
+def parse_joint_trajectory(entry: str, d, nv: int, source: str = "command"):
+    """A joint trajectory ``{position: <time function or list of nv>, b: 5}`` in the scene grammar
+    (``prescribed.joints.<name>``, timefunctions.parse_trajectory), for commands; SceneError naming ``entry``."""
+    return timefunctions.parse_trajectory(_Validator(source, None), entry, d, nv)
 
 
 def scene_from_dict(raw: dict, source: str = "<dict>", overrides=(), base_dir: Path | None = None, *,
@@ -365,7 +371,7 @@ class _Validator:
     def scene(self, raw) -> SceneSpec:
         top = {"name", "description", "units", "gravity", "dt", "duration", "bodies", "joints", "sites", "springs",
                "wrenches", "loops", "couplings", "prescribable", "prescribed", "urdf", "params", "solver",
-               "integrator"}
+               "integrator", "stabilization"}
         top |= contact_schema.TOP_KEYS | catalogue_schema.TOP_KEYS
         self.keys("scene", raw, top)
         if raw.get("units", "SI") != "SI":
@@ -401,7 +407,23 @@ class _Validator:
         spec.friction = contact_schema.parse(self, raw, spec, body_names)
         spec.catalogue = catalogue_schema.parse(self, raw, spec, body_names)
         self.integrator(spec, raw.get("integrator"))
+        self.stabilization(spec, raw.get("stabilization"))
         return spec
+
+    def stabilization(self, spec, d):
+        """``stabilization: {method: post | baumgarte, b: 5.0}`` (docs/scenes.md, "Loop stabilization")."""
+        if d is None:
+            return
+        if not isinstance(d, dict):
+            self.err("stabilization", f"must be a mapping such as {{method: baumgarte, b: 5.0}}, got {d!r}")
+        self.keys("stabilization", d, {"method", "b"})
+        method = d.get("method", "post")
+        if method not in ("post", "baumgarte"):
+            self.err("stabilization.method", f"unknown value {method!r} (post, baumgarte)")
+        if "b" in d and method != "baumgarte":
+            self.err("stabilization.b", "is the Baumgarte gain; it needs method: baumgarte")
+        spec.stabilization = method
+        spec.baumgarte_b = self.number("stabilization.b", "b", d.get("b", 5.0), positive=True)
 
     def integrator(self, spec, d):
         """``integrator: {coriolis: explicit | implicit}`` (docs/scenes.md, "Integrator")."""
@@ -484,9 +506,9 @@ class _Validator:
             self.err(entry, f"inertia is not positive definite (eigenvalues {np.round(ev, 12).tolist()})")
         if ev[2] > ev[0] + ev[1] + 1e-12 * ev[2]:
             self.err(entry, f"inertia violates the triangle inequality (eigenvalues {ev.tolist()})")
-        damping = self.number(entry, "damping", d.get("damping", 0.0), nonneg=True)
+        damping, dform = bodies.body_damping(self, entry, d.get("damping", 0.0))
         rgba = tuple(self.vector(entry, "rgba", d.get("rgba", [0.7, 0.7, 0.75, 1.0]), 4))
-        return BodySpec(d["name"], mass, com, I, shape, damping, rgba)
+        return BodySpec(d["name"], mass, com, I, shape, damping, rgba, dform)
 
     def joint(self, entry, d) -> JointSpec:
         if d.get("type") in catalogue_schema.TYPES:  # notes §2.5 catalogue joints
@@ -621,14 +643,17 @@ class _Validator:
         return d[key]
 
     def spring(self, entry, d, sites) -> SpringSpec:
-        self.keys(entry, d, {"name", "a", "b", "stiffness", "damping", "rest_length"})
+        self.keys(entry, d, {"name", "a", "b", "stiffness", "damping", "rest_length", "implicit"})
         a, b = self.site_ref(entry, "a", d, sites), self.site_ref(entry, "b", d, sites)
         if a == b:
             self.err(entry, "a spring needs two different sites")
         rl = d.get("rest_length")
+        implicit = d.get("implicit", True)
+        if not isinstance(implicit, bool):
+            self.err(entry, f"'implicit' must be true or false, got {implicit!r}")
         return SpringSpec(d["name"], a, b, self.number(entry, "stiffness", d.get("stiffness", 0.0), nonneg=True),
                           self.number(entry, "damping", d.get("damping", 0.0), nonneg=True),
-                          None if rl is None else self.number(entry, "rest_length", rl, nonneg=True))
+                          None if rl is None else self.number(entry, "rest_length", rl, nonneg=True), implicit)
 
     def wrench(self, entry, d, bodies) -> WrenchSpec:
         self.keys(entry, d, {"name", "body", "force", "torque"}, required=("body",))
@@ -688,6 +713,10 @@ class _Validator:
             if not spec.urdf and name not in joint_names:
                 self.err("prescribed.joints", f"unknown joint '{name}'")
             n = nv_of.get(name, 1)
+            if isinstance(val, dict):  # {position: <time function(s)>, b: 5}: a trajectory q_p(t) (timefunctions.py)
+                spec.prescribed_trajectories[name] = timefunctions.parse_trajectory(self, f"prescribed.joints.{name}",
+                                                                                   val, n)
+                continue
             spec.prescribed_joints[name] = self.vector(f"prescribed.joints.{name}", "velocity", val, n, allow_scalar=n == 1)
         for name, val in (pr.get("sites") or {}).items():
             entry = f"prescribed.sites.{name}"

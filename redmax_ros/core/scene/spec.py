@@ -25,8 +25,9 @@ class BodySpec:
     com: np.ndarray  # (3,) m, body frame
     inertia: np.ndarray  # (3,3) kg m^2 about the COM, body frame
     shape: dict | None = None  # for markers
-    damping: float = 0.0  # body damping rate [1/s]: D_m = c diag(m I3, I_com)
+    damping: float = 0.0  # body damping coefficient c: D_m = c diag(m I3, I_com) [c in 1/s] or c I6 (damping_form)
     rgba: tuple = (0.7, 0.7, 0.75, 1.0)
+    damping_form: str = "mass"  # "mass": c diag(m I3, I_com); "twist": c I6 on the body twist at the COM
 
 
 @dataclass
@@ -69,6 +70,7 @@ class SpringSpec:
     stiffness: float  # N/m
     damping: float  # N s/m
     rest_length: float | None  # m; None = distance at the initial configuration
+    implicit: bool = True  # False: explicit force only, no K/D in the LHS of Eq. (2) (springs.spring_forces)
 
 
 @dataclass
@@ -111,12 +113,15 @@ class SceneSpec:
     prescribable_joints: list | None = None  # None = every moving joint
     prescribable_sites: list | None = None  # None = every site
     prescribed_joints: dict = field(default_factory=dict)  # name -> velocity (nv,)
+    prescribed_trajectories: dict = field(default_factory=dict)  # name -> timefunctions.JointTrajectory
     prescribed_sites: dict = field(default_factory=dict)  # name -> velocity (3,) world frame
     prescribed_site_axes: dict = field(default_factory=dict)  # name -> (k,3) directions, when not x, y, z
     urdf: str | None = None  # path of a URDF giving the tree (bodies/joints then come from it)
     urdf_fixed_base: bool = True
     solver: str = "direct"
     coriolis: str = "explicit"  # integrator.coriolis: explicit (Eq. 2 as in the paper) | implicit (linearised)
+    stabilization: str = "post"  # loops: post (projection after the step) | baumgarte (velocity-level feedback)
+    baumgarte_b: float = 5.0  # [1/s] stabilization.b: G qdot+ = -b phi(q_k) for the loop rows (method baumgarte)
     description: str = ""
     raw: dict = field(default_factory=dict, repr=False)
     friction: object = None  # contact_schema.FrictionSpec: ground, contacts, joint/loop friction (or None)

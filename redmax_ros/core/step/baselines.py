@@ -28,7 +28,7 @@ def applied_force(mech, ws, q, v, tau=None) -> np.ndarray:
     if len(mech.spring_ab):
         pin.computeJointJacobians(mech.model, ws.data, q)
         X, J = site_jacobians(mech, ws, mech.jac_sites)
-        fs, _, D, Jd, _ = spring_terms(mech, X, J)
+        fs, _, D, Jd, _ = spring_terms(mech, X, J, v)  # explicit (implicit: false) dampers already in fs, D = 0
         vrel = np.einsum("pin,n->pi", Jd, v)
         fs = fs - np.einsum("pij,pj->pi", D, vrel)  # damper force -c (u.v) u
         f += np.einsum("pin,pi->n", Jd, fs)

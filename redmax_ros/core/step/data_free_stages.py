@@ -32,7 +32,7 @@ from redmax_ros.core.dynamics import constraints
 from redmax_ros.core.dynamics import tree_forces as tf
 from redmax_ros.core.solvers.problem import Constraints
 from redmax_ros.core.solvers.problem import LinearSystem
-from redmax_ros.core.dynamics.springs import spring_forces
+from redmax_ros.core.dynamics.springs import needs_velocities, spring_forces
 from redmax_ros.core.errors import StepError
 from redmax_ros.core.solvers.direct import solve_direct
 from redmax_ros.core.solvers.lockstep_pcg import DEFAULT_RTOL, Fallback, Ops, active_set, block_pcg, default_max_iter, spd_solve
@@ -187,7 +187,11 @@ def data_free_velocity(mech, ws, state, cmd, tau, h, solver="pcg", rtol=DEFAULT_
     K = D = None
     if len(mech.spring_ab):
         X = ctx.jac_positions()
-        fs, K, D, _ = spring_forces(mech, X)
+        V = None
+        if needs_velocities(mech):  # site velocities v_o + w x x of explicit spring dampers (implicit: false)
+            ov = rws.ov[ctx.jac_jid]
+            V = ov[:, :3] + np.cross(ov[:, 3:], X)
+        fs, K, D, _ = spring_forces(mech, X, V)
         springs = (fs, X)
     sf = {mech.site_index[n]: f for n, f in cmd.site_forces.items()} if cmd.site_forces else None
     b = tf.rhs(ctx, state.q, v_r, tau, h, sf, springs)

@@ -2,6 +2,7 @@
 StepResult).
 
     ws.deadline = budget.start()                        # the step budget (solvers/budget.py), or None
+    cmd = trajectory.resolve(mech, state, cmd, h)       # joint trajectories -> this step's velocity rows
     tau = applied_torques(mech, state, cmd, h)          # inputs checked (non-finite ones named)
     ws.extras.begin(...)                                # catalogue: J_rR of joint maps at q, load time
     vs = velocity(mech, ws, state, cmd, tau, h)         # stages 1-4 of the backend (below); inputs beyond
@@ -40,6 +41,7 @@ from redmax_ros.core.errors import StepError
 from redmax_ros.core.friction import staggered
 from redmax_ros.core.solvers.direct import solve_direct
 from redmax_ros.core.solvers.kkt import max_row_residual
+from redmax_ros.core.step import trajectory
 from redmax_ros.core.step.state import (Diagnostics, State, StepResult, applied_torques, check_applied, check_inputs,
                                         check_rows, check_speed)
 
@@ -71,6 +73,7 @@ def step(mech, ws, state: State, cmd, h: float, velocity, budget=None) -> tuple:
 
 
 def _step(mech, ws, state: State, cmd, h: float, velocity, t0) -> tuple:
+    cmd = trajectory.resolve(mech, state, cmd, h)  # joint trajectories -> this step's prescribed velocities
     tau = applied_torques(mech, state, cmd, h)
     if ws.extras is not None:  # catalogue: time of the timed loads, J_rR of spline/exp joints at q
         ws.extras.begin(mech, ws, state)
@@ -93,7 +96,7 @@ def update_configuration(mech, ws, q, vs: VelocitySolve, cmd, h) -> tuple:
     v_new = ws.to_reduced(vs.sol.v)
     q_new = pin.integrate(mech.model, q, h * v_new)
     viol_pos = None
-    if vs.G_loop is not None:
+    if vs.G_loop is not None and not mech.loop_baumgarte:  # Baumgarte: the rows' RHS did it (constraints.build)
         q_new, viol_pos = stabilization.project_chord(ws.tree, q_new, vs.G_loop,
                                                       constraints.held_dofs(mech, ws, cmd.joint_velocities))
         if not math.isfinite(q_new @ q_new):

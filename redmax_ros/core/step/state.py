@@ -50,6 +50,10 @@ class State:
         t0 = self.t if self.t0 is None else self.t0
         return State(t0 + (self.k + 1) * h, q, v, friction_cache, self.k + 1, t0)
 
+    def time_after(self, h: float) -> float:
+        """t_k+1 = t0 + (k + 1) h: the time the next step of h ends at (as ``advanced`` computes it)."""
+        return (self.t if self.t0 is None else self.t0) + (self.k + 1) * h
+
 
 @dataclass
 class Commands:
@@ -58,6 +62,9 @@ class Commands:
     site_axes: dict = field(default_factory=dict)  # prescribed site -> (k,3) world directions (default: x, y, z)
     joint_torques: np.ndarray | None = None  # (nv,) explicit applied joint torques [N m, N]
     site_forces: dict = field(default_factory=dict)  # site -> (3,) explicit world force [N]
+    # prescribed joint -> scene.timefunctions.JointTrajectory: position trajectory q_p(t), velocity row
+    # qdot_p(t_k+1) + b (q_p(t_k+1) - q_k) each step (step/trajectory.py); a joint is in one of the two dicts
+    joint_trajectories: dict = field(default_factory=dict)
 
 
 @dataclass

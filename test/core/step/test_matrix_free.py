@@ -20,7 +20,11 @@ SMALL = [s for s in list_scenes() if sum(j.nv for j in load_scene(s).joints) <= 
 EXTRA = [("bridge", ["params.variant=flexy"]), ("chain", ["params.n=8", "params.springs=4"]),
          ("bridge", ["params.n_deck=12"]),
          ("chain", ["params.n=6", "params.springs=2", "bodies.link2.damping=3.0", "bodies.link4.damping=1.0",
-                    "wrenches=[{name: w, body: link3, force: [1.0, 0.5, -2.0], torque: [0.1, 0.2, 0.3]}]"])]
+                    "wrenches=[{name: w, body: link3, force: [1.0, 0.5, -2.0], torque: [0.1, 0.2, 0.3]}]"]),
+         ("chain", ["params.n=5", "params.springs=1", "bodies.link1.damping={c: 0.05, form: twist}",  # issue 13 item 2
+                    "bodies.link2.damping={c: 2.0, form: mass}", "bodies.link4.damping={c: 0.01, form: twist}"]),
+         ("chain", ["params.n=6", "params.springs=3", "params.spring_d=0.5", "params.spring_rest=0.15",  # issue 13 item 6
+                    "springs.brace0.implicit=false", "springs.brace2.implicit=false", "joints.j1.q0=0.4"])]
 
 
 def _rel(a, b):

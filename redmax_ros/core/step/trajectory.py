@@ -1,0 +1,58 @@
+"""Joint trajectory prescriptions: the per-step right-hand side of a prescribed joint's rows (hybrid
+dynamics, notes §2.10, Eq. 2.114 with the velocity prescribed; paper Eq. 7, *G_r qdot_r = *qdot_r).
+
+A joint that follows a position trajectory q_p(t) (scene/timefunctions.JointTrajectory: time functions and
+a gain b [1/s]) keeps the rows of a velocity prescription, the identity on its DOFs projected by J_rR
+(dynamics/constraints.py); only their right-hand side changes per step, to the velocity-level law
+
+    *qdot_r = qdot_p(t_k+1) + b (q_p(t_k+1) - q_k)
+
+evaluated at the end time t_k+1 of the step and the configuration q_k at its start. :func:`resolve` turns
+Commands.joint_trajectories into Commands.joint_velocities for one step (after the velocity prescriptions,
+in command order), so every backend, the divergence checks (step/state.py), loop stabilization and the
+required torques (Eq. 7: effort = tau - *G_r^T lam / h) treat them exactly as velocity prescriptions.
+
+Joints whose positions are their coordinates qualify (TRAJECTORY_JOINT_TYPES with nq = nv), and revolute
+joints with a (cos, sin) configuration (Pinocchio's unbounded revolute, URDF 'continuous'): their error
+q_p - q_k is wrapped to (-pi, pi].
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+
+TRAJECTORY_JOINT_TYPES = ("revolute", "prismatic", "universal", "translational", "planar_translation")
+
+
+def trajectory_problem(mech, name: str, traj) -> str | None:
+    """Why joint ``name`` cannot follow ``traj`` (a message naming the joint), or None."""
+    j = mech.joint_index[name]
+    if j.type not in TRAJECTORY_JOINT_TYPES or not (j.nq == j.nv or (j.nq, j.nv) == (2, 1)):
+        return (f"joint '{name}' ({j.type}) cannot follow a position trajectory: its positions are not "
+                f"coordinates (trajectories: {', '.join(TRAJECTORY_JOINT_TYPES)} joints)")
+    if traj.nv != j.nv:
+        return f"trajectory of joint '{name}' needs {j.nv} position function(s), got {traj.nv}"
+    return None
+
+
+def joint_rate(mech, name: str, traj, q, t_next: float) -> np.ndarray:
+    """The prescribed velocity (nv,) of joint ``name`` for the step from configuration ``q`` to time t_next."""
+    j = mech.joint_index[name]
+    if j.nq == j.nv:
+        return traj.rate(t_next, q[j.idx_q:j.idx_q + j.nq])
+    c, s = q[j.idx_q], q[j.idx_q + 1]
+    return traj.rate(t_next, [math.atan2(s, c)], wrap=True)
+
+
+def resolve(mech, state, cmd, h: float):
+    """Commands for the step of h from ``state`` with every trajectory turned into its velocity row's value
+    (a new Commands; ``cmd`` itself unchanged). Commands without trajectories are returned as they are."""
+    if not cmd.joint_trajectories:
+        return cmd
+    t_next = state.time_after(h)
+    vel = dict(cmd.joint_velocities)
+    for name, traj in cmd.joint_trajectories.items():
+        vel[name] = joint_rate(mech, name, traj, state.q, t_next)
+    return dataclasses.replace(cmd, joint_velocities=vel, joint_trajectories={})
