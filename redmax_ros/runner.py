@@ -4,7 +4,9 @@
 
 CSV columns: t; q:<joint> and v:<joint> (``[i]`` per component of multi-DOF joints); E_kin, E_pot,
 E_spring, E_total [J]; violation (max loop-closure residual [m]); tau:<joint> for prescribed joints
-(required torque [N m] or force [N]) and f:<site>[i] for prescribed sites (required force [N], world).
+(required torque [N m] or force [N]), f:<site>[i] for prescribed sites (required force [N], world) and
+w:<body>[i], i = 0..5, for prescribed body twists (required wrench [torque N m; force N] in the
+prescription's frame).
 Prescriptions, joint trajectories included, are scene values: ``--set 'prescribed={joints: {hinge: {position:
 {type: sine, amplitude: 0.4, frequency: 0.5}, b: 5}}}'`` (docs/scenes.md, Constraints).
 """
@@ -46,6 +48,8 @@ def csv_header(sim: Simulator) -> list:
         cols += [f"tau:{name}"] if j.nv == 1 else [f"tau:{name}[{i}]" for i in range(j.nv)]
     for name in sim.prescribed_sites():
         cols += [f"f:{name}[{i}]" for i in range(3)]
+    for name in sim.prescribed_bodies():
+        cols += [f"w:{name}[{i}]" for i in range(6)]
     return cols
 
 
@@ -57,6 +61,8 @@ def csv_row(sim: Simulator, res) -> np.ndarray:
         parts.append(res.effort[j.idx_v:j.idx_v + j.nv])
     for name in sim.prescribed_sites():
         parts.append(res.site_forces[name])
+    for name in sim.prescribed_bodies():
+        parts.append(res.body_wrenches[name])
     return np.concatenate([np.atleast_1d(np.asarray(p, float)) for p in parts])
 
 

@@ -64,3 +64,14 @@ prescribed: {sites: {tip: {velocity: [0.1, 0.0, 0.05], axes: [x, z]}}}   # plana
     assert np.allclose((x1 - x0) / sim.dt, [0.1, 0.0, 0.05], atol=1e-3)
     assert runner.main(["no_such_scene"]) == 2
     assert "no such scene" in capsys.readouterr().err
+
+
+def test_body_wrench_columns(tmp_path):
+    """catalogue/body_twist: w:<body>[0..5] columns = StepResult.body_wrenches, bitwise."""
+    out = tmp_path / "b.csv"
+    assert runner.main(["catalogue/body_twist", "--duration", "0.01", "--out", str(out), "--quiet"]) == 0
+    header, rows = read(out)
+    assert header[-6:] == [f"w:lower[{i}]" for i in range(6)]
+    sim = Simulator.load("catalogue/body_twist")
+    for k in range(1, 11):
+        assert np.array_equal(rows[k, -6:], sim.step().body_wrenches["lower"])

@@ -22,7 +22,7 @@ from redmax_ros.core.scene.loader import load_scene, parse_joint_trajectory
 from redmax_ros.core.scene.spec import SceneSpec
 from redmax_ros.core.solvers.budget import StepBudget
 from redmax_ros.core.step.backends import make_backend
-from redmax_ros.core.step import trajectory
+from redmax_ros.core.step import body_twist, trajectory
 from redmax_ros.core.step.compile import compile_scene
 from redmax_ros.core.step.state import Commands, State, StepResult
 
@@ -95,6 +95,10 @@ class Simulator:
             problem = trajectory.trajectory_problem(self.mech, name, traj)
             if problem:
                 raise SceneError(spec.source, entry, problem)
+        try:
+            self._check_body_path(list(spec.prescribed_bodies), ValueError)
+        except ValueError as e:
+            raise SceneError(spec.source, "prescribed.bodies", str(e)) from None
         self.reset()
 
     @classmethod
@@ -148,6 +152,7 @@ class Simulator:
             site_axes={k: np.array(P, float) for k, P in self.spec.prescribed_site_axes.items()},
             joint_torques=np.zeros(m.nv),
             joint_trajectories=dict(self.spec.prescribed_trajectories),
+            body_twists=dict(self.spec.prescribed_bodies),
         )
         self.last: StepResult | None = None
 
@@ -267,6 +272,43 @@ class Simulator:
             self.commands.site_velocities.pop(n, None)
             self.commands.site_axes.pop(n, None)
 
+    def _check_body_path(self, names, exc):
+        if names and self.backend.workspace.data is None:
+            raise exc(f"body-twist prescriptions ({', '.join(names)}) need the Pinocchio pipeline (solver 'direct' "
+                      f"with at most 100 DOFs); scene '{self.scene_name}' steps on the data-free path "
+                      f"(backend {getattr(self.backend, 'name', type(self.backend).__name__)})")
+
+    def prescribe_bodies(self, twists: dict) -> None:
+        """Prescribe components of body twists (maximal hybrid dynamics, Eq. 7, *G_m = the body's 6 x nv
+        twist Jacobian): ``{body: {"angular": [wx, wy, wz], "linear": [vx, vy, vz], "frame": "body" | "world"}}``
+        with 'angular' [rad/s] and/or 'linear' [m/s, velocity of the body origin]; frame 'body' (default)
+        or 'world' (world-aligned axes at the body origin). Constant, held until released; replaces the
+        body's previous prescription; all-or-nothing (CommandError). The required wrench is
+        ``StepResult.body_wrenches[body]`` (6,) [torque N m; force N] in the prescription's frame.
+        Pinocchio pipeline only (CommandError on the data-free path)."""
+        new = {}
+        for n, d in twists.items():
+            try:
+                new[n] = body_twist.parse(n, d, self.mech.bodies)
+            except ValueError as e:
+                raise CommandError(f"prescribed twist: {e}") from None
+        self._check_body_path(list(new), CommandError)
+        self.commands.body_twists.update(new)
+
+    def release_bodies(self, names) -> None:
+        """Release body-twist prescriptions (CommandError for unknown bodies; not prescribed: no-op)."""
+        for n in names:
+            if n not in self.mech.bodies:
+                raise CommandError(f"unknown body '{n}'")
+        for n in names:
+            self.commands.body_twists.pop(n, None)
+
+    def prescribed_bodies(self) -> dict:
+        """Prescribed body -> {components: [...], values (k,), frame}."""
+        names = ("wx", "wy", "wz", "vx", "vy", "vz")
+        return {n: {"components": [names[int(np.argmax(r))] for r in bt.P], "values": bt.g.copy(), "frame": bt.frame}
+                for n, bt in self.commands.body_twists.items()}
+
     def set_joint_torques(self, torques: dict) -> None:
         """Explicit applied joint torques [N m or N], held until changed."""
         new = {n: self._joint_vector(n, v, None, "torque of joint") for n, v in torques.items()}
@@ -281,7 +323,7 @@ class Simulator:
         new = {n: self._site_vector(n, f, None, "force on site") for n, f in forces.items()}
         self.commands.site_forces = new
 
-    def restore_prescriptions(self, joints=(), sites=()) -> None:
+    def restore_prescriptions(self, joints=(), sites=(), bodies=()) -> None:
         """Joints and sites back to the scene's own prescription (its ``prescribed:`` entry, as after
         reset), or to passive dynamics where the scene prescribes none. CommandError for unknown names."""
         for n in joints:
@@ -290,7 +332,14 @@ class Simulator:
         for n in sites:
             if n not in self.mech.site_index:
                 raise CommandError(f"unknown site '{n}'")
+        for n in bodies:
+            if n not in self.mech.bodies:
+                raise CommandError(f"unknown body '{n}'")
         spec, cmd = self.spec, self.commands
+        for n in bodies:
+            cmd.body_twists.pop(n, None)
+            if n in spec.prescribed_bodies:
+                cmd.body_twists[n] = spec.prescribed_bodies[n]
         for n in joints:
             cmd.joint_velocities.pop(n, None)
             cmd.joint_trajectories.pop(n, None)

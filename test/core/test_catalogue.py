@@ -354,6 +354,7 @@ def test_energy_classes_cover_the_catalogue():
     names = {s.split("/", 1)[1] for s in list_scenes() if s.startswith("catalogue/")}
     inputs = {"gear", "timed_torque", "timed_wrench"}  # driven: test_energy_balance_with_input
     inputs |= {"trajectory"}  # driven by a trajectory prescription (test_trajectory_prescription.py)
+    inputs |= {"body_twist"}  # driven by a body-twist prescription (test_body_prescription.py)
     assert set(SYMPLECTIC + DECAYING + GYROSCOPIC + DISSIPATIVE + ["free2d"]) | inputs == names
 
 

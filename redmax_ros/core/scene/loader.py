@@ -16,7 +16,7 @@ import pinocchio as pin
 
 from redmax_ros.core.errors import SceneError, SceneNotFound
 from redmax_ros.core.geometry.inertia import shape_inertia, shape_volume
-from redmax_ros.core.scene import bodies, catalogue_schema, contact_schema, files, timefunctions
+from redmax_ros.core.scene import bodies, body_twist, catalogue_schema, contact_schema, files, timefunctions
 from redmax_ros.core.scene import builders, builders_friction, builders_large  # noqa: F401  (register the shipped builders)
 from redmax_ros.core.scene.registry import BUILDERS
 from redmax_ros.core.scene.spec import (CORE_JOINT_TYPES, WORLD, BodySpec, CouplingSpec, JointSpec, LoopSpec, SceneSpec, SiteSpec,
@@ -707,7 +707,7 @@ class _Validator:
                         self.err("prescribable.sites", f"unknown site '{s}'")
                 spec.prescribable_sites = list(p["sites"])
         pr = raw.get("prescribed") or {}
-        self.keys("prescribed", pr, {"joints", "sites"})
+        self.keys("prescribed", pr, {"joints", "sites", "bodies"})
         nv_of = {j.name: j.nv for j in spec.joints}
         for name, val in (pr.get("joints") or {}).items():
             if not spec.urdf and name not in joint_names:
@@ -734,3 +734,9 @@ class _Validator:
                     spec.prescribed_site_axes[name] = P
                 val = val["velocity"]
             spec.prescribed_sites[name] = self.vector(entry, "velocity", val, 3)
+        body_names = [b.name for b in spec.bodies]
+        for name, val in (pr.get("bodies") or {}).items():  # {angular: [3], linear: [3], frame: body|world}
+            try:
+                spec.prescribed_bodies[name] = body_twist.parse(name, val, body_names)
+            except ValueError as e:
+                self.err(f"prescribed.bodies.{name}", str(e))

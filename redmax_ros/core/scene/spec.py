@@ -116,6 +116,7 @@ class SceneSpec:
     prescribed_trajectories: dict = field(default_factory=dict)  # name -> timefunctions.JointTrajectory
     prescribed_sites: dict = field(default_factory=dict)  # name -> velocity (3,) world frame
     prescribed_site_axes: dict = field(default_factory=dict)  # name -> (k,3) directions, when not x, y, z
+    prescribed_bodies: dict = field(default_factory=dict)  # name -> step.body_twist.BodyTwist
     urdf: str | None = None  # path of a URDF giving the tree (bodies/joints then come from it)
     urdf_fixed_base: bool = True
     solver: str = "direct"

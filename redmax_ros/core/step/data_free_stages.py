@@ -174,6 +174,9 @@ class _LimitRows:
 
 def data_free_velocity(mech, ws, state, cmd, tau, h, solver="pcg", rtol=DEFAULT_RTOL, max_iter=None):
     """Stages 1-4 without pin.Data (module docstring); the velocity argument of step.pipeline.step."""
+    if cmd.body_twists:  # body-twist prescriptions are implemented in the Pinocchio pipeline only
+        raise StepError(f"body-twist prescriptions ({', '.join(cmd.body_twists)}) are not supported by the data-free "
+                        f"path (solver '{solver}' without pin.Data); use solver 'direct' (at most 100 DOFs)")
     ctx = ws.tree
     nv = mech.nv
     max_iter = default_max_iter(nv) if max_iter is None else int(max_iter)

@@ -41,7 +41,7 @@ from redmax_ros.core.errors import StepError
 from redmax_ros.core.friction import staggered
 from redmax_ros.core.solvers.direct import solve_direct
 from redmax_ros.core.solvers.kkt import max_row_residual
-from redmax_ros.core.step import trajectory
+from redmax_ros.core.step import body_twist, trajectory
 from redmax_ros.core.step.state import (Diagnostics, State, StepResult, applied_torques, check_applied, check_inputs,
                                         check_rows, check_speed)
 
@@ -58,6 +58,7 @@ class VelocitySolve:
     iterations: int
     friction: object = None  # staggered.FrictionReport
     friction_cache: np.ndarray | None = None  # warm start of the next step's friction impulses
+    body_rows: dict | None = None  # prescribed body -> slice of lam (body_twist.py)
 
 
 def step(mech, ws, state: State, cmd, h: float, velocity, budget=None) -> tuple:
@@ -81,13 +82,14 @@ def _step(mech, ws, state: State, cmd, h: float, velocity, t0) -> tuple:
     check_speed(vs.sol.v)
     q_new, v_hyper, v_new, viol_pos = update_configuration(mech, ws, state.q, vs, cmd, h)  # 5
     effort, site_forces = required_forces(mech, tau, vs, cmd, h)  # 6
+    wrenches = body_twist.wrenches(vs.sol.lam, vs.body_rows, cmd.body_twists, h) if vs.body_rows else {}
     ek, ep, es = energies(mech, ws, q_new, v_new)
     if not math.isfinite(ek + ep + es):
         raise StepError("non-finite energy after the step")
     diag = Diagnostics(ek, ep, es, ek + ep + es, viol_pos, vs.violation_vel, vs.iterations, vs.solver,
                        time.perf_counter() - t0, vs.sol, vs.friction)
     new = state.advanced(h, q_new, v_hyper, vs.friction_cache)
-    return new, StepResult(new.t, q_new, v_new, effort, site_forces, diag)
+    return new, StepResult(new.t, q_new, v_new, effort, site_forces, diag, wrenches)
 
 
 def update_configuration(mech, ws, q, vs: VelocitySolve, cmd, h) -> tuple:
@@ -154,6 +156,7 @@ def pinocchio_velocity(mech, ws, state: State, cmd, tau, h) -> VelocitySolve:
     J_sites = site_jacobian_rows(mech, ws, kin, psites) if psites else None
     cons = constraints.build(mech, ws, G_loop, J_sites, state.q, cmd.joint_velocities, psites, h,
                              cmd.site_axes)  # 3
+    body_rows = body_twist.append_rows(mech, ws, ws.data, cons, cmd.body_twists) if cmd.body_twists else None
     if cons.m:
         if not math.isfinite(cons.g @ cons.g):
             check_inputs(state, tau, cmd)
@@ -168,4 +171,4 @@ def pinocchio_velocity(mech, ws, state: State, cmd, tau, h) -> VelocitySolve:
         viol_vel = max_row_residual(cons.G, sol.v, cons.g)
     return VelocitySolve(sol, cons.joint_rows, cons.site_rows,
                          cons.G[cons.loop_rows] if len(mech.loop_ab) else None, viol_vel, sol.solver,
-                         sol.iterations, fric, fcache)
+                         sol.iterations, fric, fcache, body_rows)

@@ -65,6 +65,8 @@ class Commands:
     # prescribed joint -> scene.timefunctions.JointTrajectory: position trajectory q_p(t), velocity row
     # qdot_p(t_k+1) + b (q_p(t_k+1) - q_k) each step (step/trajectory.py); a joint is in one of the two dicts
     joint_trajectories: dict = field(default_factory=dict)
+    # prescribed body -> step.body_twist.BodyTwist (selected twist components, body or world frame)
+    body_twists: dict = field(default_factory=dict)
 
 
 @dataclass
@@ -95,6 +97,7 @@ class StepResult:
     effort: np.ndarray  # (nv,) applied torque + required torque of prescribed DOFs [N m, N]
     site_forces: dict  # prescribed site -> required force (3,) world frame [N]
     diagnostics: Diagnostics
+    body_wrenches: dict = field(default_factory=dict)  # prescribed body -> required wrench (6,) [N m; N], its frame
 
 
 def _finite(name, x):
