@@ -39,7 +39,8 @@ except ImportError:  # pragma: no cover - exercised when the bench extra is miss
 # Equality constraints as hard as MuJoCo allows: impedance 0.9999 (MuJoCo's default 0.9-0.95 lets
 # the heavy bridge deck sag ~4 cm at its loop and caps the accuracy at 4e-2).
 HARD_SOLIMP = [0.9999, 0.9999, 0.001, 0.5, 2.0]
-INTEGRATORS = {"euler": "mjINT_EULER", "implicitfast": "mjINT_IMPLICITFAST", "rk4": "mjINT_RK4"}
+INTEGRATORS = {"euler": "mjINT_EULER", "implicitfast": "mjINT_IMPLICITFAST", "rk4": "mjINT_RK4",
+               "discrete": "mjINT_DISCRETE"}  # discrete: MuJoCo 3.13+
 
 
 def _quat_wxyz(R):

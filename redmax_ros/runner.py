@@ -1,6 +1,6 @@
 """redmax_run: run a scene offline (no ROS) and write a CSV of the trajectory.
 
-    redmax_run SCENE [--dt H] [--duration T] [--solver direct|pcg|auto] [--set key=value ...] [--out FILE.csv]
+    redmax_run SCENE [--dt H] [--duration T] [--solver direct|reference|compiled|pcg|auto] [--set key=value ...] [--out FILE.csv]
 
 CSV columns: t; q:<joint> and v:<joint> (``[i]`` per component of multi-DOF joints); E_kin, E_pot,
 E_spring, E_total [J]; violation (max loop-closure residual [m]); tau:<joint> for prescribed joints
@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from redmax_ros.core import CommandError, SceneError, Simulator, StepBudget, StepError
+from redmax_ros.core import SOLVERS, CommandError, SceneError, Simulator, StepBudget, StepError
 
 
 def parse_args(argv=None):
@@ -27,7 +27,7 @@ def parse_args(argv=None):
     ap.add_argument("scene", help="scene name (scenes/) or path to a scene YAML")
     ap.add_argument("--dt", type=float, help="time step h [s] (default: the scene's)")
     ap.add_argument("--duration", type=float, help="simulated time [s] (default: the scene's)")
-    ap.add_argument("--solver", choices=["direct", "pcg", "auto"], default=None,
+    ap.add_argument("--solver", choices=list(SOLVERS), default=None,
                     help="linear solver (default: the scene's; see docs/solvers.md)")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                     help="override a scene value or builder parameter, e.g. params.n=20, joints.elbow.q0=0.3")

@@ -185,4 +185,13 @@ elif [ -d install_msgs ]; then
   rm -rf build_msgs install_msgs
 fi
 
+# The compiled step's kernels (redmax_ros/core/step/compiled/): numba compiles them once per source version
+# (~2 min on a 2-core machine) and caches them on disk; doing it here keeps the first node, run or test from
+# spending that time inside a step.
+say "compiling the step kernels (numba, cached on disk)"
+t0=$(date +%s)
+"$VENV/bin/python" -c "from redmax_ros.core import Simulator; Simulator.load('pendulum').step(2)" \
+  || die "the compiled step kernels failed to compile"
+say "step kernels ready in $(( $(date +%s) - t0 )) s"
+
 say "ready; use: source scripts/env.sh"

@@ -46,7 +46,7 @@ from redmax_msgs.msg import PointForces, PointVelocityCommand, Result, Simulatio
 from redmax_msgs.srv import (DescribeScene, GetSimulationState, LoadScene, ReleaseCommands, ResetSimulation,
                              SetSimulationState, StepSimulation)
 
-from redmax_ros.core import SceneError
+from redmax_ros.core import SOLVERS as CORE_SOLVERS, SceneError
 from redmax_ros.logging.mcap_log import McapLogger
 
 from . import engine as eng
@@ -83,7 +83,7 @@ QOS_LATCHED = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1, reliability=R
                          durability=DurabilityPolicy.TRANSIENT_LOCAL)
 
 MODES = ("free_run", "lockstep")
-SOLVERS = ("", "direct", "pcg", "auto")
+SOLVERS = ("",) + CORE_SOLVERS
 
 
 def qos_dict(q: QoSProfile) -> dict:
@@ -125,8 +125,8 @@ PARAMETERS = {
                       "refused with NOT_FOUND). The start scene ('scene') is not restricted.", read_only=True,
                       constraints="existing directories")),
     "dt": (0.0, _d("Time step h [s]; 0 = the scene's own.", 0.0, 0.1, read_only=True)),
-    "solver": ("", _d("Solver: '' (scene default), direct, pcg or auto.", read_only=True,
-                      constraints="one of '', direct, pcg, auto")),
+    "solver": ("", _d("Solver: '' (scene default), " + ", ".join(CORE_SOLVERS) + " (docs/solvers.md).", read_only=True,
+                      constraints="one of '', " + ", ".join(CORE_SOLVERS))),
     "mode": ("free_run", _d("Start state: free_run (PLAYING, paced by real_time_factor) or lockstep "
                             "(PAUSED, steps only on step_simulation / simulate_steps). At runtime use "
                             "set_simulation_state.", read_only=True, constraints="free_run or lockstep")),

@@ -39,7 +39,7 @@ def tree_energies(ctx: Context, q, v_r, extras=None) -> tuple:
     workspace's catalogue runtime (direction springs) or None. Leaves (q, v_r) in ctx.ws."""
     mech, topo = ctx.mech, ctx.topo
     ws = ctx.fk(q, v_r)
-    ek, ep = _body_energies(ws.R, ws.p, ws.ov, topo.mass, topo.com, topo.inertia_com, ctx.gravity)
+    ek, ep = body_energies(ws.R, ws.p, ws.ov, topo.mass, topo.com, topo.inertia_com, ctx.gravity)
     if mech.has_armature:
         ek += 0.5 * float(mech.armature @ (v_r * v_r))
     es = spring_energy(mech, ctx.jac_positions() if len(mech.spring_ab) else None, q)
@@ -49,7 +49,7 @@ def tree_energies(ctx: Context, q, v_r, extras=None) -> tuple:
 
 
 @njit
-def _body_energies(R, p, ov, mass, com, Ic, g):
+def body_energies(R, p, ov, mass, com, Ic, g):
     """(E_kin, E_pot) of the bodies from the world placements (R, p) and twists at the world origin ov
     (v_o, w): per body at its COM c = R com + p (no lever arm to the origin, whose cancellation would cost
     round-off), 1/2 m |v_o + w x c|^2 + 1/2 w_b^T I_c w_b with w_b = R^T w, and -m g.c."""

@@ -81,7 +81,7 @@ def project_chord(ctx: Context, q, G, hold_dofs=(), tol=TOL, max_iter=8):
     mech = ctx.mech
     held = _held_array(ctx, hold_dofs)
     G = np.ascontiguousarray(G)
-    L, ok = _chord_factor(G, held)
+    L, ok = chord_factor(G, held)
     if not ok:
         return project(ctx, q, hold_dofs, tol)
     T = _NO_T if ctx.T is None else ctx.T
@@ -89,7 +89,7 @@ def project_chord(ctx: Context, q, G, hold_dofs=(), tol=TOL, max_iter=8):
         phi, err = ctx.loop_phi_at(q)
         if err < tol:
             return q, err
-        q = pin.integrate(mech.model, q, _chord_step(L, G, held, phi, T))
+        q = pin.integrate(mech.model, q, chord_step(L, G, held, phi, T))
     return project(ctx, q, hold_dofs, tol)
 
 
@@ -105,7 +105,7 @@ def _held_array(ctx, hold_dofs):
 
 
 @njit
-def _chord_factor(G, held):
+def chord_factor(G, held):
     """Cholesky factor of K K^T, K = [G; H] (H selects the held hyper-reduced DOFs):
     K K^T = [[G G^T, G[:, held]], [G[:, held]^T, I]]."""
     m, n, k = G.shape[0], G.shape[1], held.shape[0]
@@ -128,7 +128,7 @@ def _chord_factor(G, held):
 
 
 @njit
-def _chord_step(L, G, held, phi, T):
+def chord_step(L, G, held, phi, T):
     """Least-norm correction dq = -K^T (K K^T)^-1 [phi; 0] (held DOFs fixed), mapped to reduced
     coordinates by J_rR = T (empty T: none)."""
     m, n, k = G.shape[0], G.shape[1], held.shape[0]

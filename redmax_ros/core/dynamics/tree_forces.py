@@ -23,7 +23,7 @@ from redmax_ros.core.solvers import recursive as rc
 
 
 @njit
-def _nle_wrench_kernel(I, ov, acc, g, W):
+def nle_wrench_kernel(I, ov, acc, g, W):
     """Newton-Euler wrenches (world, at the origin) for the quadratic-velocity and gravity terms:
     W_j = I_j (a_j - (g, 0)) + ov_j x* (I_j ov_j), with a_j = Jdot_j qdot (bias acceleration).
     J^T W = nle = -J^T (f_m - M_m Jdot qdot) of Eq. (1)-(2) (Pinocchio's RNEA at zero acceleration)."""
@@ -50,7 +50,7 @@ def _nle_wrench_kernel(I, ov, acc, g, W):
 
 
 @njit
-def _dense_crba_kernel(parents, idx_v, nv_j, St, Ic, A):
+def dense_crba_kernel(parents, idx_v, nv_j, St, Ic, A):
     """A += J^T blkdiag(Ic) J by the composite-rigid-body algorithm in the world frame.
     Ic (njoints,6,6) holds each body's 6x6 block on entry and is overwritten by the composites.
     Every column pair (c of joint j, c2 of an ancestor-or-self joint k) gets S_c2^T Ic_j S_c."""
@@ -84,7 +84,7 @@ def _dense_crba_kernel(parents, idx_v, nv_j, St, Ic, A):
 
 
 @njit
-def _spring_cross_kernel(parents, idx_v, nv_j, St, ja, pa, jb, pb, C, A):
+def spring_cross_kernel(parents, idx_v, nv_j, St, ja, pa, jb, pb, C, A):
     """A -= J_a^T C J_b + J_b^T C J_a for springs between two different moving bodies (the
     off-diagonal blocks of sum_s J_s^T C_s J_s; the diagonal blocks are in the composite inertias)."""
     nv = St.shape[0]
@@ -161,7 +161,7 @@ def rhs(ctx: Context, q, v_r, tau, h, site_forces=None, springs=None) -> np.ndar
     mech, topo, ws = ctx.mech, ctx.topo, ctx.ws
     acc = rc.bias_acceleration(topo, ws)
     W = np.empty((topo.njoints, 6))
-    _nle_wrench_kernel(ws.I, ws.ov, acc, ctx.gravity, W)
+    nle_wrench_kernel(ws.I, ws.ov, acc, ctx.gravity, W)
     # W_total = I ov - h W_nle + h W_ext, then one J^T pass
     W *= -h
     W += np.einsum("jab,jb->ja", ws.I, ws.ov)
@@ -204,9 +204,9 @@ def dense_lhs(ctx: Context, h: float, blocks: np.ndarray, springs_C: np.ndarray 
     A = np.zeros((nv, nv))
     Ic = ws.I + blocks
     Ic[0] = 0.0
-    _dense_crba_kernel(topo.parents, topo.idx_v, topo.nv_j, ws.St, Ic, A)
+    dense_crba_kernel(topo.parents, topo.idx_v, topo.nv_j, ws.St, Ic, A)
     if springs_C is not None and len(springs_C):
-        _spring_cross_kernel(topo.parents, topo.idx_v, topo.nv_j, ws.St, ctx.spring_ja, pa, ctx.spring_jb, pb,
+        spring_cross_kernel(topo.parents, topo.idx_v, topo.nv_j, ws.St, ctx.spring_ja, pa, ctx.spring_jb, pb,
                              springs_C, A)
     A[np.diag_indices(nv)] += ctx.armature + ctx.reduced_diag(h)
     return A

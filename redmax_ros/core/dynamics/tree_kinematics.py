@@ -145,7 +145,7 @@ class Context:
         if v is not None:
             v = np.ascontiguousarray(v, dtype=float).reshape(topo.nv)
         ws.has_bias = v is not None
-        _universal_kernel(self.uni_joints, topo.idx_q, topo.idx_v, self.uni_a1, self.uni_a2, q,
+        universal_kernel(self.uni_joints, topo.idx_q, topo.idx_v, self.uni_a1, self.uni_a2, q,
                           self.zero_v if v is None else v, v is not None, ws.jR, ws.jp, ws.Sl, ws.c_local)
         for j, jm, jd in self.other_fallback:
             if v is None:
@@ -187,7 +187,7 @@ class Context:
         X = self.site_positions(sites)
         J = np.zeros((len(sites), 3, self.topo.nv))
         t = self.topo
-        _point_jac_kernel(t.parents, t.idx_v, t.nv_j, self.ws.St, self.site_jid[sites], X, J)
+        point_jac_kernel(t.parents, t.idx_v, t.nv_j, self.ws.St, self.site_jid[sites], X, J)
         return X, J
 
     # -- loops
@@ -204,7 +204,7 @@ class Context:
         self._fk_key = None
         q = np.ascontiguousarray(q, dtype=float).reshape(topo.nq)
         if len(self.uni_joints):
-            _universal_kernel(self.uni_joints, topo.idx_q, topo.idx_v, self.uni_a1, self.uni_a2, q,
+            universal_kernel(self.uni_joints, topo.idx_q, topo.idx_v, self.uni_a1, self.uni_a2, q,
                               self.zero_v, False, ws.jR, ws.jp, ws.Sl, ws.c_local)
         if len(self.planar_joints):
             rc.planar_placements(self.planar_joints, topo.idx_q, q, ws.jR, ws.jp)
@@ -219,7 +219,7 @@ class Context:
         :func:`project_chord`). Leaves placements of q in the workspace (the fk cache is reset)."""
         q = self._fallback_placements(q)
         topo, ws = self.topo, self.ws
-        return _loop_phi_kernel(topo.parents, topo.kind, topo.idx_q, topo.idx_v, topo.nv_j, topo.axis,
+        return loop_phi_kernel(topo.parents, topo.kind, topo.idx_q, topo.idx_v, topo.nv_j, topo.axis,
                                 topo.pitch, topo.place_R, topo.place_p, q, ws.jR, ws.jp, ws.Sl, ws.R, ws.p,
                                 ws.St, self.jac_jid, self.jac_local, self.loop_a, self.loop_b,
                                 self.mech.loop_select)
@@ -252,7 +252,7 @@ class Context:
 
 
 @njit
-def _loop_phi_kernel(parents, kind, idx_q, idx_v, nv_j, axis, pitch, place_R, place_p, q, jR, jp, Sl, R, p,
+def loop_phi_kernel(parents, kind, idx_q, idx_v, nv_j, axis, pitch, place_R, place_p, q, jR, jp, Sl, R, p,
                      St, jid, local, a, b, S):
     """recursive.fk_kernel, then phi = S (x_a - x_b) of the loop sites (rows a, b of jid/local)."""
     rc.fk_kernel(parents, kind, idx_q, idx_v, nv_j, axis, pitch, place_R, place_p, q, jR, jp, Sl, R, p, St)
@@ -281,7 +281,7 @@ def _sites_at_kernel(parents, kind, idx_q, idx_v, nv_j, axis, pitch, place_R, pl
 
 
 @njit
-def _universal_kernel(joints, idx_q, idx_v, a1, a2, q, v, use_v, jR, jp, Sl, c_local):
+def universal_kernel(joints, idx_q, idx_v, a1, a2, q, v, use_v, jR, jp, Sl, c_local):
     R1 = np.empty((3, 3))
     R2 = np.empty((3, 3))
     for k in range(joints.shape[0]):
@@ -311,7 +311,7 @@ def _universal_kernel(joints, idx_q, idx_v, a1, a2, q, v, use_v, jR, jp, Sl, c_l
 
 
 @njit
-def _point_jac_kernel(parents, idx_v, nv_j, St, joints, X, J):
+def point_jac_kernel(parents, idx_v, nv_j, St, joints, X, J):
     """J[k] (3 x nv): column c = lin(S_c) + ang(S_c) x x_k for the DOFs c supporting joint joints[k]."""
     for k in range(joints.shape[0]):
         j = joints[k]

@@ -19,7 +19,7 @@ from redmax_ros.core.geometry.inertia import shape_inertia, shape_volume
 from redmax_ros.core.scene import bodies, body_twist, catalogue_schema, contact_schema, files, timefunctions
 from redmax_ros.core.scene import builders, builders_friction, builders_large  # noqa: F401  (register the shipped builders)
 from redmax_ros.core.scene.registry import BUILDERS
-from redmax_ros.core.scene.spec import (CORE_JOINT_TYPES, WORLD, BodySpec, CouplingSpec, JointSpec, LoopSpec, SceneSpec, SiteSpec,
+from redmax_ros.core.scene.spec import (CORE_JOINT_TYPES, SOLVERS, WORLD, BodySpec, CouplingSpec, JointSpec, LoopSpec, SceneSpec, SiteSpec,
                                         SpringSpec, WrenchSpec, numeric, numeric_deep)
 
 JOINT_TYPES = {**CORE_JOINT_TYPES, **catalogue_schema.TYPES}  # notes §2.5 catalogue (joints.py, joint_maps.py; composite: per joint)
@@ -386,8 +386,8 @@ class _Validator:
             solver=str(raw.get("solver", "direct")),
             raw=raw,
         )
-        if spec.solver not in ("direct", "pcg", "auto"):
-            self.err("solver", f"unknown solver '{spec.solver}' (direct, pcg, auto)")
+        if spec.solver not in SOLVERS:
+            self.err("solver", f"unknown solver '{spec.solver}' ({', '.join(SOLVERS)})")
         if "urdf" in raw:
             self.urdf(spec, raw["urdf"])
         spec.bodies = [self.body(e, d) for e, d in self.entries(raw, "bodies")]

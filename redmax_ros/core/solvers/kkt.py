@@ -79,18 +79,28 @@ def kkt_solve(A, b, G, g, C, lo, hi):
     limits_ok: lo - 1e-12 <= C qdot+ <= hi + 1e-12 (no QP needed for the unilateral rows of Eq. 5).
     """
     n, m = A.shape[0], G.shape[0]
-    L = np.empty((n, n))
-    v = b.copy()
+    v = np.empty(n)
     lam = np.zeros(m)
     S = np.zeros((m, m))
+    status, ratio, viol, ok = kkt_solve_into(A, b, G, g, C, lo, hi, np.empty((n, n)), np.empty((n, m)), S,
+                                             np.empty((m, m)), np.empty(n), v, lam)
+    return status, v, lam, S, ratio, viol, ok
+
+
+@njit
+def kkt_solve_into(A, b, G, g, C, lo, hi, L, Y, S, LS, y, v, lam):
+    """kkt_solve without allocation: the factors and scratch in L (n,n), Y (n,m), S (m,m), LS (m,m), y (n,);
+    qdot+ into v (n,), the multipliers into lam (m,). Returns (status, pivot ratio, max|G qdot+ - g|, limits_ok)."""
+    n, m = A.shape[0], G.shape[0]
+    v[:] = b
+    lam[:] = 0.0
     if not cholesky(A, L):
-        return 1, v, lam, S, 0.0, 0.0, False
+        return 1, 0.0, 0.0, False
     chol_solve(L, v)
     ratio, viol = 1.0, 0.0
     if m:
-        Y = np.empty((n, m))
         for r in range(m):
-            y = G[r].copy()
+            y[:] = G[r]
             chol_solve(L, y)
             Y[:, r] = y
         for r in range(m):
@@ -100,9 +110,8 @@ def kkt_solve(A, b, G, g, C, lo, hi):
                     s += G[r, k] * Y[k, c]
                 S[r, c] = s
                 S[c, r] = s
-        LS = np.empty((m, m))
         if not cholesky(S, LS):
-            return 2, v, lam, S, 0.0, 0.0, False
+            return 2, 0.0, 0.0, False
         dmin, dmax = LS[0, 0], LS[0, 0]
         for r in range(1, m):
             d = LS[r, r]
@@ -112,7 +121,7 @@ def kkt_solve(A, b, G, g, C, lo, hi):
         _rows_minus(G, v, g, lam)
         chol_solve(LS, lam)
         viol = _correct(G, g, Y, lam, v)
-    return 0, v, lam, S, ratio, viol, _limits_ok(C, v, lo, hi)
+    return 0, ratio, viol, _limits_ok(C, v, lo, hi)
 
 
 # ------------------------------------------------------------------------------------------------

@@ -162,7 +162,7 @@ def lhs_kernel(parents, idx_v, nv_j, St, I, blocks, use_blocks, ja, pa, jb, pb, 
 
 
 @njit
-def _add_point_block(Bj, alpha, x, C):
+def add_point_block(Bj, alpha, x, C):
     """Bj += X^T C X with X = [alpha 1, -[x]] (3x6)."""
     X = np.zeros((3, 6))
     X[0, 0] = X[1, 1] = X[2, 2] = alpha
@@ -180,7 +180,7 @@ def _add_point_block(Bj, alpha, x, C):
 
 
 @njit
-def _spring_blocks_kernel(ja, pa, jb, pb, C, blocks):
+def spring_blocks_kernel(ja, pa, jb, pb, C, blocks):
     """blkdiag over bodies of sum_s J_s^T C_s J_s in maximal (body-twist) coordinates: each end gets
     X^T C X; a spring with both ends on the same body gives its exact own block."""
     d = np.empty(3)
@@ -189,10 +189,10 @@ def _spring_blocks_kernel(ja, pa, jb, pb, C, blocks):
         if i == k:
             for a in range(3):
                 d[a] = pa[s, a] - pb[s, a]
-            _add_point_block(blocks[i], 0.0, d, C[s])
+            add_point_block(blocks[i], 0.0, d, C[s])
         else:
-            _add_point_block(blocks[i], 1.0, pa[s], C[s])
-            _add_point_block(blocks[k], 1.0, pb[s], C[s])
+            add_point_block(blocks[i], 1.0, pa[s], C[s])
+            add_point_block(blocks[k], 1.0, pb[s], C[s])
     for a in range(6):
         for b in range(6):
             blocks[0, a, b] = 0.0
@@ -257,7 +257,7 @@ class MatrixFreeSystem:
         nj = self.topo.njoints
         blocks = np.zeros((nj, 6, 6)) if self.body_blocks is None else self.body_blocks.copy()
         sp = self.springs
-        _spring_blocks_kernel(sp.joint_a, self.pa, sp.joint_b, self.pb, self.C, blocks)
+        spring_blocks_kernel(sp.joint_a, self.pa, sp.joint_b, self.pb, self.C, blocks)
         return blocks
 
     def preconditioner(self, P: ProjectedBlockJacobi | None = None) -> ProjectedBlockJacobi:

@@ -450,7 +450,7 @@ def _jdot_kernel(parents, idx_v, nv_j, St, ov, x, Z):
 
 
 @njit
-def _bias_kernel(parents, idx_v, nv_j, St, ov, v, R, p, c_local, Z):
+def bias_kernel(parents, idx_v, nv_j, St, ov, v, R, p, c_local, Z):
     """Z_j = Z_parent + ov_j x (S_j v_j) + oX_j c_j (forward traversal)."""
     nj = parents.shape[0]
     u = np.empty(6)
@@ -571,7 +571,7 @@ def bias_acceleration(topo: Topology, ws: Workspace, out: np.ndarray | None = No
     if ws.v is None:
         raise ValueError("bias_acceleration needs a velocity: call update_kinematics(topo, ws, q, v)")
     out = np.empty((topo.njoints, 6)) if out is None else out
-    _bias_kernel(topo.parents, topo.idx_v, topo.nv_j, ws.St, ws.ov, ws.v, ws.R, ws.p,
+    bias_kernel(topo.parents, topo.idx_v, topo.nv_j, ws.St, ws.ov, ws.v, ws.R, ws.p,
                       ws.c_local, out)
     return out
 

@@ -1,7 +1,9 @@
-"""The stepping backends and the solver selection (``solver: direct | pcg | auto``, docs/solvers.md).
+"""The stepping backends and the solver selection (``solver: direct | reference | compiled | pcg | auto``,
+docs/solvers.md).
 
 A backend owns a Workspace (step/workspace.py) made from the frozen Mechanism and steps with
-step.pipeline.step and its velocity stages: :class:`DirectBackend` with the Pinocchio stages
+step.pipeline.step and its velocity stages (the compiled step, step/compiled/backend.CompiledBackend, is one
+native call per step with the Pinocchio pipeline as its reference): :class:`DirectBackend` with the Pinocchio stages
 (pipeline.pinocchio_velocity, pin.Data), :class:`DataFreeBackend` with the data-free ones
 (data_free_stages.data_free_velocity: PCG with Alg. 1, or the dense data-free direct solver), and
 :class:`AutoBackend` choosing between them by a cost model after a short PCG probe. ``step(state, cmd,
@@ -13,7 +15,10 @@ import numpy as np
 
 from redmax_ros.core.dynamics.tree_kinematics import PIN_DATA_MAX_NV
 from redmax_ros.core.errors import SceneError
+from redmax_ros.core.scene.spec import SOLVERS
 from redmax_ros.core.solvers.lockstep_pcg import DEFAULT_RTOL
+from redmax_ros.core.step.compiled.backend import CompiledBackend
+from redmax_ros.core.step.compiled.model import unsupported as compiled_unsupported
 from redmax_ros.core.step.data_free_stages import data_free_velocity
 from redmax_ros.core.step.pipeline import pinocchio_velocity, step
 from redmax_ros.core.step.workspace import Workspace
@@ -113,7 +118,7 @@ class AutoBackend:
             self.choice, self.impl = "pcg", self.pcg
             return
         self.choice = "direct"
-        self.impl = DirectBackend(self.mech) if self.mech.nv <= PIN_DATA_MAX_NV else DataFreeBackend(self.mech, "direct")
+        self.impl = make_backend(self.mech, "direct")
 
     def step(self, state, cmd, h, budget=None):
         if self.choice is not None:
@@ -133,11 +138,23 @@ class AutoBackend:
 
 
 def make_backend(mech, solver: str, rtol: float = DEFAULT_RTOL, max_iter: int | None = None):
-    """The stepping backend for ``solver`` ('direct' | 'pcg' | 'auto'). 'direct' uses the Pinocchio
-    pipeline when nv <= PIN_DATA_MAX_NV (pin.Data fits) and the data-free dense solver above.
+    """The stepping backend for ``solver`` (scene.spec.SOLVERS, docs/solvers.md):
+
+    * 'direct' (default): the compiled one-call step (step/compiled/, CompiledBackend) when the scene is within
+      its set (compiled.model.unsupported is empty), else 'reference';
+    * 'reference': the Pinocchio pipeline when nv <= PIN_DATA_MAX_NV (pin.Data fits), the data-free dense
+      solver above;
+    * 'compiled': the compiled step, or a SceneError naming what the scene uses that it does not take;
+    * 'pcg', 'auto': the data-free PCG path and the rule choosing between it and 'direct'.
     Scenes with contact or joint friction (Mechanism.friction, Staggered Projections / BISP) or catalogue
-    joints and force elements (Mechanism.extras) need the Pinocchio pipeline: 'direct' and 'auto' use
-    it at any size, 'pcg' is a SceneError."""
+    joints and force elements (Mechanism.extras) need the Pinocchio pipeline: 'direct', 'reference' and
+    'auto' use it at any size, 'pcg' is a SceneError."""
+    if solver == "compiled":
+        return CompiledBackend(mech)
+    if solver == "direct":
+        if not compiled_unsupported(mech):
+            return CompiledBackend(mech)
+        solver = "reference"
     unsupported = [what for what, attr in (("contact or joint friction", "friction"),
                                            ("catalogue joints/force elements", "extras"))
                    if getattr(mech, attr) is not None]
@@ -145,16 +162,16 @@ def make_backend(mech, solver: str, rtol: float = DEFAULT_RTOL, max_iter: int | 
         if solver == "pcg":
             raise SceneError(mech.spec.source, "solver",
                              f"solver 'pcg' does not support {' and '.join(unsupported)} (use direct or auto)")
-        if solver in ("direct", "auto"):
+        if solver in ("reference", "auto"):
             return DirectBackend(mech)
-    if mech.coriolis_implicit and (solver != "direct" or mech.nv > PIN_DATA_MAX_NV):
+    if mech.coriolis_implicit and (solver != "reference" or mech.nv > PIN_DATA_MAX_NV):
         raise SceneError(mech.spec.source, "integrator.coriolis",
                          f"'implicit' is implemented in the Pinocchio pipeline only (solver 'direct' with at most "
                          f"{PIN_DATA_MAX_NV} DOFs; here solver '{solver}', {mech.nv} DOFs); use coriolis: explicit")
-    if solver == "direct":
+    if solver == "reference":
         return DirectBackend(mech) if mech.nv <= PIN_DATA_MAX_NV else DataFreeBackend(mech, "direct")
     if solver == "pcg":
         return DataFreeBackend(mech, "pcg", rtol, max_iter)
     if solver == "auto":
         return AutoBackend(mech, rtol, max_iter)
-    raise SceneError(mech.spec.source, "solver", f"unknown solver '{solver}' (direct, pcg, auto)")
+    raise SceneError(mech.spec.source, "solver", f"unknown solver '{solver}' ({', '.join(SOLVERS)})")

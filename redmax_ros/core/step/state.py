@@ -43,12 +43,12 @@ class State:
     k: int = 0  # steps taken since the time origin t0
     t0: float | None = None  # time origin [s] (None: t); t = t0 + k h after k steps of h, one rounding
 
-    def advanced(self, h: float, q, v, friction_cache=None) -> "State":
-        """The state after one step of h: t = t0 + (k + 1) h, computed from the step count, not by
+    def advanced(self, h: float, q, v, friction_cache=None, steps: int = 1) -> "State":
+        """The state after ``steps`` steps of h: t = t0 + (k + steps) h, computed from the step count, not by
         accumulating h (after 380,910 steps of 1 ms the sum gave 380.909999998 s; t0 + k h is the float
         nearest to the exact time, so round(t * 1e9) is the exact nanosecond count when h is)."""
         t0 = self.t if self.t0 is None else self.t0
-        return State(t0 + (self.k + 1) * h, q, v, friction_cache, self.k + 1, t0)
+        return State(t0 + (self.k + steps) * h, q, v, friction_cache, self.k + steps, t0)
 
     def time_after(self, h: float) -> float:
         """t_k+1 = t0 + (k + 1) h: the time the next step of h ends at (as ``advanced`` computes it)."""
@@ -139,7 +139,7 @@ def applied_torques(mech, state, cmd, h) -> np.ndarray:
 
 
 @njit
-def _row_beyond(G, g, limit):
+def row_beyond(G, g, limit):
     """The first row i with |g_i| > limit sum_j |G_ij| > 0 (G_i qdot = g_i needs max |qdot| > limit), or -1."""
     for i in range(len(g)):
         gi = abs(g[i])
@@ -159,7 +159,7 @@ def check_rows(cons, scale: float = 1.0) -> None:
     velocity| / max |qdot| (1 when the rows are in the coordinates check_speed tests; max_i sum_j |T_ij|
     for reduced-coordinate rows and hyper-reduced qdot, T = J_rR). Rows acting on no DOF are left to the
     solver's rank check."""
-    i = _row_beyond(cons.G, cons.g, MAX_SPEED * scale)
+    i = row_beyond(cons.G, cons.g, MAX_SPEED * scale)
     if i >= 0:
         s = float(np.abs(cons.G[i]).sum()) * scale
         raise StepError(f"{_UP_FRONT}: {cons.labels[i]}: velocity {cons.g[i]:.3g} needs max |qdot| >= "
@@ -167,7 +167,7 @@ def check_rows(cons, scale: float = 1.0) -> None:
 
 
 @njit
-def _impulse_beyond(A, T, f, mask, h, limit):
+def impulse_beyond(A, T, f, mask, h, limit):
     """The first DOF k of A with h |F_k| > limit sum_j |A_kj| (then A dv = h F has max |dv| > limit), or -1;
     F = T^T (mask * f) (an empty T: identity, an empty mask: ones)."""
     n = A.shape[0]
@@ -220,7 +220,7 @@ def check_applied(mech, ws, A, tau, h, cmd, site_terms=()) -> None:
     mk = _NONE if mask is None else mask
     T = _NO_T if ws.T is None else ws.T
     if not site_terms:  # the usual case: one compiled pass (~1 us on the hand)
-        k = _impulse_beyond(A, T, tau, mk, h, MAX_SPEED)
+        k = impulse_beyond(A, T, tau, mk, h, MAX_SPEED)
         if k >= 0:
             raise StepError(_applied_message(mech, ws, A, h, cmd, "torque", None, tau, mask, k))
         return
@@ -228,7 +228,7 @@ def check_applied(mech, ws, A, tau, h, cmd, site_terms=()) -> None:
     if len(sources) > 2 or tau @ tau != 0.0:
         sources.append(("together", None, sum(f for _, _, f in sources)))
     for kind, site, f in sources:
-        k = _impulse_beyond(A, T, f, mk, h, MAX_SPEED)
+        k = impulse_beyond(A, T, f, mk, h, MAX_SPEED)
         if k >= 0:
             raise StepError(_applied_message(mech, ws, A, h, cmd, kind, site, f, mask, k))
 

@@ -1,0 +1,12 @@
+"""The compiled step (issue 12): the whole RedMax step of Eq. (2) in one numba call, on a static Model and a
+preallocated Data (MJX's split), with the Pinocchio pipeline as the reference beside it.
+
+    model.py       Mechanism -> packed constants (MODEL_SPEC), which Mechanisms it takes (unsupported)
+    data.py        the workspace per set of prescriptions (DATA_SPEC)
+    packing.py     flat buffers <-> namedtuples of views (why: the cost of typing many numba arguments)
+    manifold.py    pin.integrate / pin.difference per joint kind
+    kinematics.py  stage 1;  forces.py  stage 2 (Eq. 2, Eq. 9-10);  rows.py  stage 3 (Eq. 7, limits)
+    update.py      stages 5-6 (manifold update, loop post-stabilization, required forces);  energy.py
+    kernel.py      step_kernel: the stages in order, and the hand-off statuses
+    backend.py     CompiledBackend (solver: compiled)
+"""

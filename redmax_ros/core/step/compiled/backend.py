@@ -1,0 +1,137 @@
+"""The compiled stepping backend (``solver: compiled``): one native call per step (kernel.step_kernel) for every
+Mechanism model.unsupported accepts, with the Pinocchio pipeline as the reference beside it.
+
+Per step, Python only checks the inputs (step/state.applied_torques, trajectory prescriptions resolved by
+step/trajectory.py), stacks the prescribed velocities, calls the kernel and wraps its outputs in a State and
+a StepResult. The Data of each set of prescribed joints and sites is built once and cached. Steps the kernel
+hands back (kernel.py: an active joint limit, a loop projection that needs the full Newton, a rejected or
+rank-deficient input) and steps with commands it does not take (body-twist prescriptions, explicit site
+forces) are taken by the reference backend, so their outcome (result or StepError) is the reference's;
+``handoffs`` counts them by reason.
+"""
+from __future__ import annotations
+
+import math
+import time
+from collections import Counter
+from dataclasses import dataclass
+
+import numpy as np
+
+from redmax_ros.core.errors import SceneError
+from redmax_ros.core.step import trajectory
+from redmax_ros.core.step.compiled.data import (OUT_E_KIN, OUT_E_POT, OUT_E_SPRING, OUT_RESIDUAL, OUT_STAGE,
+                                                OUT_VIOL_POS, OUT_VIOL_VEL, build_data)
+from redmax_ros.core.step.compiled.kernel import STAGE_NAMES, step_kernel, step_n_kernel
+from redmax_ros.core.step.compiled.model import build_model, unsupported
+from redmax_ros.core.step.pipeline import pinocchio_velocity, step as pipeline_step
+from redmax_ros.core.step.state import Diagnostics, StepResult
+from redmax_ros.core.step.workspace import Workspace
+
+_NO_V = np.zeros(0)
+_NO_S = np.zeros((0, 3))
+
+
+@dataclass
+class CompiledSolution:
+    """The Solution interface (solvers/direct.py) of a compiled step: hyper-reduced qdot+, multipliers."""
+    v: np.ndarray
+    lam: np.ndarray
+    mu: np.ndarray
+    residual: float  # relative KKT residual |A v - b + G^T lam| / |b|
+    iterations: int = 1
+    solver: str = "compiled"
+
+
+class CompiledBackend:
+    name = "compiled"
+
+    def __init__(self, mech):
+        why = unsupported(mech)
+        if why:
+            raise SceneError(mech.spec.source, "solver",
+                             f"solver 'compiled' does not support {', '.join(why)} (use direct or auto)")
+        self.mech = mech
+        self.workspace = Workspace(mech, pin_data=True)  # the reference's (queries, energies, hand-offs)
+        self.model = build_model(mech)
+        self._data = {}
+        self.handoffs = Counter()
+
+    def at_state(self, q, t):
+        self.workspace.at_state(q, t)
+
+    def reference_step(self, state, cmd, h, budget=None):
+        """The Pinocchio pipeline's step (step/pipeline.py) on this backend's workspace."""
+        return pipeline_step(self.mech, self.workspace, state, cmd, h, pinocchio_velocity, budget)
+
+    def _data_for(self, cmd):
+        axes = cmd.site_axes
+        key = (tuple(cmd.joint_velocities), tuple(cmd.site_velocities),
+               tuple(None if axes.get(n) is None else np.asarray(axes[n]).tobytes() for n in cmd.site_velocities)
+               if axes else None)
+        d = self._data.get(key)
+        if d is None:
+            d = self._data[key] = build_data(self.mech, self.model, tuple(cmd.joint_velocities),
+                                             tuple(cmd.site_velocities), axes, self.workspace.T)
+        return d
+
+    def _inputs(self, state, cmd, h):
+        """(resolved commands, tau, Data, gj, sv) of a step the kernel can take, or None (the reference's)."""
+        if cmd.body_twists or cmd.site_forces:
+            self.handoffs["body twists or site forces commanded"] += 1
+            return None
+        if not (h > 0 and math.isfinite(h)):
+            return None  # applied_torques names it
+        rcmd = trajectory.resolve(self.mech, state, cmd, h)
+        tau = self.mech.torque0 if rcmd.joint_torques is None else self.mech.torque0 + rcmd.joint_torques
+        d = self._data_for(rcmd)
+        jv, sv = rcmd.joint_velocities, rcmd.site_velocities
+        gj = _NO_V if not jv else np.concatenate([np.atleast_1d(np.asarray(x, float)) for x in jv.values()])
+        s = _NO_S if not sv else np.array(list(sv.values()), dtype=float).reshape(len(sv), 3)
+        return rcmd, np.asarray(tau, dtype=float), d, gj, s
+
+    def _handed_back(self, d):
+        self.handoffs[STAGE_NAMES[int(d["out"][OUT_STAGE])]] += 1
+
+    def step(self, state, cmd, h, budget=None):
+        t0 = time.perf_counter()
+        inp = self._inputs(state, cmd, h)
+        if inp is None:
+            return self.reference_step(state, cmd, h, budget)
+        rcmd, tau, d, gj, sv = inp
+        if step_kernel(*self.model.args, *d.args, state.q, state.v, tau, float(h), gj, sv):
+            self._handed_back(d)
+            return self.reference_step(state, cmd, h, budget)
+        q_new, v_hyper = d["q_new"].copy(), d["v_hyper"].copy()
+        new = state.advanced(h, q_new, v_hyper)
+        return new, self._result(new, d, q_new, rcmd, t0)
+
+    def step_run(self, state, cmd, h, n, budget=None):
+        """Advance by k in [1, n] steps with the same commands: a run of up to n steps in one kernel call
+        (kernel.step_n_kernel), or, when the kernel cannot take the next step (or trajectory prescriptions
+        change the rows every step), one step by ``step``. Returns (State, last StepResult, k); a StepError
+        comes only from a single step (the state before it is the input's)."""
+        inp = None if cmd.joint_trajectories else self._inputs(state, cmd, h)
+        if inp is None:
+            new, res = self.step(state, cmd, h, budget)
+            return new, res, 1
+        t0 = time.perf_counter()
+        rcmd, tau, d, gj, sv = inp
+        q, v = state.q.copy(), state.v.copy()
+        k = step_n_kernel(*self.model.args, *d.args, q, v, tau, float(h), gj, sv, n)
+        if k == 0:
+            self._handed_back(d)
+            new, res = self.reference_step(state, cmd, h, budget)
+            return new, res, 1
+        new = state.advanced(h, q, v, steps=k)
+        return new, self._result(new, d, q.copy(), rcmd, t0), k
+
+    def _result(self, new, d, q_new, rcmd, t0):
+        out = d["out"]
+        sv = rcmd.site_velocities
+        site_forces = {name: d["site_force"][k].copy() for k, name in enumerate(sv)} if sv else {}
+        ek, ep, es = float(out[OUT_E_KIN]), float(out[OUT_E_POT]), float(out[OUT_E_SPRING])
+        sol = CompiledSolution(new.v, d["lam"].copy(), d["mu"].copy(), float(out[OUT_RESIDUAL]))
+        diag = Diagnostics(ek, ep, es, ek + ep + es, float(out[OUT_VIOL_POS]), float(out[OUT_VIOL_VEL]), 1,
+                           "compiled", time.perf_counter() - t0, sol, None)
+        return StepResult(new.t, q_new, d["v_new"].copy(), d["effort"].copy(), site_forces, diag, {})

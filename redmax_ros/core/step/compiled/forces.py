@@ -1,0 +1,184 @@
+"""Stage 2 of the compiled step, ``assemble(m, d, q, v, tau, h)``: the LHS matrix and RHS vector of Eq. (2),
+
+    (J^T (M_m + h D_m + h^2 K_m) J + h D_r + h^2 K_r) qdot+ = J^T M_m J qdot + h (f_r + J^T (f_m - M_m Jdot qdot))
+
+with the data-free pipeline's formulas and kernels (dynamics/tree_forces.py, springs.py; stiffness written
+positive, K = -df/dx): the RHS as one J^T pass over the Newton-Euler wrenches (bias accelerations, gravity,
+gyroscopic terms), spring forces, constant wrenches; the LHS by the composite-rigid-body pass over the body
+inertias plus the maximal 6x6 blocks (body damping, the springs' own blocks), minus the springs' cross-body
+terms, plus armature + h D_r + h^2 K_r; then hyper-reduced by T = J_rR (Eq. 9-10): A_R = T^T A T,
+b_R = T^T b. Maximal springs: f_a = -k (l - L0) u, K = k [u u^T + max(0, 1 - L0/l)(I - u u^T)], D = c u u^T
+(notes §1.9.5, §1.9.9; springs.spring_forces), explicit (implicit: false) springs with K = D = 0 and their
+damping force at step k. Joint springs: f = -K_r (q - q_rest) on the manifold (pin.difference)."""
+from __future__ import annotations
+
+import numpy as np
+
+from redmax_ros.core.dynamics.tree_forces import dense_crba_kernel, nle_wrench_kernel, spring_cross_kernel
+from redmax_ros.core.jit import njit, njit_inline
+from redmax_ros.core.solvers.pcg import add_point_block, spring_blocks_kernel
+from redmax_ros.core.solvers.recursive import bias_kernel, jtw_kernel
+from redmax_ros.core.step.compiled.manifold import difference
+
+
+@njit
+def _add_point_wrench(W, j, x, f, sign):
+    """W[j] += sign (f, x x f): a point force f at world point x as a wrench at the world origin."""
+    W[j, 0] += sign * f[0]
+    W[j, 1] += sign * f[1]
+    W[j, 2] += sign * f[2]
+    W[j, 3] += sign * (x[1] * f[2] - x[2] * f[1])
+    W[j, 4] += sign * (x[2] * f[0] - x[0] * f[2])
+    W[j, 5] += sign * (x[0] * f[1] - x[1] * f[0])
+
+
+@njit_inline
+def spring_terms(m, d, h):
+    """Per maximal spring: force on end a (d.spring_f), C = h D + h^2 K (d.spring_C), end positions (d.pa, d.pb)."""
+    for s in range(m.spring_a.shape[0]):
+        a, b = m.spring_a[s], m.spring_b[s]
+        u = np.empty(3)
+        l2 = 0.0
+        for r in range(3):
+            d.pa[s, r] = d.X[a, r]
+            d.pb[s, r] = d.X[b, r]
+            u[r] = d.X[a, r] - d.X[b, r]
+            l2 += u[r] * u[r]
+        l = np.sqrt(l2)
+        tiny = l <= 1e-12
+        safe = 1.0 if tiny else l
+        for r in range(3):
+            u[r] /= safe
+        k, c, L0 = m.spring_k[s], m.spring_d[s], m.spring_rest[s]
+        fk = -(k * (l - L0))
+        for r in range(3):
+            d.spring_f[s, r] = fk * u[r]
+        if m.spring_explicit[s]:
+            d.spring_C[s] = 0.0
+            if c != 0.0:  # damping force at step k from the site velocities v_o + w x x
+                ja, jb = m.spring_ja[s], m.spring_jb[s]
+                xa, xb = d.X[a], d.X[b]
+                ya, yb = d.ov[ja], d.ov[jb]
+                dv0 = (ya[0] + ya[4] * xa[2] - ya[5] * xa[1]) - (yb[0] + yb[4] * xb[2] - yb[5] * xb[1])
+                dv1 = (ya[1] + ya[5] * xa[0] - ya[3] * xa[2]) - (yb[1] + yb[5] * xb[0] - yb[3] * xb[2])
+                dv2 = (ya[2] + ya[3] * xa[1] - ya[4] * xa[0]) - (yb[2] + yb[3] * xb[1] - yb[4] * xb[0])
+                fd = c * (u[0] * dv0 + u[1] * dv1 + u[2] * dv2)
+                for r in range(3):
+                    d.spring_f[s, r] -= fd * u[r]
+            continue
+        trans = 1.0 if tiny else max(1.0 - L0 / safe, 0.0)
+        hh = h * h
+        for r in range(3):
+            for q in range(3):
+                uu = u[r] * u[q]
+                K = k * (uu + trans * ((1.0 if r == q else 0.0) - uu))
+                d.spring_C[s, r, q] = h * (c * uu) + hh * K
+
+
+@njit_inline
+def rhs(m, d, q, v, tau, h):
+    """b of Eq. (2), reduced coordinates (tree_forces.rhs): J^T (I ov - h W_nle + h W_ext) + armature qdot
+    + h (tau - K_r (q - q_rest)). Needs kinematics and spring_terms."""
+    nj = m.parents.shape[0]
+    bias_kernel(m.parents, m.idx_v, m.nv_j, d.St, d.ov, v, d.R, d.p, d.c_local, d.acc)
+    nle_wrench_kernel(d.I, d.ov, d.acc, m.gravity, d.W)
+    d.ext[:, :] = 0.0
+    for s in range(m.spring_a.shape[0]):
+        _add_point_wrench(d.ext, m.spring_ja[s], d.pa[s], d.spring_f[s], 1.0)
+        _add_point_wrench(d.ext, m.spring_jb[s], d.pb[s], d.spring_f[s], -1.0)
+    x = np.empty(3)
+    for w in range(m.wrench_jid.shape[0]):
+        j = m.wrench_jid[w]
+        if j == 0:
+            continue
+        for r in range(3):
+            x[r] = d.R[j, r, 0] * m.wrench_com[w, 0] + d.R[j, r, 1] * m.wrench_com[w, 1] + d.R[j, r, 2] * m.wrench_com[w, 2] + d.p[j, r]
+        fw = m.wrench_fw[w]
+        _add_point_wrench(d.ext, j, x, fw, 1.0)
+        for r in range(3):
+            d.ext[j, 3 + r] += fw[3 + r]
+    for j in range(1, nj):
+        for r in range(6):
+            s = 0.0
+            for c in range(6):
+                s += d.I[j, r, c] * d.ov[j, c]
+            d.W[j, r] = (-h * d.W[j, r] + s) + h * d.ext[j, r]
+    jtw_kernel(m.parents, m.idx_v, m.nv_j, d.St, d.W, d.F, d.b)
+    nv = d.b.shape[0]
+    if m.scalars[1] != 0.0:  # joint springs: q - q_rest on the manifold
+        difference(m.kind, m.idx_q, m.idx_v, m.q_rest, q, d.dq)
+        for i in range(nv):
+            d.b[i] += m.armature[i] * v[i]
+        for i in range(nv):
+            d.b[i] += h * (tau[i] - m.stiffness[i] * d.dq[i])
+    else:
+        for i in range(nv):
+            d.b[i] += m.armature[i] * v[i]
+        for i in range(nv):
+            d.b[i] += h * tau[i]
+
+
+@njit_inline
+def lhs(m, d, h):
+    """A of Eq. (2), reduced coordinates (tree_forces.dense_lhs): composite inertias of I + blocks, minus the
+    springs' cross-body terms, plus armature + h D_r + h^2 K_r. Needs kinematics and spring_terms."""
+    nj = m.parents.shape[0]
+    d.blocks[:, :, :] = 0.0
+    C3 = np.zeros((3, 3))
+    x = np.empty(3)
+    for k in range(m.damp_jid.shape[0]):  # body damping D_m = c diag(m_d I3, R I_d R^T) at the COM
+        j = m.damp_jid[k]
+        for r in range(3):
+            x[r] = d.R[j, r, 0] * m.damp_com[k, 0] + d.R[j, r, 1] * m.damp_com[k, 1] + d.R[j, r, 2] * m.damp_com[k, 2] + d.p[j, r]
+        hc = h * m.damp_c[k]
+        for r in range(3):
+            C3[r, r] = hc * m.damp_m[k]
+        add_point_block(d.blocks[j], 1.0, x, C3)
+        for a in range(3):
+            for b in range(3):
+                s = 0.0
+                for e in range(3):
+                    for f in range(3):
+                        s += d.R[j, a, e] * m.damp_I[k, e, f] * d.R[j, b, f]
+                d.blocks[j, 3 + a, 3 + b] += hc * s
+    if m.spring_a.shape[0]:
+        spring_blocks_kernel(m.spring_ja, d.pa, m.spring_jb, d.pb, d.spring_C, d.blocks)
+    for j in range(1, nj):
+        for a in range(6):
+            for b in range(6):
+                d.blocks[j, a, b] += d.I[j, a, b]
+    d.blocks[0] = 0.0
+    d.A[:, :] = 0.0
+    dense_crba_kernel(m.parents, m.idx_v, m.nv_j, d.St, d.blocks, d.A)
+    if m.spring_a.shape[0]:
+        spring_cross_kernel(m.parents, m.idx_v, m.nv_j, d.St, m.spring_ja, d.pa, m.spring_jb, d.pb, d.spring_C, d.A)
+    hh = h * h
+    for i in range(d.A.shape[0]):
+        d.A[i, i] += m.armature[i] + (h * m.damping[i] + hh * m.stiffness[i])
+
+
+@njit_inline
+def hyper_reduce(m, d):
+    """A_R = T^T A T, b_R = T^T b (Eq. 9-10) into d.AR, d.bR (copies without couplings), with T's one entry per
+    row (T_col, T_ratio): O(nv^2), no allocation."""
+    if m.T.shape[0] == 0:
+        d.AR[:, :] = d.A
+        d.bR[:] = d.b
+        return
+    nv = d.A.shape[0]
+    d.AR[:, :] = 0.0
+    d.bR[:] = 0.0
+    for i in range(nv):
+        ci, ri = m.T_col[i], m.T_ratio[i]
+        d.bR[ci] += ri * d.b[i]
+        for k in range(nv):
+            d.AR[ci, m.T_col[k]] += ri * d.A[i, k] * m.T_ratio[k]
+
+
+@njit_inline
+def assemble(m, d, q, v, tau, h):
+    """Stage 2: d.AR, d.bR of Eq. (2) at the kinematics in d."""
+    spring_terms(m, d, h)
+    rhs(m, d, q, v, tau, h)
+    lhs(m, d, h)
+    hyper_reduce(m, d)

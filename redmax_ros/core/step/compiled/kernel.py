@@ -1,0 +1,117 @@
+"""The compiled RedMax step: one native call per step, ``step_kernel``, reading as the list of its stages (each
+``f(m, d, ...)`` in its own module, Model static, Data the preallocated workspace):
+
+    kinematics(m, d, q, qdot_r)            # 1  forward kinematics, twists, inertias, sites (kinematics.py)
+    assemble(m, d, q, qdot_r, tau, h)      # 2  A_R, b_R of Eq. (2), Eq. (9-10) (forces.py)
+    rows(m, d, q, h, gj, sv)               # 3  loops, prescribed joints and sites (Eq. 7), limits (rows.py)
+    kkt_solve_into(A_R, b_R, G, g, ...)    # 4  Cholesky + Schur complement of Eq. (6)/(7) (solvers/kkt.py)
+    update_configuration(m, d, q, h)       # 5  manifold update, loop post-stabilization (update.py)
+    required_forces(m, d, tau, h)          # 6  Eq. 7 torques and site forces (update.py)
+    energies(m, d, q+, qdot_r+)            #    diagnostics (energy.py)
+
+It returns a status: OK, or REFERENCE with the stage that asked for it in d.out[OUT_STAGE]: whatever the
+kernel does not finish itself (an active joint limit, which needs the QP of Eq. 5; a loop projection that
+needs the full Newton; a rank-deficient or non-positive-definite system; any input the divergence checks
+of step/state.py reject) is redone by the Pinocchio pipeline, which solves it or raises the StepError
+naming the problem. Nothing the kernel wrote is then used, so the step's outcome is the reference's.
+"""
+from __future__ import annotations
+
+from redmax_ros.core.jit import njit
+from redmax_ros.core.step.compiled.cache import drop_stale
+from redmax_ros.core.solvers.kkt import kkt_residual, kkt_solve_into
+from redmax_ros.core.step.compiled.data import (OUT_E_KIN, OUT_E_POT, OUT_E_SPRING, OUT_RESIDUAL, OUT_STAGE,
+                                                OUT_VIOL_POS, OUT_VIOL_VEL, data_views)
+from redmax_ros.core.step.compiled.energy import energies
+from redmax_ros.core.step.compiled.forces import assemble
+from redmax_ros.core.step.compiled.kinematics import kinematics
+from redmax_ros.core.step.compiled.model import model_views
+from redmax_ros.core.step.compiled.rows import rows
+from redmax_ros.core.step.compiled.update import required_forces, to_reduced, update_configuration
+from redmax_ros.core.step.state import MAX_SPEED, impulse_beyond, row_beyond
+
+drop_stale()  # before numba looks at the cache of the kernels below (cache.py)
+
+OK, REFERENCE = 0, 1
+# the stage that handed the step to the reference (d.out[OUT_STAGE])
+(STAGE_NONE, STAGE_INPUT, STAGE_IMPULSE, STAGE_ROWS, STAGE_FACTOR, STAGE_SCHUR, STAGE_LIMITS, STAGE_SPEED,
+ STAGE_PROJECTION, STAGE_ENERGY) = range(10)
+STAGE_NAMES = ("none", "non-finite input or RHS", "applied impulse beyond the limit", "prescribed row beyond the limit",
+               "LHS not positive definite", "constraint rows rank-deficient", "joint limit active (QP of Eq. 5)",
+               "velocity beyond the limit", "loop projection (full Newton)", "non-finite energy")
+
+
+@njit
+def _finite_sum(x):
+    s = 0.0
+    for i in range(x.shape[0]):
+        s += x[i]
+    return s - s == 0.0
+
+
+@njit
+def _handoff(d, stage):
+    d.out[OUT_STAGE] = stage
+    return REFERENCE
+
+
+@njit
+def step_kernel(mf, mi, mt, df, di, dt, q, vR, tau, h, gj, sv):
+    """One step from (q, qdot_R) with joint torques tau (nv,) [N m, N], prescribed joint velocities gj and
+    site velocities sv (ns, 3) [m/s]; outputs in the Data (q_new, v_hyper, v_new, lam, effort, site_force, out)."""
+    m = model_views(mf, mi, mt)
+    d = data_views(df, di, dt)
+    d.out[OUT_STAGE] = 0.0
+    vv = vR @ vR
+    if not (_finite_sum(q) and vv - vv == 0.0 and _finite_sum(tau)) or vv > MAX_SPEED * MAX_SPEED:
+        return _handoff(d, STAGE_INPUT)  # step/state.applied_torques names it
+    to_reduced(m, vR, d.v_r)
+    kinematics(m, d, q, d.v_r)  # 1
+    assemble(m, d, q, d.v_r, tau, h)  # 2
+    if not _finite_sum(d.bR):
+        return _handoff(d, STAGE_INPUT)
+    if impulse_beyond(d.AR, m.T, tau, d.free_mask, h, MAX_SPEED) >= 0:
+        return _handoff(d, STAGE_IMPULSE)
+    rows(m, d, q, h, gj, sv)  # 3
+    if d.g.shape[0]:
+        if not _finite_sum(d.g):
+            return _handoff(d, STAGE_INPUT)
+        if row_beyond(d.G, d.g, MAX_SPEED) >= 0:
+            return _handoff(d, STAGE_ROWS)
+    status, ratio, viol, limits_ok = kkt_solve_into(d.AR, d.bR, d.G, d.g, m.limit_rows, d.lo, d.hi, d.kkt_L,
+                                                    d.kkt_Y, d.kkt_S, d.kkt_LS, d.kkt_y, d.v_hyper, d.lam)  # 4
+    if status == 1:
+        return _handoff(d, STAGE_FACTOR)
+    if status == 2 or ratio <= 1e-6:
+        return _handoff(d, STAGE_SCHUR)
+    if not limits_ok:
+        return _handoff(d, STAGE_LIMITS)
+    if not (d.v_hyper @ d.v_hyper <= MAX_SPEED * MAX_SPEED):
+        return _handoff(d, STAGE_SPEED)
+    d.out[OUT_VIOL_VEL] = viol
+    d.out[OUT_RESIDUAL] = kkt_residual(d.AR, d.bR, d.v_hyper, d.G, d.lam, m.limit_rows[:0], d.mu[:0])
+    converged, viol_pos = update_configuration(m, d, q, h)  # 5
+    if not converged or not _finite_sum(d.q_new):
+        return _handoff(d, STAGE_PROJECTION)
+    required_forces(m, d, tau, h)  # 6
+    ek, ep, es = energies(m, d, d.q_new, d.v_new)
+    if not (ek + ep + es) - (ek + ep + es) == 0.0:
+        return _handoff(d, STAGE_ENERGY)
+    d.out[OUT_E_KIN] = ek
+    d.out[OUT_E_POT] = ep
+    d.out[OUT_E_SPRING] = es
+    d.out[OUT_VIOL_POS] = viol_pos
+    return OK
+
+
+@njit
+def step_n_kernel(mf, mi, mt, df, di, dt, q, vR, tau, h, gj, sv, n):
+    """Up to n steps with the same commands, (q, vR) advanced in place; returns the number of steps taken
+    (< n: the next step was handed back, d.out[OUT_STAGE] says why). The Data holds the last step's outputs."""
+    d = data_views(df, di, dt)
+    for k in range(n):
+        if step_kernel(mf, mi, mt, df, di, dt, q, vR, tau, h, gj, sv) != OK:
+            return k
+        q[:] = d.q_new
+        vR[:] = d.v_hyper
+    return n

@@ -1,0 +1,48 @@
+"""Stage 1 of the compiled step, ``kinematics(m, d, q, v)``: forward kinematics of every joint kind of the path
+(universal and planar joints by their own kernels, the rest in recursive.fk_kernel), world motion subspaces
+S (= Pinocchio's data.J), world spatial inertias, body twists J qdot (Sueda's notes Alg. 5), site
+positions; and :func:`point_jacobian` (Eq. S2.4). The kernels are those of the data-free pipeline
+(solvers/recursive.py, dynamics/tree_kinematics.py), so both paths compute the same numbers."""
+from __future__ import annotations
+
+from redmax_ros.core.dynamics.tree_kinematics import universal_kernel
+from redmax_ros.core.jit import njit, njit_inline
+from redmax_ros.core.solvers.recursive import fk_kernel, jv_kernel, planar_placements, site_pos_kernel, world_inertia_kernel
+
+
+@njit_inline
+def placements(m, d, q, with_bias, v):
+    """Joint transforms, world placements (R, p), motion subspaces St and site positions X at q; with
+    ``with_bias`` the universal joints' bias c(q, v) too (needed for Jdot qdot)."""
+    if m.uni_joints.shape[0]:
+        universal_kernel(m.uni_joints, m.idx_q, m.idx_v, m.uni_a1, m.uni_a2, q, v, with_bias, d.jR, d.jp, d.Sl,
+                         d.c_local)
+    if m.planar_joints.shape[0]:
+        planar_placements(m.planar_joints, m.idx_q, q, d.jR, d.jp)
+    fk_kernel(m.parents, m.kind, m.idx_q, m.idx_v, m.nv_j, m.axis, m.pitch, m.place_R, m.place_p, q,
+              d.jR, d.jp, d.Sl, d.R, d.p, d.St)
+    site_pos_kernel(d.R, d.p, m.site_jid, m.site_local, d.X)
+
+
+@njit_inline
+def kinematics(m, d, q, v):
+    """Everything of (q, qdot_r) the forces need: placements, inertias I (world, at the origin), twists ov."""
+    placements(m, d, q, True, v)
+    world_inertia_kernel(m.mass, m.com, m.inertia_com, d.R, d.p, d.I)
+    jv_kernel(m.parents, m.idx_v, m.nv_j, d.St, v, d.ov)
+
+
+@njit_inline
+def point_jacobian(m, d, site, J):
+    """J (3, nv) = the world point Jacobian of site ``site`` at the placements in d (Eq. S2.4: column c =
+    lin(S_c) + ang(S_c) x x_site on the DOFs supporting the site, zero elsewhere)."""
+    J[:, :] = 0.0
+    x0, x1, x2 = d.X[site, 0], d.X[site, 1], d.X[site, 2]
+    j = m.site_jid[site]
+    while j > 0:
+        for c in range(m.idx_v[j], m.idx_v[j] + m.nv_j[j]):
+            w0, w1, w2 = d.St[c, 3], d.St[c, 4], d.St[c, 5]
+            J[0, c] = d.St[c, 0] + w1 * x2 - w2 * x1
+            J[1, c] = d.St[c, 1] + w2 * x0 - w0 * x2
+            J[2, c] = d.St[c, 2] + w0 * x1 - w1 * x0
+        j = m.parents[j]
