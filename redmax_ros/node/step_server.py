@@ -162,8 +162,8 @@ class StepServer:
                     resp.result.error_message.capacity = len(text) + 1
                     resp.completed_steps = done
                     resp.sim_time.sec, resp.sim_time.nanosec = split_time(t)
+                    self.served += 1  # before the send: a client holding the response sees it counted
                     ret = send(ptr, hp, sp)
-                    self.served += 1
                     if ret != RCL_RET_OK and not self._stop and self._context.ok():
                         self._error(f"step_simulation: rcl_send_response failed (rcl code {ret})")
 

@@ -107,9 +107,18 @@ def _held_array(ctx, hold_dofs):
 @njit
 def chord_factor(G, held):
     """Cholesky factor of K K^T, K = [G; H] (H selects the held hyper-reduced DOFs):
-    K K^T = [[G G^T, G[:, held]], [G[:, held]^T, I]]."""
+    K K^T = [[G G^T, G[:, held]], [G[:, held]^T, I]]. Returns (L, ok)."""
+    n = G.shape[0] + held.shape[0]
+    L = np.empty((n, n))
+    ok = chord_factor_into(G, held, np.zeros((n, n)), L)
+    return L, ok
+
+
+@njit
+def chord_factor_into(G, held, KK, L):
+    """chord_factor without allocation: K K^T into KK, its factor into L ((m + k) square); returns ok."""
     m, n, k = G.shape[0], G.shape[1], held.shape[0]
-    KK = np.zeros((m + k, m + k))
+    KK[:, :] = 0.0
     for r in range(m):
         for c in range(r + 1):
             s = 0.0
@@ -122,9 +131,7 @@ def chord_factor(G, held):
             KK[m + j, r] = G[r, held[j]]
     for j in range(k):
         KK[m + j, m + j] = 1.0
-    L = np.empty((m + k, m + k))
-    ok = cholesky(KK, L)
-    return L, ok
+    return cholesky(KK, L)
 
 
 @njit
@@ -132,24 +139,32 @@ def chord_step(L, G, held, phi, T):
     """Least-norm correction dq = -K^T (K K^T)^-1 [phi; 0] (held DOFs fixed), mapped to reduced
     coordinates by J_rR = T (empty T: none)."""
     m, n, k = G.shape[0], G.shape[1], held.shape[0]
-    y = np.zeros(m + k)
+    out = np.empty(n if T.shape[0] == 0 else T.shape[0])
+    chord_step_into(L, G, held, phi, T, np.empty(m + k), np.empty(n), out)
+    return out
+
+
+@njit
+def chord_step_into(L, G, held, phi, T, y, dq, out):
+    """chord_step without allocation: scratch y (m + k,), dq (n,); the correction into out (reduced)."""
+    m, n, k = G.shape[0], G.shape[1], held.shape[0]
+    y[:] = 0.0
     y[:m] = phi
     chol_solve(L, y)
-    dq = np.zeros(n)
+    dq[:] = 0.0
     for r in range(m):
         for i in range(n):
             dq[i] -= G[r, i] * y[r]
     for j in range(k):
         dq[held[j]] -= y[m + j]
     if T.shape[0] == 0:
-        return dq
-    out = np.zeros(T.shape[0])
+        out[:] = dq
+        return
     for i in range(T.shape[0]):
         s = 0.0
         for c in range(n):
             s += T[i, c] * dq[c]
         out[i] = s
-    return out
 
 
 def assemble_loops(ctx: Context, q):

@@ -38,6 +38,12 @@ DATA_SPEC = (
     ("kkt_L", "f", 2), ("kkt_Y", "f", 2), ("kkt_S", "f", 2), ("kkt_LS", "f", 2), ("kkt_y", "f", 1),
     # the rows of a prescribed site, reduced coordinates (3, nv)
     ("site_rows", "f", 2),
+    # loop residuals phi (nl,) and the loop sites' differences (3L,)
+    ("phi", "f", 1), ("dx", "f", 1),
+    # the chord projection's factors and steps (dynamics/stabilization.chord_factor_into, chord_step_into)
+    ("chord_KK", "f", 2), ("chord_L", "f", 2), ("chord_y", "f", 1), ("chord_dq", "f", 1), ("chord_out", "f", 1),
+    # small scratch of the force stage
+    ("x3", "f", 1), ("C33", "f", 2),
 )
 
 Data = namedtuple("Data", [n for n, _, _ in DATA_SPEC])
@@ -62,7 +68,10 @@ def data_views(f, i, t):
                 f1(f, t, 42),
                 f2(f, t, 43), f2(f, t, 44), f2(f, t, 45), f1(f, t, 46), f1(f, t, 47),
                 f2(f, t, 48), f2(f, t, 49), f2(f, t, 50), f2(f, t, 51), f1(f, t, 52),
-                f2(f, t, 53))
+                f2(f, t, 53),
+                f1(f, t, 54), f1(f, t, 55),
+                f2(f, t, 56), f2(f, t, 57), f1(f, t, 58), f1(f, t, 59), f1(f, t, 60),
+                f1(f, t, 61), f2(f, t, 62))
 
 
 def build_data(mech, model, joints: tuple, sites: tuple, site_axes: dict, T) -> "Packed":
@@ -111,6 +120,10 @@ def build_data(mech, model, joints: tuple, sites: tuple, site_axes: dict, T) -> 
         site_force=np.zeros((len(sites), 3)), out=np.zeros(N_OUT),
         kkt_L=np.zeros((ndof, ndof)), kkt_Y=np.zeros((ndof, m)), kkt_S=np.zeros((m, m)), kkt_LS=np.zeros((m, m)),
         kkt_y=np.zeros(ndof), site_rows=np.zeros((3, nv)),
+        phi=np.zeros(nl), dx=np.zeros(3 * len(mech.loop_ab)),
+        chord_KK=np.zeros((nl + len(held), nl + len(held))), chord_L=np.zeros((nl + len(held), nl + len(held))),
+        chord_y=np.zeros(nl + len(held)), chord_dq=np.zeros(ndof), chord_out=np.zeros(nv),
+        x3=np.zeros(3), C33=np.zeros((3, 3)),
         pa=np.zeros((P, 3)), pb=np.zeros((P, 3)), Gr_loop=np.zeros((nl, nv)), q_tmp=np.zeros(nq), step_v=np.zeros(nv),
     )
     return pack(DATA_SPEC, values)

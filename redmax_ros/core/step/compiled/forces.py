@@ -37,7 +37,7 @@ def spring_terms(m, d, h):
     """Per maximal spring: force on end a (d.spring_f), C = h D + h^2 K (d.spring_C), end positions (d.pa, d.pb)."""
     for s in range(m.spring_a.shape[0]):
         a, b = m.spring_a[s], m.spring_b[s]
-        u = np.empty(3)
+        u = d.x3
         l2 = 0.0
         for r in range(3):
             d.pa[s, r] = d.X[a, r]
@@ -86,7 +86,7 @@ def rhs(m, d, q, v, tau, h):
     for s in range(m.spring_a.shape[0]):
         _add_point_wrench(d.ext, m.spring_ja[s], d.pa[s], d.spring_f[s], 1.0)
         _add_point_wrench(d.ext, m.spring_jb[s], d.pb[s], d.spring_f[s], -1.0)
-    x = np.empty(3)
+    x = d.x3
     for w in range(m.wrench_jid.shape[0]):
         j = m.wrench_jid[w]
         if j == 0:
@@ -124,8 +124,9 @@ def lhs(m, d, h):
     springs' cross-body terms, plus armature + h D_r + h^2 K_r. Needs kinematics and spring_terms."""
     nj = m.parents.shape[0]
     d.blocks[:, :, :] = 0.0
-    C3 = np.zeros((3, 3))
-    x = np.empty(3)
+    C3 = d.C33
+    C3[:, :] = 0.0
+    x = d.x3
     for k in range(m.damp_jid.shape[0]):  # body damping D_m = c diag(m_d I3, R I_d R^T) at the COM
         j = m.damp_jid[k]
         for r in range(3):
@@ -158,21 +159,21 @@ def lhs(m, d, h):
 
 
 @njit_inline
-def hyper_reduce(m, d):
-    """A_R = T^T A T, b_R = T^T b (Eq. 9-10) into d.AR, d.bR (copies without couplings), with T's one entry per
-    row (T_col, T_ratio): O(nv^2), no allocation."""
-    if m.T.shape[0] == 0:
-        d.AR[:, :] = d.A
-        d.bR[:] = d.b
+def hyper_reduce(T_col, T_ratio, A, b, AR, bR):
+    """A_R = T^T A T, b_R = T^T b (Eq. 9-10) with T's one entry per row (T_col, T_ratio): O(nv^2), no
+    allocation; copies without couplings (T_col empty)."""
+    if T_col.shape[0] == 0:
+        AR[:, :] = A
+        bR[:] = b
         return
-    nv = d.A.shape[0]
-    d.AR[:, :] = 0.0
-    d.bR[:] = 0.0
+    nv = A.shape[0]
+    AR[:, :] = 0.0
+    bR[:] = 0.0
     for i in range(nv):
-        ci, ri = m.T_col[i], m.T_ratio[i]
-        d.bR[ci] += ri * d.b[i]
+        ci, ri = T_col[i], T_ratio[i]
+        bR[ci] += ri * b[i]
         for k in range(nv):
-            d.AR[ci, m.T_col[k]] += ri * d.A[i, k] * m.T_ratio[k]
+            AR[ci, T_col[k]] += ri * A[i, k] * T_ratio[k]
 
 
 @njit_inline
@@ -181,4 +182,4 @@ def assemble(m, d, q, v, tau, h):
     spring_terms(m, d, h)
     rhs(m, d, q, v, tau, h)
     lhs(m, d, h)
-    hyper_reduce(m, d)
+    hyper_reduce(m.T_col, m.T_ratio, d.A, d.b, d.AR, d.bR)

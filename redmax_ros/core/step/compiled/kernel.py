@@ -17,7 +17,7 @@ naming the problem. Nothing the kernel wrote is then used, so the step's outcome
 """
 from __future__ import annotations
 
-from redmax_ros.core.jit import njit
+from redmax_ros.core.jit import njit, njit_inline
 from redmax_ros.core.step.compiled.cache import drop_stale
 from redmax_ros.core.solvers.kkt import kkt_residual, kkt_solve_into
 from redmax_ros.core.step.compiled.data import (OUT_E_KIN, OUT_E_POT, OUT_E_SPRING, OUT_RESIDUAL, OUT_STAGE,
@@ -50,8 +50,8 @@ def _finite_sum(x):
 
 
 @njit
-def _handoff(d, stage):
-    d.out[OUT_STAGE] = stage
+def _handoff(out, stage):
+    out[OUT_STAGE] = stage
     return REFERENCE
 
 
@@ -59,44 +59,48 @@ def _handoff(d, stage):
 def step_kernel(mf, mi, mt, df, di, dt, q, vR, tau, h, gj, sv):
     """One step from (q, qdot_R) with joint torques tau (nv,) [N m, N], prescribed joint velocities gj and
     site velocities sv (ns, 3) [m/s]; outputs in the Data (q_new, v_hyper, v_new, lam, effort, site_force, out)."""
-    m = model_views(mf, mi, mt)
-    d = data_views(df, di, dt)
+    return one_step(model_views(mf, mi, mt), data_views(df, di, dt), q, vR, tau, h, gj, sv)
+
+
+@njit_inline
+def one_step(m, d, q, vR, tau, h, gj, sv):
+    """The stages of one step on the Model and Data namedtuples; returns OK or REFERENCE."""
     d.out[OUT_STAGE] = 0.0
     vv = vR @ vR
     if not (_finite_sum(q) and vv - vv == 0.0 and _finite_sum(tau)) or vv > MAX_SPEED * MAX_SPEED:
-        return _handoff(d, STAGE_INPUT)  # step/state.applied_torques names it
-    to_reduced(m, vR, d.v_r)
+        return _handoff(d.out, STAGE_INPUT)  # step/state.applied_torques names it
+    to_reduced(m.T_col, m.T_ratio, vR, d.v_r)
     kinematics(m, d, q, d.v_r)  # 1
     assemble(m, d, q, d.v_r, tau, h)  # 2
     if not _finite_sum(d.bR):
-        return _handoff(d, STAGE_INPUT)
+        return _handoff(d.out, STAGE_INPUT)
     if impulse_beyond(d.AR, m.T, tau, d.free_mask, h, MAX_SPEED) >= 0:
-        return _handoff(d, STAGE_IMPULSE)
+        return _handoff(d.out, STAGE_IMPULSE)
     rows(m, d, q, h, gj, sv)  # 3
     if d.g.shape[0]:
         if not _finite_sum(d.g):
-            return _handoff(d, STAGE_INPUT)
+            return _handoff(d.out, STAGE_INPUT)
         if row_beyond(d.G, d.g, MAX_SPEED) >= 0:
-            return _handoff(d, STAGE_ROWS)
+            return _handoff(d.out, STAGE_ROWS)
     status, ratio, viol, limits_ok = kkt_solve_into(d.AR, d.bR, d.G, d.g, m.limit_rows, d.lo, d.hi, d.kkt_L,
                                                     d.kkt_Y, d.kkt_S, d.kkt_LS, d.kkt_y, d.v_hyper, d.lam)  # 4
     if status == 1:
-        return _handoff(d, STAGE_FACTOR)
+        return _handoff(d.out, STAGE_FACTOR)
     if status == 2 or ratio <= 1e-6:
-        return _handoff(d, STAGE_SCHUR)
+        return _handoff(d.out, STAGE_SCHUR)
     if not limits_ok:
-        return _handoff(d, STAGE_LIMITS)
+        return _handoff(d.out, STAGE_LIMITS)
     if not (d.v_hyper @ d.v_hyper <= MAX_SPEED * MAX_SPEED):
-        return _handoff(d, STAGE_SPEED)
+        return _handoff(d.out, STAGE_SPEED)
     d.out[OUT_VIOL_VEL] = viol
     d.out[OUT_RESIDUAL] = kkt_residual(d.AR, d.bR, d.v_hyper, d.G, d.lam, m.limit_rows[:0], d.mu[:0])
     converged, viol_pos = update_configuration(m, d, q, h)  # 5
     if not converged or not _finite_sum(d.q_new):
-        return _handoff(d, STAGE_PROJECTION)
+        return _handoff(d.out, STAGE_PROJECTION)
     required_forces(m, d, tau, h)  # 6
     ek, ep, es = energies(m, d, d.q_new, d.v_new)
     if not (ek + ep + es) - (ek + ep + es) == 0.0:
-        return _handoff(d, STAGE_ENERGY)
+        return _handoff(d.out, STAGE_ENERGY)
     d.out[OUT_E_KIN] = ek
     d.out[OUT_E_POT] = ep
     d.out[OUT_E_SPRING] = es
@@ -108,9 +112,10 @@ def step_kernel(mf, mi, mt, df, di, dt, q, vR, tau, h, gj, sv):
 def step_n_kernel(mf, mi, mt, df, di, dt, q, vR, tau, h, gj, sv, n):
     """Up to n steps with the same commands, (q, vR) advanced in place; returns the number of steps taken
     (< n: the next step was handed back, d.out[OUT_STAGE] says why). The Data holds the last step's outputs."""
+    m = model_views(mf, mi, mt)
     d = data_views(df, di, dt)
     for k in range(n):
-        if step_kernel(mf, mi, mt, df, di, dt, q, vR, tau, h, gj, sv) != OK:
+        if one_step(m, d, q, vR, tau, h, gj, sv) != OK:
             return k
         q[:] = d.q_new
         vR[:] = d.v_hyper

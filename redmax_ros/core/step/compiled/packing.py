@@ -8,11 +8,14 @@ where building a namedtuple costs nothing. The table has one row per field, in t
 list: (is_int, offset, ndim, d0, d1, d2).
 
 :class:`Packer` builds the buffers from named arrays in Python; the ``f1 .. f3`` / ``i1 .. i2`` kernels
-return a field's view inside numba code.
+return a field's view inside numba code (numba.carray over the buffer's memory, see below).
 """
 from __future__ import annotations
 
 import numpy as np
+
+from numba import carray, types
+from numba.extending import intrinsic
 
 from redmax_ros.core.jit import njit_inline
 
@@ -66,23 +69,46 @@ def pack(spec, values: dict) -> Packed:
     return Packed([n for n, _, _ in spec], f, i, tab)
 
 
+@intrinsic
+def _f64_ptr(typingctx, addr):
+    """The float64 pointer at integer address ``addr``."""
+    def codegen(context, builder, signature, args):
+        return builder.inttoptr(args[0], context.get_value_type(types.CPointer(types.float64)))
+    return types.CPointer(types.float64)(types.uintp), codegen
+
+
+@intrinsic
+def _i64_ptr(typingctx, addr):
+    """The int64 pointer at integer address ``addr``."""
+    def codegen(context, builder, signature, args):
+        return builder.inttoptr(args[0], context.get_value_type(types.CPointer(types.int64)))
+    return types.CPointer(types.int64)(types.uintp), codegen
+
+
+# The views are numba.carray's over the buffers' memory: arrays without a reference count (NULL meminfo), so
+# building ~100 of them costs ~0.5 us instead of ~4 us (slice + reshape, ~40 ns each), and handing the
+# namedtuples to a stage costs ~3.5 ns per member instead of ~4.5 (measured). They are valid while the
+# buffers live: the caller (backend.py) holds them for the duration of every kernel call.
 @njit_inline
 def f1(buf, tab, k):
-    o = tab[k, 1]
-    return buf[o:o + tab[k, 3]]
+    return carray(_f64_ptr(buf.ctypes.data + 8 * tab[k, 1]), (tab[k, 3],))
 
 
 @njit_inline
 def f2(buf, tab, k):
-    o = tab[k, 1]
-    return buf[o:o + tab[k, 3] * tab[k, 4]].reshape((tab[k, 3], tab[k, 4]))
+    return carray(_f64_ptr(buf.ctypes.data + 8 * tab[k, 1]), (tab[k, 3], tab[k, 4]))
 
 
 @njit_inline
 def f3(buf, tab, k):
-    o = tab[k, 1]
-    return buf[o:o + tab[k, 3] * tab[k, 4] * tab[k, 5]].reshape((tab[k, 3], tab[k, 4], tab[k, 5]))
+    return carray(_f64_ptr(buf.ctypes.data + 8 * tab[k, 1]), (tab[k, 3], tab[k, 4], tab[k, 5]))
 
 
-i1 = f1  # the same slicing for the int buffer (numba compiles one version per buffer dtype)
-i2 = f2
+@njit_inline
+def i1(buf, tab, k):
+    return carray(_i64_ptr(buf.ctypes.data + 8 * tab[k, 1]), (tab[k, 3],))
+
+
+@njit_inline
+def i2(buf, tab, k):
+    return carray(_i64_ptr(buf.ctypes.data + 8 * tab[k, 1]), (tab[k, 3], tab[k, 4]))

@@ -7,38 +7,38 @@ bounds of Eq. (5), hyper-reduced, in the layout of dynamics/constraints.build:
 * limits: (lower - q) / h <= C qdot_R <= (upper - q) / h on the limited DOFs."""
 from __future__ import annotations
 
-import numpy as np
-
 from redmax_ros.core.jit import njit, njit_inline
 from redmax_ros.core.step.compiled.kinematics import point_jacobian
 
 
 @njit_inline
-def _project_rows(m, Gr, out):
-    """out = Gr J_rR (or Gr without couplings), with T's one entry per row (T_col, T_ratio)."""
-    if m.T.shape[0] == 0:
+def project_rows(T_col, T_ratio, Gr, out):
+    """out = Gr J_rR with T's one entry per row (T_col, T_ratio), or Gr without couplings (T_col empty)."""
+    if T_col.shape[0] == 0:
         out[:, :] = Gr
         return
     out[:, :] = 0.0
     for r in range(Gr.shape[0]):
         for i in range(Gr.shape[1]):
-            out[r, m.T_col[i]] += Gr[r, i] * m.T_ratio[i]
+            out[r, T_col[i]] += Gr[r, i] * T_ratio[i]
 
 
 @njit_inline
-def loop_phi(m, d):
-    """(phi, max|phi|) [m] of the loop closures at the site positions in d: phi = S (x_a - x_b)."""
-    L = m.loop_a.shape[0]
-    dx = np.empty(3 * L)
-    for l in range(L):
-        a, b = m.loop_a[l], m.loop_b[l]
+def loop_phi(loop_a, loop_b, loop_select, X, dx, phi):
+    """phi = S (x_a - x_b) [m] of the loop closures at the site positions X (into phi; dx scratch (3L,));
+    returns max|phi|."""
+    for l in range(loop_a.shape[0]):
+        a, b = loop_a[l], loop_b[l]
         for r in range(3):
-            dx[3 * l + r] = d.X[a, r] - d.X[b, r]
-    phi = m.loop_select @ dx
+            dx[3 * l + r] = X[a, r] - X[b, r]
     err = 0.0
     for r in range(phi.shape[0]):
-        err = max(err, abs(phi[r]))
-    return phi, err
+        s = 0.0
+        for c in range(dx.shape[0]):
+            s += loop_select[r, c] * dx[c]
+        phi[r] = s
+        err = max(err, abs(s))
+    return err
 
 
 @njit_inline
@@ -48,8 +48,8 @@ def rows(m, d, q, h, gj, sv):
     L = m.loop_a.shape[0]
     if L:
         for l in range(L):
-            point_jacobian(m, d, m.loop_a[l], d.Jpt[2 * l])
-            point_jacobian(m, d, m.loop_b[l], d.Jpt[2 * l + 1])
+            point_jacobian(m.parents, m.idx_v, m.nv_j, m.site_jid, d.St, d.X, m.loop_a[l], d.Jpt[2 * l])
+            point_jacobian(m.parents, m.idx_v, m.nv_j, m.site_jid, d.St, d.X, m.loop_b[l], d.Jpt[2 * l + 1])
         nv = d.Gr_loop.shape[1]
         d.Gr_loop[:, :] = 0.0
         for r in range(nl):
@@ -59,11 +59,11 @@ def rows(m, d, q, h, gj, sv):
                     if s != 0.0:
                         for i in range(nv):
                             d.Gr_loop[r, i] += s * (d.Jpt[2 * l, c, i] - d.Jpt[2 * l + 1, c, i])
-        _project_rows(m, d.Gr_loop, d.G[:nl])
+        project_rows(m.T_col, m.T_ratio, d.Gr_loop, d.G[:nl])
         if m.scalars[0] != 0.0:  # Baumgarte: G qdot = -b phi(q_k)
-            phi, _ = loop_phi(m, d)
+            loop_phi(m.loop_a, m.loop_b, m.loop_select, d.X, d.dx, d.phi)
             for r in range(nl):
-                d.g[r] = -m.scalars[0] * phi[r]
+                d.g[r] = -m.scalars[0] * d.phi[r]
         else:
             for r in range(nl):
                 d.g[r] = 0.0
@@ -74,14 +74,14 @@ def rows(m, d, q, h, gj, sv):
     r0 = nl + mj
     for k in range(d.site_ids.shape[0]):
         J = d.Jpt[k]
-        point_jacobian(m, d, d.site_ids[k], J)
+        point_jacobian(m.parents, m.idx_v, m.nv_j, m.site_jid, d.St, d.X, d.site_ids[k], J)
         kk = d.site_k[k]
         P = d.site_P[k]
         Gs = d.site_rows[:kk]
         for r in range(kk):
             for i in range(J.shape[1]):
                 Gs[r, i] = P[r, 0] * J[0, i] + P[r, 1] * J[1, i] + P[r, 2] * J[2, i]
-        _project_rows(m, Gs, d.G[r0:r0 + kk])
+        project_rows(m.T_col, m.T_ratio, Gs, d.G[r0:r0 + kk])
         for r in range(kk):
             d.g[r0 + r] = P[r, 0] * sv[k, 0] + P[r, 1] * sv[k, 1] + P[r, 2] * sv[k, 2]
         r0 += kk

@@ -4,9 +4,9 @@ with the step's loop rows, prescribed joints held, until max|phi| < 1e-10 m) and
 effort = tau - *G_r^T lam / h on the prescribed joints, the world force every prescribed site requires)."""
 from __future__ import annotations
 
-from redmax_ros.core.dynamics.stabilization import TOL, chord_factor, chord_step
-from redmax_ros.core.jit import njit, njit_inline
-from redmax_ros.core.step.compiled.kinematics import placements
+from redmax_ros.core.dynamics.stabilization import TOL, chord_factor_into, chord_step_into
+from redmax_ros.core.jit import njit_inline
+from redmax_ros.core.step.compiled.kinematics import placements_of
 from redmax_ros.core.step.compiled.manifold import integrate
 from redmax_ros.core.step.compiled.rows import loop_phi
 
@@ -14,19 +14,28 @@ CHORD_MAX_ITER = 8  # as stabilization.project_chord; past it the full Newton pr
 
 
 @njit_inline
-def to_reduced(m, vR, out):
-    """qdot_r = J_rR qdot_R (Eq. 8-9)."""
-    if m.T.shape[0] == 0:
+def to_reduced(T_col, T_ratio, vR, out):
+    """qdot_r = J_rR qdot_R (Eq. 8-9) with T's one entry per row (T_col empty: no couplings)."""
+    if T_col.shape[0] == 0:
         out[:] = vR
     else:
         for i in range(out.shape[0]):
-            out[i] = m.T_ratio[i] * vR[m.T_col[i]]
+            out[i] = T_ratio[i] * vR[T_col[i]]
+
+
+@njit_inline
+def loop_error_at(m, d, q):
+    """max|phi| [m] of the loops at q (placements of q left in d)."""
+    placements_of(m.uni_joints, m.uni_a1, m.uni_a2, m.planar_joints, m.parents, m.kind, m.idx_q, m.idx_v, m.nv_j,
+                  m.axis, m.pitch, m.place_R, m.place_p, m.site_jid, m.site_local, q, False, d.v_new,
+                  d.jR, d.jp, d.Sl, d.c_local, d.R, d.p, d.St, d.X)
+    return loop_phi(m.loop_a, m.loop_b, m.loop_select, d.X, d.dx, d.phi)
 
 
 @njit_inline
 def update_configuration(m, d, q, h):
     """q+ into d.q_new, qdot_r+ into d.v_new from d.v_hyper; returns (converged, max loop violation [m])."""
-    to_reduced(m, d.v_hyper, d.v_new)
+    to_reduced(m.T_col, m.T_ratio, d.v_hyper, d.v_new)
     for i in range(d.v_new.shape[0]):
         d.step_v[i] = h * d.v_new[i]
     integrate(m.kind, m.idx_q, m.idx_v, q, d.step_v, d.q_new)
@@ -34,21 +43,17 @@ def update_configuration(m, d, q, h):
     if nl == 0:
         return True, 0.0
     if m.scalars[0] != 0.0:  # Baumgarte: the rows' RHS did it; report max|phi| at q+
-        placements(m, d, d.q_new, False, d.v_new)
-        _, err = loop_phi(m, d)
-        return True, err
+        return True, loop_error_at(m, d, d.q_new)
     G = d.G[:nl]
-    L, ok = chord_factor(G, d.held)
-    if not ok:
+    if not chord_factor_into(G, d.held, d.chord_KK, d.chord_L):
         return False, 0.0
     for _ in range(CHORD_MAX_ITER):
-        placements(m, d, d.q_new, False, d.v_new)
-        phi, err = loop_phi(m, d)
+        err = loop_error_at(m, d, d.q_new)
         if err < TOL:
             return True, err
-        dq = chord_step(L, G, d.held, phi, m.T)
+        chord_step_into(d.chord_L, G, d.held, d.phi, m.T, d.chord_y, d.chord_dq, d.chord_out)
         d.q_tmp[:] = d.q_new
-        integrate(m.kind, m.idx_q, m.idx_v, d.q_tmp, dq, d.q_new)
+        integrate(m.kind, m.idx_q, m.idx_v, d.q_tmp, d.chord_out, d.q_new)
     return False, 0.0
 
 
