@@ -24,7 +24,7 @@ from redmax_ros.core.solvers.budget import StepBudget
 from redmax_ros.core.step.backends import make_backend
 from redmax_ros.core.step import body_twist, trajectory
 from redmax_ros.core.step.compile import compile_scene
-from redmax_ros.core.step.state import Commands, State, StepResult
+from redmax_ros.core.step.state import BatchResult, Commands, State, StepResult
 
 
 _AXES = {"x": (1.0, 0.0, 0.0), "y": (0.0, 1.0, 0.0), "z": (0.0, 0.0, 1.0)}
@@ -396,6 +396,31 @@ class Simulator:
             done += k
             self.last = res
         return res
+
+    def step_batch(self, states, n: int = 1):
+        """Advance each of the independent ``states`` (of this scene) by n steps with this simulator's commands
+        and dt; the simulator's own state is untouched. On the compiled path the instances run in parallel in
+        one call, each bitwise equal to stepping it alone. Returns a BatchResult (states, steps_done, errors:
+        None or the StepError message that stopped an instance, whose state is from before that step)."""
+        if int(n) != n or n < 1:
+            raise CommandError(f"step count must be a positive integer, got {n}")
+        batch = getattr(self.backend, "step_batch", None)
+        if batch is not None:
+            return batch(list(states), self.commands, self.dt, int(n), self._budget)
+        out, done, errors = [], [], []
+        for st in states:
+            k, err = 0, None
+            for _ in range(int(n)):
+                try:
+                    st, _ = self.backend.step(st, self.commands, self.dt, self._budget)
+                except StepError as e:
+                    err = e.reason
+                    break
+                k += 1
+            out.append(st)
+            done.append(k)
+            errors.append(err)
+        return BatchResult(out, np.array(done), errors)
 
     # -- description and geometry for markers
     def describe(self) -> SceneDescription:

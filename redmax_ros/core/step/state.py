@@ -100,6 +100,15 @@ class StepResult:
     body_wrenches: dict = field(default_factory=dict)  # prescribed body -> required wrench (6,) [N m; N], its frame
 
 
+@dataclass
+class BatchResult:
+    """What Simulator.step_batch gives: per instance its State after the steps it took, their number and the
+    StepError message that stopped it (None: all n steps taken)."""
+    states: list
+    steps_done: np.ndarray
+    errors: list
+
+
 def _finite(name, x):
     if not np.all(np.isfinite(x)):
         raise StepError(f"non-finite {name}")

@@ -12,20 +12,22 @@ forces) are taken by the reference backend, so their outcome (result or StepErro
 from __future__ import annotations
 
 import math
+import os
 import time
+from concurrent.futures import ThreadPoolExecutor
 from collections import Counter
 from dataclasses import dataclass
 
 import numpy as np
 
-from redmax_ros.core.errors import SceneError
+from redmax_ros.core.errors import SceneError, StepError
 from redmax_ros.core.step import trajectory
 from redmax_ros.core.step.compiled.data import (OUT_E_KIN, OUT_E_POT, OUT_E_SPRING, OUT_RESIDUAL, OUT_STAGE,
                                                 OUT_VIOL_POS, OUT_VIOL_VEL, build_data)
 from redmax_ros.core.step.compiled.kernel import STAGE_NAMES, step_kernel, step_n_kernel
 from redmax_ros.core.step.compiled.model import build_model, unsupported
 from redmax_ros.core.step.pipeline import pinocchio_velocity, step as pipeline_step
-from redmax_ros.core.step.state import Diagnostics, StepResult
+from redmax_ros.core.step.state import BatchResult, Diagnostics, StepResult
 from redmax_ros.core.step.workspace import Workspace
 
 _NO_V = np.zeros(0)
@@ -125,6 +127,66 @@ class CompiledBackend:
             return new, res, 1
         new = state.advanced(h, q, v, steps=k)
         return new, self._result(new, d, q.copy(), rcmd, t0), k
+
+    def step_batch(self, states, cmd, h, n=1, budget=None) -> BatchResult:
+        """n steps of each of the B states with the same commands (issue 12, point 4). Each instance runs
+        kernel.step_n_kernel on its own Data in a thread pool: the kernel releases the GIL (nogil), so the
+        instances run in parallel on the machine's cores, and each result is bitwise the single-instance one
+        by construction (the same compiled code; a numba prange version of the loop differed by a few ulps in
+        the velocity, its parfor code being compiled differently). Steps the kernel hands back are the
+        reference's, one instance at a time; an instance whose step fails keeps its state from before it."""
+        B = len(states)
+        states = list(states)
+        todo = np.full(B, int(n), dtype=np.int64)
+        done = np.zeros(B, dtype=np.int64)
+        errors = [None] * B
+        inp = None if cmd.joint_trajectories else self._inputs(states[0], cmd, h)
+        if inp is None:  # trajectories (rows depend on each instance's time) or commands the kernel does not take
+            for b in range(B):
+                for _ in range(int(n)):
+                    try:
+                        states[b], _ = self.step(states[b], cmd, h, budget)
+                    except StepError as e:
+                        errors[b] = e.reason
+                        break
+                    done[b] += 1
+            return BatchResult(states, done, errors)
+        _, tau, d, gj, sv = inp
+        DF = np.tile(d.f, (B, 1))
+        Q = np.array([s.q for s in states], dtype=float)
+        V = np.array([s.v for s in states], dtype=float)
+        total = np.zeros(B, dtype=np.int64)
+        stage = d.names.index("out")
+        out_off = int(d.tab[stage, 1])
+        workers = min(B, os.cpu_count() or 1)
+
+        def run(b):
+            return step_n_kernel(*self.model.args, DF[b], d.i, d.tab, Q[b], V[b], tau, float(h), gj, sv, int(todo[b]))
+
+        while todo.any():
+            live = [int(b) for b in np.flatnonzero(todo)]
+            if workers > 1 and len(live) > 1:
+                with ThreadPoolExecutor(max_workers=workers) as ex:
+                    done[live] = list(ex.map(run, live))
+            else:
+                done[live] = [run(b) for b in live]
+            for b in np.flatnonzero(todo):
+                if done[b]:
+                    states[b] = states[b].advanced(h, Q[b].copy(), V[b].copy(), steps=int(done[b]))
+                    total[b] += done[b]
+                    todo[b] -= done[b]
+                if not todo[b]:
+                    continue
+                self.handoffs[STAGE_NAMES[int(DF[b, out_off + OUT_STAGE])]] += 1
+                try:
+                    states[b], _ = self.reference_step(states[b], cmd, h, budget)
+                    total[b] += 1
+                    todo[b] -= 1
+                    Q[b], V[b] = states[b].q, states[b].v
+                except StepError as e:
+                    errors[b] = e.reason
+                    todo[b] = 0
+        return BatchResult(states, total, errors)
 
     def _result(self, new, d, q_new, rcmd, t0):
         out = d["out"]
