@@ -560,6 +560,8 @@ register_method("MuJoCo Euler", lambda p, h, **kw: run_mujoco(p, h, "euler", **k
 register_method("MuJoCo implicitfast", lambda p, h, **kw: run_mujoco(p, h, "implicitfast", **kw), _mujoco_applies,
                 color="C5", marker="P", ls="--")
 register_method("MuJoCo RK4", lambda p, h, **kw: run_mujoco(p, h, "rk4", **kw), _mujoco_applies, color="C8", marker="X", ls="--")
+register_method("MuJoCo discrete", lambda p, h, **kw: run_mujoco(p, h, "discrete", **kw), _mujoco_applies,
+                color="C9", marker="s", ls="--")  # MuJoCo 3.13+: implicit in joint/tendon stiffness
 
 
 # ---------------------------------------------------------------------------------------------

@@ -5,10 +5,13 @@ from __future__ import annotations
 import numpy as np
 import pinocchio as pin
 
+from redmax_ros.core.jit import njit
+
 
 def spring_forces(mech, X: np.ndarray, V: np.ndarray | None = None):
     """Per spring, from the positions X (rows in mech.spring_rows): force on end a (P,3), 3x3 stiffness
-    K (P,3,3), 3x3 damping D (P,3,3), lengths (P,). Shared by the direct and matrix-free paths.
+    K (P,3,3), 3x3 damping D (P,3,3), lengths (P,). Shared by every pipeline (the compiled step calls
+    :func:`spring_kernel` itself).
 
     f_a = -k (l - L0) u,  K = k [u u^T + max(0, 1 - L0/l) (I - u u^T)],  D = c u u^T
     (notes §1.9.5 point-to-point force, §1.9.9 spring damper).
@@ -21,29 +24,58 @@ def spring_forces(mech, X: np.ndarray, V: np.ndarray | None = None):
     Eq. (2), and their whole force is evaluated at step k, f_a = -k (l - L0) u - c (u . (v_a - v_b)) u
     with the site velocities V (rows as X; needed only when such a spring has damping).
     """
-    a, b = mech.spring_rows[:, 0], mech.spring_rows[:, 1]
-    d = X[a] - X[b]
-    l = np.sqrt(np.einsum("pi,pi->p", d, d))
-    tiny = l <= 1e-12
-    safe = np.where(tiny, 1.0, l)
-    u = d / safe[:, None]
-    k, c, L0 = mech.spring_k, mech.spring_d, mech.spring_rest
-    f = -(k * (l - L0))[:, None] * u
-    uu = u[:, :, None] * u[:, None, :]
-    trans = np.where(tiny, 1.0, np.maximum(1.0 - L0 / safe, 0.0))
-    K = k[:, None, None] * (uu + trans[:, None, None] * (_I3 - uu))
-    D = c[:, None, None] * uu
+    P = len(mech.spring_k)
     ex = getattr(mech, "spring_explicit", None)  # None: all implicit (also for stand-ins)
-    if ex is not None and ex.any():
-        K[ex] = 0.0
-        D[ex] = 0.0
-        damped = ex & (c != 0.0)
-        if damped.any():
-            if V is None:
-                raise ValueError("explicit spring dampers need the site velocities V")
-            dv = V[a[damped]] - V[b[damped]]
-            f[damped] -= (c[damped] * np.einsum("pi,pi->p", u[damped], dv))[:, None] * u[damped]
+    ex = np.zeros(P, dtype=np.int64) if ex is None else np.asarray(ex, dtype=np.int64)
+    if V is None:
+        if needs_velocities(mech):
+            raise ValueError("explicit spring dampers need the site velocities V")
+        V = _NO_V
+    f, K, D, l = np.empty((P, 3)), np.empty((P, 3, 3)), np.empty((P, 3, 3)), np.empty(P)
+    rows = np.asarray(mech.spring_rows, dtype=np.int64)
+    spring_kernel(np.ascontiguousarray(X, dtype=float), rows[:, 0].copy(), rows[:, 1].copy(),
+                  np.asarray(mech.spring_k, float), np.asarray(mech.spring_d, float), np.asarray(mech.spring_rest, float),
+                  ex, np.ascontiguousarray(V, dtype=float), f, K, D, l)
     return f, K, D, l
+
+
+_NO_V = np.zeros((0, 3))
+
+
+@njit
+def spring_kernel(X, a, b, k, c, L0, explicit, V, f, K, D, l):
+    """spring_forces' formulas for springs between rows a[s] and b[s] of X (P,): f (P,3), K and D (P,3,3),
+    l (P,) written in place. V: site velocities (rows as X) for explicit dampers, or (0,3) when none is."""
+    for s in range(a.shape[0]):
+        d0 = X[a[s], 0] - X[b[s], 0]
+        d1 = X[a[s], 1] - X[b[s], 1]
+        d2 = X[a[s], 2] - X[b[s], 2]
+        ls = np.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
+        l[s] = ls
+        tiny = ls <= 1e-12
+        safe = 1.0 if tiny else ls
+        u0, u1, u2 = d0 / safe, d1 / safe, d2 / safe
+        fk = -(k[s] * (ls - L0[s]))
+        f[s, 0], f[s, 1], f[s, 2] = fk * u0, fk * u1, fk * u2
+        if explicit[s]:
+            K[s] = 0.0
+            D[s] = 0.0
+            if c[s] != 0.0:
+                dv0 = V[a[s], 0] - V[b[s], 0]
+                dv1 = V[a[s], 1] - V[b[s], 1]
+                dv2 = V[a[s], 2] - V[b[s], 2]
+                fd = c[s] * (u0 * dv0 + u1 * dv1 + u2 * dv2)
+                f[s, 0] -= fd * u0
+                f[s, 1] -= fd * u1
+                f[s, 2] -= fd * u2
+            continue
+        trans = 1.0 if tiny else max(1.0 - L0[s] / safe, 0.0)
+        u = (u0, u1, u2)
+        for r in range(3):
+            for q in range(3):
+                uu = u[r] * u[q]
+                K[s, r, q] = k[s] * (uu + trans * ((1.0 if r == q else 0.0) - uu))
+                D[s, r, q] = c[s] * uu
 
 
 def needs_velocities(mech) -> bool:
@@ -61,7 +93,6 @@ def spring_terms(mech, X: np.ndarray, J: np.ndarray, v: np.ndarray | None = None
     return f, K, D, J[mech.spring_rows[:, 0]] - J[mech.spring_rows[:, 1]], l
 
 
-_I3 = np.eye(3)[None]
 
 
 def joint_displacement(mech, q: np.ndarray) -> np.ndarray:

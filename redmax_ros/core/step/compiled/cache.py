@@ -18,7 +18,7 @@ SOURCES = ("step/compiled/kernel.py", "step/compiled/kinematics.py", "step/compi
            "step/compiled/data.py", "step/compiled/packing.py", "step/compiled/manifold.py", "step/state.py",
            "solvers/recursive.py", "solvers/pcg.py", "solvers/kkt.py", "linalg.py", "jit.py",
            "dynamics/tree_forces.py", "dynamics/tree_kinematics.py", "dynamics/stabilization.py",
-           "dynamics/energy.py")
+           "dynamics/energy.py", "dynamics/springs.py")
 
 
 def sources_digest() -> str:

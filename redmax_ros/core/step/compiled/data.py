@@ -44,6 +44,8 @@ DATA_SPEC = (
     ("chord_KK", "f", 2), ("chord_L", "f", 2), ("chord_y", "f", 1), ("chord_dq", "f", 1), ("chord_out", "f", 1),
     # small scratch of the force stage
     ("x3", "f", 1), ("C33", "f", 2),
+    # the springs' 3x3 stiffness and damping, lengths (dynamics/springs.spring_kernel), site velocities
+    ("spring_K", "f", 3), ("spring_D", "f", 3), ("spring_l", "f", 1), ("V", "f", 2),
 )
 
 Data = namedtuple("Data", [n for n, _, _ in DATA_SPEC])
@@ -71,7 +73,8 @@ def data_views(f, i, t):
                 f2(f, t, 53),
                 f1(f, t, 54), f1(f, t, 55),
                 f2(f, t, 56), f2(f, t, 57), f1(f, t, 58), f1(f, t, 59), f1(f, t, 60),
-                f1(f, t, 61), f2(f, t, 62))
+                f1(f, t, 61), f2(f, t, 62),
+                f3(f, t, 63), f3(f, t, 64), f1(f, t, 65), f2(f, t, 66))
 
 
 def build_data(mech, model, joints: tuple, sites: tuple, site_axes: dict, T) -> "Packed":
@@ -124,6 +127,7 @@ def build_data(mech, model, joints: tuple, sites: tuple, site_axes: dict, T) -> 
         chord_KK=np.zeros((nl + len(held), nl + len(held))), chord_L=np.zeros((nl + len(held), nl + len(held))),
         chord_y=np.zeros(nl + len(held)), chord_dq=np.zeros(ndof), chord_out=np.zeros(nv),
         x3=np.zeros(3), C33=np.zeros((3, 3)),
+        spring_K=np.zeros((P, 3, 3)), spring_D=np.zeros((P, 3, 3)), spring_l=np.zeros(P), V=np.zeros((S, 3)),
         pa=np.zeros((P, 3)), pb=np.zeros((P, 3)), Gr_loop=np.zeros((nl, nv)), q_tmp=np.zeros(nq), step_v=np.zeros(nv),
     )
     return pack(DATA_SPEC, values)

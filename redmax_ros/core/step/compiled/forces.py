@@ -2,7 +2,7 @@
 
     (J^T (M_m + h D_m + h^2 K_m) J + h D_r + h^2 K_r) qdot+ = J^T M_m J qdot + h (f_r + J^T (f_m - M_m Jdot qdot))
 
-with the data-free pipeline's formulas and kernels (dynamics/tree_forces.py, springs.py; stiffness written
+with the data-free pipeline's formulas and kernels (dynamics/tree_forces.py, springs.spring_kernel; stiffness written
 positive, K = -df/dx): the RHS as one J^T pass over the Newton-Euler wrenches (bias accelerations, gravity,
 gyroscopic terms), spring forces, constant wrenches; the LHS by the composite-rigid-body pass over the body
 inertias plus the maximal 6x6 blocks (body damping, the springs' own blocks), minus the springs' cross-body
@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from redmax_ros.core.dynamics.springs import spring_kernel
 from redmax_ros.core.dynamics.tree_forces import dense_crba_kernel, nle_wrench_kernel, spring_cross_kernel
 from redmax_ros.core.jit import njit, njit_inline
 from redmax_ros.core.solvers.pcg import add_point_block, spring_blocks_kernel
@@ -34,45 +35,29 @@ def _add_point_wrench(W, j, x, f, sign):
 
 @njit_inline
 def spring_terms(m, d, h):
-    """Per maximal spring: force on end a (d.spring_f), C = h D + h^2 K (d.spring_C), end positions (d.pa, d.pb)."""
-    for s in range(m.spring_a.shape[0]):
+    """Per maximal spring (dynamics/springs.spring_kernel, the formulas of every pipeline): force on end a
+    (d.spring_f), C = h D + h^2 K (d.spring_C), end positions (d.pa, d.pb); site velocities v_o + w x x first
+    when an explicit spring has damping."""
+    P = m.spring_a.shape[0]
+    if P == 0:
+        return
+    if m.scalars[3] != 0.0:
+        for s in range(d.X.shape[0]):
+            y = d.ov[m.site_jid[s]]
+            x = d.X[s]
+            d.V[s, 0] = y[0] + y[4] * x[2] - y[5] * x[1]
+            d.V[s, 1] = y[1] + y[5] * x[0] - y[3] * x[2]
+            d.V[s, 2] = y[2] + y[3] * x[1] - y[4] * x[0]
+    spring_kernel(d.X, m.spring_a, m.spring_b, m.spring_k, m.spring_d, m.spring_rest, m.spring_explicit, d.V,
+                  d.spring_f, d.spring_K, d.spring_D, d.spring_l)
+    hh = h * h
+    for s in range(P):
         a, b = m.spring_a[s], m.spring_b[s]
-        u = d.x3
-        l2 = 0.0
         for r in range(3):
             d.pa[s, r] = d.X[a, r]
             d.pb[s, r] = d.X[b, r]
-            u[r] = d.X[a, r] - d.X[b, r]
-            l2 += u[r] * u[r]
-        l = np.sqrt(l2)
-        tiny = l <= 1e-12
-        safe = 1.0 if tiny else l
-        for r in range(3):
-            u[r] /= safe
-        k, c, L0 = m.spring_k[s], m.spring_d[s], m.spring_rest[s]
-        fk = -(k * (l - L0))
-        for r in range(3):
-            d.spring_f[s, r] = fk * u[r]
-        if m.spring_explicit[s]:
-            d.spring_C[s] = 0.0
-            if c != 0.0:  # damping force at step k from the site velocities v_o + w x x
-                ja, jb = m.spring_ja[s], m.spring_jb[s]
-                xa, xb = d.X[a], d.X[b]
-                ya, yb = d.ov[ja], d.ov[jb]
-                dv0 = (ya[0] + ya[4] * xa[2] - ya[5] * xa[1]) - (yb[0] + yb[4] * xb[2] - yb[5] * xb[1])
-                dv1 = (ya[1] + ya[5] * xa[0] - ya[3] * xa[2]) - (yb[1] + yb[5] * xb[0] - yb[3] * xb[2])
-                dv2 = (ya[2] + ya[3] * xa[1] - ya[4] * xa[0]) - (yb[2] + yb[3] * xb[1] - yb[4] * xb[0])
-                fd = c * (u[0] * dv0 + u[1] * dv1 + u[2] * dv2)
-                for r in range(3):
-                    d.spring_f[s, r] -= fd * u[r]
-            continue
-        trans = 1.0 if tiny else max(1.0 - L0 / safe, 0.0)
-        hh = h * h
-        for r in range(3):
             for q in range(3):
-                uu = u[r] * u[q]
-                K = k * (uu + trans * ((1.0 if r == q else 0.0) - uu))
-                d.spring_C[s, r, q] = h * (c * uu) + hh * K
+                d.spring_C[s, r, q] = h * d.spring_D[s, r, q] + hh * d.spring_K[s, r, q]
 
 
 @njit_inline
