@@ -99,6 +99,9 @@ def make_problem(case: Case, T: float | None = None, sample_dt: float | None = N
     q0, vR0 = mech.q0.copy(), mech.v0.copy()
     if case.prepare is not None:
         q0, vR0 = case.prepare(mech, q0, vR0)
+        # prepare edits the Mechanism (spring rest lengths): rebuild the backend, whose constants (the compiled
+        # step's packed Model) were read when the simulator was made
+        sim.backend = make_backend(mech, sim.spec.solver)
     hyb = None
     if case.hybrid is not None:
         hyb = HybridSplit(mech, case.hybrid)
