@@ -130,16 +130,32 @@ def test_runs_of_steps_equal_single_steps():
     assert np.array_equal(one.last.effort, run.last.effort)
 
 
-def test_active_limit_is_the_references_qp():
-    """A finger joint pushed into its limit (0.5 N m on index_pip): the kernel hands those steps to the reference
-    (the QP of Eq. 5), whose results it returns, so the trajectory equals the reference's."""
+def test_joint_limits_in_kernel_match_the_reference_qp():
+    """A finger joint pushed into its limit (0.5 N m on index_pip): the kernel's active set (limits.py) solves
+    the QP of Eq. (5) itself, to a relative KKT residual <= 1e-12 on every limit step (measured <= 2.0e-15;
+    the reference's ProxSuite QP at eps_abs 1e-10 reaches only 2.5e-8 there, its velocity error on the light
+    finger DOFs being ~1e-5 per step). So the 300-step trajectory follows the reference's to within that
+    solver's accuracy (measured |dq| <= 8.1e-7 rad, |d effort| <= 4.6e-7 N m; asserted 1e-5), the limit holds
+    (q within 1e-9 of its bound) and the multipliers are nonzero."""
     ref, comp = _pair("hand", [])
     for s in (ref, comp):
         s.set_joint_torques({"index_pip": [0.5]})
+    limit_steps = 0
     for _ in range(300):
         a, b = ref.step(), comp.step()
-        assert _rel(a.q, b.q) <= 1e-10
-    assert comp.backend.handoffs.get("joint limit active (QP of Eq. 5)", 0) > 0, comp.backend.handoffs
+        assert b.diagnostics.solver == "compiled", comp.backend.handoffs
+        assert np.abs(a.q - b.q).max() <= 1e-5 and np.abs(a.effort - b.effort).max() <= 1e-5
+        if a.diagnostics.solver == "qp":
+            limit_steps += 1
+            assert b.diagnostics.iterations >= 2
+            mu = b.diagnostics.solution.mu
+            assert np.abs(mu).max() > 0.0 and b.diagnostics.residual <= 1e-12
+    assert limit_steps > 200
+    mech = comp.mech
+    k = list(mech.limited).index(mech.joint_index["index_pip"].idx_v)
+    q = comp.state.q[mech.limited_q[k]]
+    assert min(abs(q - mech.limit_lower[k]), abs(q - mech.limit_upper[k])) <= 1e-9
+    assert not comp.backend.handoffs
 
 
 @pytest.mark.parametrize("bad", ["nan_velocity", "huge_torque", "huge_prescription", "bad_dt"])

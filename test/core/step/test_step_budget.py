@@ -220,8 +220,9 @@ def test_without_the_up_front_tests_the_1e12_cases_end_with_the_budget_error(com
 
 def hand_at_a_joint_limit(budget):
     """The hand with a 1 N m index_pip torque: after 5 steps the finger reaches its limit and the next
-    step needs the joint-limit QP of Eq. (5)."""
-    sim = Simulator.load("hand", budget=budget)
+    step needs the joint-limit QP of Eq. (5) (ProxSuite, on the reference pipeline: the compiled step's own
+    active set is bounded by its 4 p + 4 iterations, test/core/compiled/test_compiled_step.py)."""
+    sim = Simulator.load("hand", solver="reference", budget=budget)
     sim.set_joint_torques({"index_pip": 1.0})
     sim.step(5)
     return sim
@@ -288,7 +289,7 @@ def test_the_compiled_staggered_loop_in_pieces_is_bitwise_the_loop_in_one_call(m
 
 
 @pytest.mark.parametrize("scene,overrides,solver,setup", [
-    ("hand", (), None, lambda s: s.set_joint_torques({"index_pip": 1.0})),  # joint-limit QP steps
+    ("hand", (), "reference", lambda s: s.set_joint_torques({"index_pip": 1.0})),  # joint-limit QP steps (ProxSuite)
     ("klann", ("friction.joint_mu=0.4",), None, lambda s: None),  # Staggered Projections / BISP
     ("klann", ("friction.joint_mu=0.4", "friction.qp=proxsuite"), None, lambda s: None),  # ProxSuite inner QPs
     ("bridge", ("params.n_deck=12",), "pcg", lambda s: s.set_joint_torques({"d5": 50.0})),  # lockstep PCG

@@ -22,7 +22,7 @@ import numpy as np
 
 from redmax_ros.core.errors import SceneError, StepError
 from redmax_ros.core.step import trajectory
-from redmax_ros.core.step.compiled.data import (OUT_E_KIN, OUT_E_POT, OUT_E_SPRING, OUT_RESIDUAL, OUT_STAGE,
+from redmax_ros.core.step.compiled.data import (OUT_ITERS, OUT_E_KIN, OUT_E_POT, OUT_E_SPRING, OUT_RESIDUAL, OUT_STAGE,
                                                 OUT_VIOL_POS, OUT_VIOL_VEL, build_data)
 from redmax_ros.core.step.compiled.kernel import STAGE_NAMES, step_kernel, step_n_kernel
 from redmax_ros.core.step.compiled.model import build_model, unsupported
@@ -194,6 +194,7 @@ class CompiledBackend:
         site_forces = {name: d["site_force"][k].copy() for k, name in enumerate(sv)} if sv else {}
         ek, ep, es = float(out[OUT_E_KIN]), float(out[OUT_E_POT]), float(out[OUT_E_SPRING])
         sol = CompiledSolution(new.v, d["lam"].copy(), d["mu"].copy(), float(out[OUT_RESIDUAL]))
-        diag = Diagnostics(ek, ep, es, ek + ep + es, float(out[OUT_VIOL_POS]), float(out[OUT_VIOL_VEL]), 1,
+        iters = int(out[OUT_ITERS])
+        diag = Diagnostics(ek, ep, es, ek + ep + es, float(out[OUT_VIOL_POS]), float(out[OUT_VIOL_VEL]), iters,
                            "compiled", time.perf_counter() - t0, sol, None)
         return StepResult(new.t, q_new, d["v_new"].copy(), d["effort"].copy(), site_forces, diag, {})

@@ -46,12 +46,16 @@ DATA_SPEC = (
     ("x3", "f", 1), ("C33", "f", 2),
     # the springs' 3x3 stiffness and damping, lengths (dynamics/springs.spring_kernel), site velocities
     ("spring_K", "f", 3), ("spring_D", "f", 3), ("spring_l", "f", 1), ("V", "f", 2),
+    # the joint-limit active set (limits.py): rows [G; C_W], right-hand side, multipliers, KKT factors, and the
+    # working set per limit row (0 free, -1 at its lower bound, +1 at its upper bound)
+    ("Gx", "f", 2), ("gx", "f", 1), ("lamx", "f", 1), ("kkt_Yx", "f", 2), ("kkt_Sx", "f", 2), ("kkt_LSx", "f", 2),
+    ("wset", "f", 1),
 )
 
 Data = namedtuple("Data", [n for n, _, _ in DATA_SPEC])
 
 # indices of Data.out
-OUT_E_KIN, OUT_E_POT, OUT_E_SPRING, OUT_VIOL_POS, OUT_VIOL_VEL, OUT_RESIDUAL, OUT_STAGE = range(7)
+OUT_E_KIN, OUT_E_POT, OUT_E_SPRING, OUT_VIOL_POS, OUT_VIOL_VEL, OUT_RESIDUAL, OUT_STAGE, OUT_ITERS = range(8)
 N_OUT = 8
 
 
@@ -74,7 +78,9 @@ def data_views(f, i, t):
                 f1(f, t, 54), f1(f, t, 55),
                 f2(f, t, 56), f2(f, t, 57), f1(f, t, 58), f1(f, t, 59), f1(f, t, 60),
                 f1(f, t, 61), f2(f, t, 62),
-                f3(f, t, 63), f3(f, t, 64), f1(f, t, 65), f2(f, t, 66))
+                f3(f, t, 63), f3(f, t, 64), f1(f, t, 65), f2(f, t, 66),
+                f2(f, t, 67), f1(f, t, 68), f1(f, t, 69), f2(f, t, 70), f2(f, t, 71), f2(f, t, 72),
+                f1(f, t, 73))
 
 
 def build_data(mech, model, joints: tuple, sites: tuple, site_axes: dict, T) -> "Packed":
@@ -127,6 +133,9 @@ def build_data(mech, model, joints: tuple, sites: tuple, site_axes: dict, T) -> 
         chord_KK=np.zeros((nl + len(held), nl + len(held))), chord_L=np.zeros((nl + len(held), nl + len(held))),
         chord_y=np.zeros(nl + len(held)), chord_dq=np.zeros(ndof), chord_out=np.zeros(nv),
         x3=np.zeros(3), C33=np.zeros((3, 3)),
+        Gx=np.zeros((m + nlim, ndof)), gx=np.zeros(m + nlim), lamx=np.zeros(m + nlim),
+        kkt_Yx=np.zeros((ndof, m + nlim)), kkt_Sx=np.zeros((m + nlim, m + nlim)),
+        kkt_LSx=np.zeros((m + nlim, m + nlim)), wset=np.zeros(nlim),
         spring_K=np.zeros((P, 3, 3)), spring_D=np.zeros((P, 3, 3)), spring_l=np.zeros(P), V=np.zeros((S, 3)),
         pa=np.zeros((P, 3)), pb=np.zeros((P, 3)), Gr_loop=np.zeros((nl, nv)), q_tmp=np.zeros(nq), step_v=np.zeros(nv),
     )

@@ -5,12 +5,13 @@
     assemble(m, d, q, qdot_r, tau, h)      # 2  A_R, b_R of Eq. (2), Eq. (9-10) (forces.py)
     rows(m, d, q, h, gj, sv)               # 3  loops, prescribed joints and sites (Eq. 7), limits (rows.py)
     kkt_solve_into(A_R, b_R, G, g, ...)    # 4  Cholesky + Schur complement of Eq. (6)/(7) (solvers/kkt.py)
+    active_set(m, d)                       # 4' joint limits of Eq. (5), when one is crossed (limits.py)
     update_configuration(m, d, q, h)       # 5  manifold update, loop post-stabilization (update.py)
     required_forces(m, d, tau, h)          # 6  Eq. 7 torques and site forces (update.py)
     energies(m, d, q+, qdot_r+)            #    diagnostics (energy.py)
 
 It returns a status: OK, or REFERENCE with the stage that asked for it in d.out[OUT_STAGE]: whatever the
-kernel does not finish itself (an active joint limit, which needs the QP of Eq. 5; a loop projection that
+kernel does not finish itself (a joint-limit active set that does not settle; a loop projection that
 needs the full Newton; a rank-deficient or non-positive-definite system; any input the divergence checks
 of step/state.py reject) is redone by the Pinocchio pipeline, which solves it or raises the StepError
 naming the problem. Nothing the kernel wrote is then used, so the step's outcome is the reference's.
@@ -20,11 +21,12 @@ from __future__ import annotations
 from redmax_ros.core.jit import njit, njit_inline
 from redmax_ros.core.step.compiled.cache import drop_stale
 from redmax_ros.core.solvers.kkt import kkt_residual, kkt_solve_into
-from redmax_ros.core.step.compiled.data import (OUT_E_KIN, OUT_E_POT, OUT_E_SPRING, OUT_RESIDUAL, OUT_STAGE,
+from redmax_ros.core.step.compiled.data import (OUT_ITERS, OUT_E_KIN, OUT_E_POT, OUT_E_SPRING, OUT_RESIDUAL, OUT_STAGE,
                                                 OUT_VIOL_POS, OUT_VIOL_VEL, data_views)
 from redmax_ros.core.step.compiled.energy import energies
 from redmax_ros.core.step.compiled.forces import assemble
 from redmax_ros.core.step.compiled.kinematics import kinematics
+from redmax_ros.core.step.compiled.limits import active_set, bilateral_violation
 from redmax_ros.core.step.compiled.model import model_views
 from redmax_ros.core.step.compiled.rows import rows
 from redmax_ros.core.step.compiled.update import required_forces, to_reduced, update_configuration
@@ -37,7 +39,7 @@ OK, REFERENCE = 0, 1
 (STAGE_NONE, STAGE_INPUT, STAGE_IMPULSE, STAGE_ROWS, STAGE_FACTOR, STAGE_SCHUR, STAGE_LIMITS, STAGE_SPEED,
  STAGE_PROJECTION, STAGE_ENERGY) = range(10)
 STAGE_NAMES = ("none", "non-finite input or RHS", "applied impulse beyond the limit", "prescribed row beyond the limit",
-               "LHS not positive definite", "constraint rows rank-deficient", "joint limit active (QP of Eq. 5)",
+               "LHS not positive definite", "constraint rows rank-deficient", "joint-limit active set did not settle",
                "velocity beyond the limit", "loop projection (full Newton)", "non-finite energy")
 
 
@@ -88,12 +90,19 @@ def one_step(m, d, q, vR, tau, h, gj, sv):
         return _handoff(d.out, STAGE_FACTOR)
     if status == 2 or ratio <= 1e-6:
         return _handoff(d.out, STAGE_SCHUR)
-    if not limits_ok:
-        return _handoff(d.out, STAGE_LIMITS)
+    d.out[OUT_ITERS] = 1.0
+    if limits_ok:
+        d.mu[:] = 0.0
+    else:  # 4': joint limits of Eq. (5) by the active set (limits.py)
+        ok, iters = active_set(m, d)
+        if not ok:
+            return _handoff(d.out, STAGE_LIMITS)
+        viol = bilateral_violation(d)
+        d.out[OUT_ITERS] = float(iters + 1)  # KKT solves: the unconstrained one and one per working-set change
     if not (d.v_hyper @ d.v_hyper <= MAX_SPEED * MAX_SPEED):
         return _handoff(d.out, STAGE_SPEED)
     d.out[OUT_VIOL_VEL] = viol
-    d.out[OUT_RESIDUAL] = kkt_residual(d.AR, d.bR, d.v_hyper, d.G, d.lam, m.limit_rows[:0], d.mu[:0])
+    d.out[OUT_RESIDUAL] = kkt_residual(d.AR, d.bR, d.v_hyper, d.G, d.lam, m.limit_rows, d.mu)
     converged, viol_pos = update_configuration(m, d, q, h)  # 5
     if not converged or not _finite_sum(d.q_new):
         return _handoff(d.out, STAGE_PROJECTION)
