@@ -4,8 +4,8 @@ Mechanism model.unsupported accepts, with the Pinocchio pipeline as the referenc
 Per step, Python only checks the inputs (step/state.applied_torques, trajectory prescriptions resolved by
 step/trajectory.py), stacks the prescribed velocities, calls the kernel and wraps its outputs in a State and
 a StepResult. The Data of each set of prescribed joints and sites is built once and cached. Steps the kernel
-hands back (kernel.py: an active joint limit, a loop projection that needs the full Newton, a rejected or
-rank-deficient input) and steps with commands it does not take (body-twist prescriptions, explicit site
+hands back (kernel.py: a joint-limit active set that does not settle, a loop projection that needs the full
+Newton, a rejected or rank-deficient input) and steps with commands it does not take (body-twist prescriptions, explicit site
 forces) are taken by the reference backend, so their outcome (result or StepError) is the reference's;
 ``handoffs`` counts them by reason.
 """
