@@ -24,7 +24,7 @@ from redmax_ros.core.solvers.budget import StepBudget
 from redmax_ros.core.step.backends import make_backend
 from redmax_ros.core.step import body_twist, trajectory
 from redmax_ros.core.step.compile import compile_scene
-from redmax_ros.core.step.state import BatchResult, Commands, State, StepResult
+from redmax_ros.core.step.state import Commands, State, StepResult, step_each
 
 
 _AXES = {"x": (1.0, 0.0, 0.0), "y": (0.0, 1.0, 0.0), "z": (0.0, 0.0, 1.0)}
@@ -407,20 +407,7 @@ class Simulator:
         batch = getattr(self.backend, "step_batch", None)
         if batch is not None:
             return batch(list(states), self.commands, self.dt, int(n), self._budget)
-        out, done, errors = [], [], []
-        for st in states:
-            k, err = 0, None
-            for _ in range(int(n)):
-                try:
-                    st, _ = self.backend.step(st, self.commands, self.dt, self._budget)
-                except StepError as e:
-                    err = e.reason
-                    break
-                k += 1
-            out.append(st)
-            done.append(k)
-            errors.append(err)
-        return BatchResult(out, np.array(done), errors)
+        return step_each(self.backend.step, list(states), self.commands, self.dt, int(n), self._budget)
 
     # -- description and geometry for markers
     def describe(self) -> SceneDescription:

@@ -109,6 +109,24 @@ class BatchResult:
     errors: list
 
 
+def step_each(step, states, cmd, h, n, budget=None) -> BatchResult:
+    """BatchResult of n steps of each state, one after the other, with ``step(state, cmd, h, budget)`` (a
+    backend's step); an instance whose step fails keeps its state from before it and reports the reason."""
+    out, done, errors = [], np.zeros(len(states), dtype=np.int64), []
+    for b, st in enumerate(states):
+        err = None
+        for _ in range(int(n)):
+            try:
+                st, _ = step(st, cmd, h, budget)
+            except StepError as e:
+                err = e.reason
+                break
+            done[b] += 1
+        out.append(st)
+        errors.append(err)
+    return BatchResult(out, done, errors)
+
+
 def _finite(name, x):
     if not np.all(np.isfinite(x)):
         raise StepError(f"non-finite {name}")

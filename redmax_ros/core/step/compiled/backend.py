@@ -27,7 +27,7 @@ from redmax_ros.core.step.compiled.data import (OUT_ITERS, OUT_E_KIN, OUT_E_POT,
 from redmax_ros.core.step.compiled.kernel import STAGE_NAMES, step_kernel, step_n_kernel
 from redmax_ros.core.step.compiled.model import build_model, unsupported
 from redmax_ros.core.step.pipeline import pinocchio_velocity, step as pipeline_step
-from redmax_ros.core.step.state import BatchResult, Diagnostics, StepResult
+from redmax_ros.core.step.state import BatchResult, Diagnostics, StepResult, step_each
 from redmax_ros.core.step.workspace import Workspace
 
 _NO_V = np.zeros(0)
@@ -142,15 +142,7 @@ class CompiledBackend:
         errors = [None] * B
         inp = None if cmd.joint_trajectories else self._inputs(states[0], cmd, h)
         if inp is None:  # trajectories (rows depend on each instance's time) or commands the kernel does not take
-            for b in range(B):
-                for _ in range(int(n)):
-                    try:
-                        states[b], _ = self.step(states[b], cmd, h, budget)
-                    except StepError as e:
-                        errors[b] = e.reason
-                        break
-                    done[b] += 1
-            return BatchResult(states, done, errors)
+            return step_each(self.step, states, cmd, h, n, budget)
         _, tau, d, gj, sv = inp
         DF = np.tile(d.f, (B, 1))
         Q = np.array([s.q for s in states], dtype=float)
