@@ -67,18 +67,23 @@ def quadratic_jacobian(fn, v: np.ndarray) -> np.ndarray:
 
 def assemble(mech, ws, kin: Kinematics, q, v_r, tau, h, site_forces=None) -> LinearSystem:
     """Eq. (2): returns (A, b) in hyper-reduced coordinates (projected by the workspace's J_rR, ws.T).
+    With a BDF2 step (ws.bdf2, step/scheme.py): (q, v_r) are (q*, v*), h is hat h, the joint and maximal
+    springs act at q^ and the RHS is M v^ + hat h f.
 
     ``tau`` (nv,) explicit joint torques [N m]; ``site_forces`` {site index: (3,) world force [N]}
     explicit maximal point forces (J_site^T f). Needs ws.data from kinematics.compute.
     """
     data = ws.data
     M = kin.M
+    pt = ws.bdf2  # BDF2 (step/scheme.py): (q, v_r) = (q*, v*), h = hat h; springs at q^, RHS M v^
     A = None  # maximal and catalogue terms of the LHS, added to M + h D_r + h^2 K_r below
     f = tau - kin.nle  # f_r + J^T (f_m - M_m Jdot qdot)
     if mech.has_stiffness:
-        f -= mech.stiffness * joint_displacement(mech, q)
+        f -= mech.stiffness * joint_displacement(mech, q if pt is None else pt.q_base)
     if len(mech.spring_ab):  # maximal implicit springs: J^T (h D_m + h^2 K_m) J, J^T f_m
-        fs, K, D, Jd, _ = spring_terms(mech, kin.X, kin.J, v_r)  # implicit: false springs: K = D = 0, f at step k
+        # BDF2: the spring forces at the site positions of q^, x(q^) ~ x(q*) - J (q* (-) q^) (to O(h^2))
+        X = kin.X if pt is None else kin.X - kin.J @ pt.back
+        fs, K, D, Jd, _ = spring_terms(mech, X, kin.J, v_r)  # implicit: false springs: K = D = 0, f at step k
         P, nv = Jd.shape[0], Jd.shape[2]
         W = np.matmul(h * D + (h * h) * K, Jd)
         Jf = Jd.reshape(3 * P, nv)
@@ -104,7 +109,7 @@ def assemble(mech, ws, kin: Kinematics, q, v_r, tau, h, site_forces=None) -> Lin
             Kv += M @ quadratic_jacobian(lambda x: ws.extras.maps.bias(q, x, mech.nv), v_r)
         A = h * Kv if A is None else A + h * Kv
         f += Kv @ v_r
-    A, b = _lhs_rhs(M, ws.tree.reduced_diag(h), _NONE if A is None else A, f, v_r, h,
+    A, b = _lhs_rhs(M, ws.tree.reduced_diag(h), _NONE if A is None else A, f, v_r if pt is None else pt.v_mom, h,
                     _NONE if ws.T is None else ws.T)
     return LinearSystem(A, b, not mech.coriolis_implicit)
 

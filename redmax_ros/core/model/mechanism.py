@@ -97,6 +97,7 @@ class Mechanism:
     extras: object = None  # catalogue_hooks.Extras (compiled; workspaces run copies): mapped joints, linear joint constraints, force elements (or None)
     friction: object = None  # contact.FrictionModel (ground contact, joint friction) or None
     joint_support: np.ndarray | None = None  # (njoints, nv) bool: DOFs moving each joint's body (row 0: world)
+    scheme: str = "euler"  # integrator.scheme: euler | bdf2 (step/scheme.py)
     coriolis_implicit: bool = False  # integrator.coriolis: implicit (forces.coriolis_jacobian; docs/scenes.md)
     loop_baumgarte: float = 0.0  # [1/s] b of Baumgarte loop stabilization (G qdot+ = -b phi); 0: post-stabilization
     maps: object = None  # joint_maps.Maps (spline/exp/Euler-chart joints) as built, or None (compile only)
@@ -347,7 +348,7 @@ def build_mechanism(spec: SceneSpec) -> Mechanism:
         joint_support=support_of,
         spring_rows=np.array([[jac_row[a], jac_row[b]] for a, b in spring_ab], dtype=int).reshape(-1, 2),
         loop_rows_ab=np.array([[jac_row[a], jac_row[b]] for a, b in loop_ab], dtype=int).reshape(-1, 2),
-        coriolis_implicit=spec.coriolis == "implicit", maps=maps,
+        coriolis_implicit=spec.coriolis == "implicit", maps=maps, scheme=spec.scheme,
         loop_baumgarte=float(spec.baumgarte_b) if spec.stabilization == "baumgarte" else 0.0, **limit,
     )
 

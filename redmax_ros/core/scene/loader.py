@@ -19,7 +19,7 @@ from redmax_ros.core.geometry.inertia import shape_inertia, shape_volume
 from redmax_ros.core.scene import bodies, body_twist, catalogue_schema, contact_schema, files, timefunctions
 from redmax_ros.core.scene import builders, builders_friction, builders_large  # noqa: F401  (register the shipped builders)
 from redmax_ros.core.scene.registry import BUILDERS
-from redmax_ros.core.scene.spec import (CORE_JOINT_TYPES, SOLVERS, WORLD, BodySpec, CouplingSpec, JointSpec, LoopSpec, SceneSpec, SiteSpec,
+from redmax_ros.core.scene.spec import (CORE_JOINT_TYPES, SCHEMES, SOLVERS, WORLD, BodySpec, CouplingSpec, JointSpec, LoopSpec, SceneSpec, SiteSpec,
                                         SpringSpec, WrenchSpec, numeric, numeric_deep)
 
 JOINT_TYPES = {**CORE_JOINT_TYPES, **catalogue_schema.TYPES}  # notes §2.5 catalogue (joints.py, joint_maps.py; composite: per joint)
@@ -192,6 +192,10 @@ def _parse_override(source, text):
     return keys, value
 
 
+# optional top-level mappings an override may create (``--set integrator.scheme=bdf2`` on a scene without one)
+OPTIONAL_SECTIONS = ("params", "integrator", "stabilization")
+
+
 def _apply_override(source, raw, keys, value, create):
     node = raw
     path = []
@@ -220,7 +224,7 @@ def _apply_override(source, raw, keys, value, create):
                 node[k] = value
             else:
                 if k not in node:
-                    if create or k == "params":
+                    if create or (i == 0 and k in OPTIONAL_SECTIONS):
                         node[k] = {}
                     else:
                         raise SceneError(source, where, f"unknown key '{'.'.join(path)}'")
@@ -426,12 +430,20 @@ class _Validator:
         spec.baumgarte_b = self.number("stabilization.b", "b", d.get("b", 5.0), positive=True)
 
     def integrator(self, spec, d):
-        """``integrator: {coriolis: explicit | implicit}`` (docs/scenes.md, "Integrator")."""
+        """``integrator: {scheme: euler | bdf2, coriolis: explicit | implicit}`` (docs/scenes.md, "Integrator")."""
         if d is None:
             return
         if not isinstance(d, dict):
-            self.err("integrator", f"must be a mapping such as {{coriolis: implicit}}, got {d!r}")
-        self.keys("integrator", d, {"coriolis"})
+            self.err("integrator", f"must be a mapping such as {{scheme: bdf2}}, got {d!r}")
+        self.keys("integrator", d, {"coriolis", "scheme"})
+        scheme = d.get("scheme", "euler")
+        if scheme not in SCHEMES:
+            self.err("integrator.scheme", f"unknown value {scheme!r} ({', '.join(SCHEMES)})")
+        if scheme == "bdf2":
+            if spec.friction is not None:
+                self.err("integrator.scheme", "'bdf2' is not supported with contact or joint friction (Staggered "
+                         "Projections / BISP are derived for the BDF1 step); use scheme: euler")
+        spec.scheme = scheme
         c = d.get("coriolis", "explicit")
         if c not in ("explicit", "implicit"):
             self.err("integrator.coriolis", f"unknown value {c!r} (explicit, implicit)")

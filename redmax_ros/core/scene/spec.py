@@ -8,6 +8,7 @@ import numpy as np
 # solver: direct (the compiled one-call step where the scene allows it, else the reference), reference (the
 # Pinocchio pipeline), compiled (the compiled step or an error naming why not), pcg, auto; docs/solvers.md
 SOLVERS = ("direct", "reference", "compiled", "pcg", "auto")
+SCHEMES = ("euler", "bdf2")  # integrator.scheme (docs/scenes.md, "Integrator"; step/scheme.py)
 
 WORLD = "world"
 CORE_JOINT_TYPES = {  # catalogue joints (catalogue_schema.TYPES) carry their nv in JointSpec.extra
@@ -124,6 +125,7 @@ class SceneSpec:
     urdf: str | None = None  # path of a URDF giving the tree (bodies/joints then come from it)
     urdf_fixed_base: bool = True
     solver: str = "direct"  # one of SOLVERS
+    scheme: str = "euler"  # integrator.scheme: euler (BDF1, Eq. 2 as in the paper) | bdf2 (step/scheme.py)
     coriolis: str = "explicit"  # integrator.coriolis: explicit (Eq. 2 as in the paper) | implicit (linearised)
     stabilization: str = "post"  # loops: post (projection after the step) | baumgarte (velocity-level feedback)
     baumgarte_b: float = 5.0  # [1/s] stabilization.b: G qdot+ = -b phi(q_k) for the loop rows (method baumgarte)

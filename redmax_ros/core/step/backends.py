@@ -149,6 +149,10 @@ def make_backend(mech, solver: str, rtol: float = DEFAULT_RTOL, max_iter: int | 
     Scenes with contact or joint friction (Mechanism.friction, Staggered Projections / BISP) or catalogue
     joints and force elements (Mechanism.extras) need the Pinocchio pipeline: 'direct', 'reference' and
     'auto' use it at any size, 'pcg' is a SceneError."""
+    if mech.scheme == "bdf2" and mech.extras is not None:
+        raise SceneError(mech.spec.source, "integrator.scheme",
+                         "'bdf2' is not supported with catalogue joints or force elements (spline, exponential and "
+                         "Euler-chart joints, timed loads, linear joint constraints: their hooks are BDF1); use scheme: euler")
     if solver == "compiled":
         return CompiledBackend(mech)
     if solver == "direct":

@@ -36,6 +36,7 @@ from redmax_ros.core.dynamics.springs import needs_velocities, spring_forces
 from redmax_ros.core.errors import StepError
 from redmax_ros.core.solvers.direct import solve_direct
 from redmax_ros.core.solvers.lockstep_pcg import DEFAULT_RTOL, Fallback, Ops, active_set, block_pcg, default_max_iter, spd_solve
+from redmax_ros.core.solvers import recursive as rc
 from redmax_ros.core.solvers.pcg import MatrixFreeSystem, PointSprings
 from redmax_ros.core.step.pipeline import VelocitySolve
 from redmax_ros.core.step.state import check_applied, check_inputs, check_rows
@@ -183,27 +184,33 @@ def data_free_velocity(mech, ws, state, cmd, tau, h, solver="pcg", rtol=DEFAULT_
     stats = {"solver": solver}
     ctx.last_stats = stats
 
-    # 1-2: kinematics, forces (Eq. 2)
+    # 1-2: kinematics, forces (Eq. 2); BDF2 (ws.bdf2, step/scheme.py): (q, v) = (q*, v*), h = hat h
+    pt = ws.bdf2
+    q_base = state.q if pt is None else pt.q_base  # joint springs and joint limits act from q^
     v_r = ws.to_reduced(state.v)
     rws = ctx.fk(state.q, v_r)
     springs = None
     K = D = None
     if len(mech.spring_ab):
-        X = ctx.jac_positions()
+        X = ctx.jac_positions()  # at q*: where the spring forces act (their Jacobians)
         V = None
         if needs_velocities(mech):  # site velocities v_o + w x x of explicit spring dampers (implicit: false)
             ov = rws.ov[ctx.jac_jid]
             V = ov[:, :3] + np.cross(ov[:, 3:], X)
-        fs, K, D, _ = spring_forces(mech, X, V)
+        # BDF2: the forces of the sites at q^, x(q^) ~ x(q*) - J (q* (-) q^) (O(n + m)), applied at x(q*)
+        Xf = X if pt is None else X - rc.site_jv(ctx.topo, rws, ctx.jac_jid, X, pt.back)
+        fs, K, D, _ = spring_forces(mech, Xf, V)
         springs = (fs, X)
     sf = {mech.site_index[n]: f for n, f in cmd.site_forces.items()} if cmd.site_forces else None
-    b = tf.rhs(ctx, state.q, v_r, tau, h, sf, springs)
+    b = tf.rhs(ctx, q_base, v_r, tau, h, sf, springs)
+    if pt is not None:  # RHS M v^ + hat h f: the momentum of v^ instead of v*
+        b += rc.mass_matrix_product(ctx.topo, rws, pt.v_mom - v_r)
     if not math.isfinite(float(b.sum())):
         raise StepError("non-finite right-hand side of Eq. (2) (state or forces out of range)")
     ps = PointSprings(ctx.spring_ja, ctx.spring_oa, ctx.spring_jb, ctx.spring_ob, K, D) if K is not None else None
     system = MatrixFreeSystem(ctx.topo, rws, h, ctx.reduced_diag(h), ps, tf.body_damping_blocks(ctx, h))
     # 3: constraint rows (reduced coordinates for PCG)
-    cons = build_rows(mech, ws, cmd, state.q, h, hyper=solver != "pcg")
+    cons = build_rows(mech, ws, cmd, q_base, h, hyper=solver != "pcg")
     if cons.m:
         if not math.isfinite(cons.g.sum()):
             check_inputs(state, tau, cmd)
@@ -234,7 +241,7 @@ def data_free_velocity(mech, ws, state, cmd, tau, h, solver="pcg", rtol=DEFAULT_
             stats["fallback"] = str(e.args[0])
             label = "pcg->"
             spent = e.args[1] if len(e.args) > 1 else 0
-            cons = build_rows(mech, ws, cmd, state.q, h, hyper=True)
+            cons = build_rows(mech, ws, cmd, q_base, h, hyper=True)
     if sol is None:
         dsol = solve_dense(mech, ws, system, b, cons, h, tau, cmd)
         sol = dsol

@@ -28,6 +28,7 @@ the divergence limit, step/state.py) are rejected after the kinematics and force
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 from dataclasses import dataclass
@@ -42,6 +43,7 @@ from redmax_ros.core.friction import staggered
 from redmax_ros.core.solvers.direct import solve_direct
 from redmax_ros.core.solvers.kkt import max_row_residual
 from redmax_ros.core.step import body_twist, trajectory
+from redmax_ros.core.step.scheme import History, bdf2_point
 from redmax_ros.core.step.state import (Diagnostics, State, StepResult, applied_torques, check_applied, check_inputs,
                                         check_rows, check_speed)
 
@@ -64,36 +66,45 @@ class VelocitySolve:
 def step(mech, ws, state: State, cmd, h: float, velocity, budget=None) -> tuple:
     """Advance one step of Eq. (2) with the backend's ``velocity`` stages. Returns (State, StepResult);
     raises StepError on failure (the input state is never modified). ``budget``: a StepBudget (CPU time of
-    the step's iterative solvers, QP iteration caps) or None (unlimited)."""
+    the step's iterative solvers, QP iteration caps) or None (unlimited). With integrator.scheme bdf2 the
+    step is the linearly implicit BDF2 of step/scheme.py (BDF1 when the state has no history for h)."""
     t0 = time.perf_counter()
     ws.deadline = None if budget is None else budget.start()
     try:
+        if mech.scheme == "bdf2":
+            ws.bdf2 = bdf2_point(mech.model, ws.to_reduced, state.q, state.v, state.history, h)
         return _step(mech, ws, state, cmd, h, velocity, t0)
     finally:
         ws.deadline = None
+        ws.bdf2 = None
 
 
 def _step(mech, ws, state: State, cmd, h: float, velocity, t0) -> tuple:
-    cmd = trajectory.resolve(mech, state, cmd, h)  # joint trajectories -> this step's prescribed velocities
+    pt = ws.bdf2
+    # BDF2: the velocity stages see the extrapolated state (q*, v*) and hat h (step/scheme.py)
+    lin, hs, q_base = (state, h, state.q) if pt is None else (
+        dataclasses.replace(state, q=pt.q_lin, v=pt.v_lin), pt.h, pt.q_base)
+    cmd = trajectory.resolve(mech, state, cmd, h, q_base)  # joint trajectories -> this step's prescribed velocities
     tau = applied_torques(mech, state, cmd, h)
     if ws.extras is not None:  # catalogue: time of the timed loads, J_rR of spline/exp joints at q
         ws.extras.begin(mech, ws, state)
-    vs = velocity(mech, ws, state, cmd, tau, h)  # 1-4
+    vs = velocity(mech, ws, lin, cmd, tau, hs)  # 1-4
     check_speed(vs.sol.v)
-    q_new, v_hyper, v_new, viol_pos = update_configuration(mech, ws, state.q, vs, cmd, h)  # 5
-    effort, site_forces = required_forces(mech, tau, vs, cmd, h)  # 6
-    wrenches = body_twist.wrenches(vs.sol.lam, vs.body_rows, cmd.body_twists, h) if vs.body_rows else {}
+    q_new, v_hyper, v_new, viol_pos = update_configuration(mech, ws, q_base, vs, cmd, hs)  # 5
+    effort, site_forces = required_forces(mech, tau, vs, cmd, hs)  # 6
+    wrenches = body_twist.wrenches(vs.sol.lam, vs.body_rows, cmd.body_twists, hs) if vs.body_rows else {}
     ek, ep, es = energies(mech, ws, q_new, v_new)
     if not math.isfinite(ek + ep + es):
         raise StepError("non-finite energy after the step")
     diag = Diagnostics(ek, ep, es, ek + ep + es, viol_pos, vs.violation_vel, vs.iterations, vs.solver,
                        time.perf_counter() - t0, vs.sol, vs.friction)
-    new = state.advanced(h, q_new, v_hyper, vs.friction_cache)
+    new = state.advanced(h, q_new, v_hyper, vs.friction_cache,
+                         history=History(state.q, state.v, h) if mech.scheme == "bdf2" else None)
     return new, StepResult(new.t, q_new, v_new, effort, site_forces, diag, wrenches)
 
 
 def update_configuration(mech, ws, q, vs: VelocitySolve, cmd, h) -> tuple:
-    """Stage 5: q+ = q (+) h J_rR qdot_R+ on the manifold, loop post-stabilization (stabilization.py) and the
+    """Stage 5: q+ = q (+) h J_rR qdot_R+ on the manifold (BDF2: q = q^, h = hat h, step/scheme.py), loop post-stabilization (stabilization.py) and the
     catalogue's end-of-step hooks. Returns (q+, qdot_R+, qdot_r+, max loop violation [m])."""
     v_new = ws.to_reduced(vs.sol.v)
     q_new = pin.integrate(mech.model, q, h * v_new)
@@ -113,7 +124,8 @@ def update_configuration(mech, ws, q, vs: VelocitySolve, cmd, h) -> tuple:
 
 
 def required_forces(mech, tau, vs: VelocitySolve, cmd, h) -> tuple:
-    """Stage 6 (Eq. 7): effort = tau - *G_r^T lam / h on the prescribed joints (sign: A qdot = b - G^T lam),
+    """Stage 6 (Eq. 7): effort = tau - *G_r^T lam / h on the prescribed joints (sign: A qdot = b - G^T lam;
+    BDF2: h = hat h, the constraint force at t_k+1 of M (qdot+ - v^) = hat h f, step/scheme.py),
     and the world force every prescribed site requires (its prescribed axes' rows mapped back)."""
     sol = vs.sol
     effort = tau.copy()
@@ -154,8 +166,8 @@ def pinocchio_velocity(mech, ws, state: State, cmd, tau, h) -> VelocitySolve:
                   [(n, kin.J[kin.row[mech.site_index[n]]].T @ f) for n, f in cmd.site_forces.items()] if sf else ())
     G_loop = constraints.loop_rows_of(mech, kin.J) if len(mech.loop_ab) else None
     J_sites = site_jacobian_rows(mech, ws, kin, psites) if psites else None
-    cons = constraints.build(mech, ws, G_loop, J_sites, state.q, cmd.joint_velocities, psites, h,
-                             cmd.site_axes)  # 3
+    cons = constraints.build(mech, ws, G_loop, J_sites, state.q if ws.bdf2 is None else ws.bdf2.q_base,
+                             cmd.joint_velocities, psites, h, cmd.site_axes)  # 3
     body_rows = body_twist.append_rows(mech, ws, ws.data, cons, cmd.body_twists) if cmd.body_twists else None
     if cons.m:
         if not math.isfinite(cons.g @ cons.g):

@@ -46,13 +46,15 @@ def joint_rate(mech, name: str, traj, q, t_next: float) -> np.ndarray:
     return traj.rate(t_next, [math.atan2(s, c)], wrap=True)
 
 
-def resolve(mech, state, cmd, h: float):
+def resolve(mech, state, cmd, h: float, q_base=None):
     """Commands for the step of h from ``state`` with every trajectory turned into its velocity row's value
-    (a new Commands; ``cmd`` itself unchanged). Commands without trajectories are returned as they are."""
+    (a new Commands; ``cmd`` itself unchanged). Commands without trajectories are returned as they are.
+    ``q_base``: the configuration the step advances from (BDF2: q^ of step/scheme.py; default state.q)."""
     if not cmd.joint_trajectories:
         return cmd
     t_next = state.time_after(h)
+    q = state.q if q_base is None else q_base
     vel = dict(cmd.joint_velocities)
     for name, traj in cmd.joint_trajectories.items():
-        vel[name] = joint_rate(mech, name, traj, state.q, t_next)
+        vel[name] = joint_rate(mech, name, traj, q, t_next)
     return dataclasses.replace(cmd, joint_velocities=vel, joint_trajectories={})

@@ -13,7 +13,9 @@ the Mechanism and passes it to every stage, ``f(mech, ws, ...)``. It holds
 * ``extras``: the workspace's runtime copy of the catalogue hooks (dynamics/catalogue_hooks.py);
 * ``friction``: the friction stage's scratch (friction/contact.FrictionWork);
 * ``deadline``: the running step's solvers/budget.Deadline (set by step.pipeline.step for the step's
-  duration; None without a budget and between steps).
+  duration; None without a budget and between steps);
+* ``bdf2``: the running step's step.scheme.Bdf2Point (integrator.scheme bdf2, set by step.pipeline.step for
+  the step's duration; None for a BDF1 step and between steps).
 
 A workspace is not thread-safe; two workspaces of one Mechanism step independently.
 """
@@ -35,6 +37,7 @@ class Workspace:
         self.extras = None if mech.extras is None else mech.extras.runtime(mech)
         self.friction = None if mech.friction is None else make_work(mech, mech.friction, self.T)
         self.deadline = None
+        self.bdf2 = None
         if self.extras is not None:
             self.extras.at_state(self, mech.q0, 0.0)
 

@@ -27,6 +27,7 @@ from redmax_ros.core.step.compiled.data import (OUT_ITERS, OUT_E_KIN, OUT_E_POT,
 from redmax_ros.core.step.compiled.kernel import STAGE_NAMES, step_kernel, step_n_kernel
 from redmax_ros.core.step.compiled.model import build_model, unsupported
 from redmax_ros.core.step.pipeline import pinocchio_velocity, step as pipeline_step
+from redmax_ros.core.step.scheme import History, bdf2_point
 from redmax_ros.core.step.state import BatchResult, Diagnostics, StepResult, step_each
 from redmax_ros.core.step.workspace import Workspace
 
@@ -56,6 +57,7 @@ class CompiledBackend:
         self.mech = mech
         self.workspace = Workspace(mech, pin_data=True)  # the reference's (queries, energies, hand-offs)
         self.model = build_model(mech)
+        self.bdf2 = mech.scheme == "bdf2"  # integrator.scheme: the kernel keeps BDF2's history (step/scheme.py)
         self._data = {}
         self.handoffs = Counter()
 
@@ -84,13 +86,31 @@ class CompiledBackend:
             return None
         if not (h > 0 and math.isfinite(h)):
             return None  # applied_torques names it
-        rcmd = trajectory.resolve(self.mech, state, cmd, h)
+        q_base = None
+        if cmd.joint_trajectories and self._history(state, h):  # BDF2: trajectories aim from q^ (step/scheme.py)
+            q_base = bdf2_point(self.mech.model, self.workspace.to_reduced, state.q, state.v, state.history, h).q_base
+        rcmd = trajectory.resolve(self.mech, state, cmd, h, q_base)
         tau = self.mech.torque0 if rcmd.joint_torques is None else self.mech.torque0 + rcmd.joint_torques
         d = self._data_for(rcmd)
         jv, sv = rcmd.joint_velocities, rcmd.site_velocities
         gj = _NO_V if not jv else np.concatenate([np.atleast_1d(np.asarray(x, float)) for x in jv.values()])
         s = _NO_S if not sv else np.array(list(sv.values()), dtype=float).reshape(len(sv), 3)
         return rcmd, np.asarray(tau, dtype=float), d, gj, s
+
+    def _history(self, state, h) -> bool:
+        """Whether the step of h from ``state`` is a BDF2 step (integrator.scheme bdf2 and a history of h)."""
+        hs = state.history
+        return self.bdf2 and hs is not None and hs.h == h
+
+    def _history_args(self, state, h):
+        """(q_k-1, qdot_k-1, valid) for the kernel: copies of the history, or placeholders and 0."""
+        if self._history(state, h):
+            return state.history.q.copy(), state.history.v.copy(), 1
+        return state.q.copy(), state.v.copy(), 0
+
+    def _advanced(self, state, h, q, v, qp, vp, steps=1):
+        """The State after the kernel's steps, with BDF2's history (q_k-1, qdot_k-1, h) when the scheme keeps one."""
+        return state.advanced(h, q, v, steps=steps, history=History(qp, vp, h) if self.bdf2 else None)
 
     def _handed_back(self, d):
         self.handoffs[STAGE_NAMES[int(d["out"][OUT_STAGE])]] += 1
@@ -101,11 +121,12 @@ class CompiledBackend:
         if inp is None:
             return self.reference_step(state, cmd, h, budget)
         rcmd, tau, d, gj, sv = inp
-        if step_kernel(*self.model.args, *d.args, state.q, state.v, tau, float(h), gj, sv):
+        qp, vp, hist = self._history_args(state, h)
+        if step_kernel(*self.model.args, *d.args, state.q, state.v, tau, float(h), gj, sv, qp, vp, hist):
             self._handed_back(d)
             return self.reference_step(state, cmd, h, budget)
         q_new, v_hyper = d["q_new"].copy(), d["v_hyper"].copy()
-        new = state.advanced(h, q_new, v_hyper)
+        new = self._advanced(state, h, q_new, v_hyper, state.q, state.v)
         return new, self._result(new, d, q_new, rcmd, t0)
 
     def step_run(self, state, cmd, h, n, budget=None):
@@ -120,12 +141,13 @@ class CompiledBackend:
         t0 = time.perf_counter()
         rcmd, tau, d, gj, sv = inp
         q, v = state.q.copy(), state.v.copy()
-        k = step_n_kernel(*self.model.args, *d.args, q, v, tau, float(h), gj, sv, n)
+        qp, vp, hist = self._history_args(state, h)
+        k = step_n_kernel(*self.model.args, *d.args, q, v, tau, float(h), gj, sv, n, qp, vp, hist, int(self.bdf2))
         if k == 0:
             self._handed_back(d)
             new, res = self.reference_step(state, cmd, h, budget)
             return new, res, 1
-        new = state.advanced(h, q, v, steps=k)
+        new = self._advanced(state, h, q, v, qp, vp, steps=k)
         return new, self._result(new, d, q.copy(), rcmd, t0), k
 
     def step_batch(self, states, cmd, h, n=1, budget=None) -> BatchResult:
@@ -147,13 +169,19 @@ class CompiledBackend:
         DF = np.tile(d.f, (B, 1))
         Q = np.array([s.q for s in states], dtype=float)
         V = np.array([s.v for s in states], dtype=float)
+        hist_args = [self._history_args(s, h) for s in states]
+        QP = np.array([a[0] for a in hist_args], dtype=float)
+        VP = np.array([a[1] for a in hist_args], dtype=float)
+        HIST = np.array([a[2] for a in hist_args], dtype=np.int64)
+        bdf2 = int(self.bdf2)
         total = np.zeros(B, dtype=np.int64)
         stage = d.names.index("out")
         out_off = int(d.tab[stage, 1])
         workers = min(B, os.cpu_count() or 1)
 
         def run(b):
-            return step_n_kernel(*self.model.args, DF[b], d.i, d.tab, Q[b], V[b], tau, float(h), gj, sv, int(todo[b]))
+            return step_n_kernel(*self.model.args, DF[b], d.i, d.tab, Q[b], V[b], tau, float(h), gj, sv, int(todo[b]),
+                                 QP[b], VP[b], int(HIST[b]), bdf2)
 
         while todo.any():
             live = [int(b) for b in np.flatnonzero(todo)]
@@ -164,7 +192,9 @@ class CompiledBackend:
                 done[live] = [run(b) for b in live]
             for b in np.flatnonzero(todo):
                 if done[b]:
-                    states[b] = states[b].advanced(h, Q[b].copy(), V[b].copy(), steps=int(done[b]))
+                    states[b] = self._advanced(states[b], h, Q[b].copy(), V[b].copy(), QP[b].copy(), VP[b].copy(),
+                                               steps=int(done[b]))
+                    HIST[b] = bdf2
                     total[b] += done[b]
                     todo[b] -= done[b]
                 if not todo[b]:
@@ -175,6 +205,7 @@ class CompiledBackend:
                     total[b] += 1
                     todo[b] -= 1
                     Q[b], V[b] = states[b].q, states[b].v
+                    QP[b], VP[b], HIST[b] = self._history_args(states[b], h)
                 except StepError as e:
                     errors[b] = e.reason
                     todo[b] = 0

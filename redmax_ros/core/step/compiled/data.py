@@ -50,6 +50,10 @@ DATA_SPEC = (
     # working set per limit row (0 free, -1 at its lower bound, +1 at its upper bound)
     ("Gx", "f", 2), ("gx", "f", 1), ("lamx", "f", 1), ("kkt_Yx", "f", 2), ("kkt_Sx", "f", 2), ("kkt_LSx", "f", 2),
     ("wset", "f", 1),
+    # BDF2 (step/scheme.py, compiled/scheme.py): q^ and q* (nq,), v* and v^ hyper-reduced (ndof,), v^ reduced,
+    # q* (-) q^ and q_k (-) q_k-1 (nv,), twists of v^ and of q* (-) q^ (njoints, 6), spring sites at q^ (S, 3)
+    ("q_base", "f", 1), ("q_lin", "f", 1), ("v_lin", "f", 1), ("v_mom_h", "f", 1), ("v_mom", "f", 1),
+    ("back", "f", 1), ("bdf_d", "f", 1), ("ovm", "f", 2), ("ovb", "f", 2), ("Xf", "f", 2),
 )
 
 Data = namedtuple("Data", [n for n, _, _ in DATA_SPEC])
@@ -80,7 +84,9 @@ def data_views(f, i, t):
                 f1(f, t, 61), f2(f, t, 62),
                 f3(f, t, 63), f3(f, t, 64), f1(f, t, 65), f2(f, t, 66),
                 f2(f, t, 67), f1(f, t, 68), f1(f, t, 69), f2(f, t, 70), f2(f, t, 71), f2(f, t, 72),
-                f1(f, t, 73))
+                f1(f, t, 73),
+                f1(f, t, 74), f1(f, t, 75), f1(f, t, 76), f1(f, t, 77), f1(f, t, 78),
+                f1(f, t, 79), f1(f, t, 80), f2(f, t, 81), f2(f, t, 82), f2(f, t, 83))
 
 
 def build_data(mech, model, joints: tuple, sites: tuple, site_axes: dict, T) -> "Packed":
@@ -138,5 +144,7 @@ def build_data(mech, model, joints: tuple, sites: tuple, site_axes: dict, T) -> 
         kkt_LSx=np.zeros((m + nlim, m + nlim)), wset=np.zeros(nlim),
         spring_K=np.zeros((P, 3, 3)), spring_D=np.zeros((P, 3, 3)), spring_l=np.zeros(P), V=np.zeros((S, 3)),
         pa=np.zeros((P, 3)), pb=np.zeros((P, 3)), Gr_loop=np.zeros((nl, nv)), q_tmp=np.zeros(nq), step_v=np.zeros(nv),
+        q_base=np.zeros(nq), q_lin=np.zeros(nq), v_lin=np.zeros(ndof), v_mom_h=np.zeros(ndof), v_mom=np.zeros(nv),
+        back=np.zeros(nv), bdf_d=np.zeros(nv), ovm=np.zeros((nj, 6)), ovb=np.zeros((nj, 6)), Xf=np.zeros((S, 3)),
     )
     return pack(DATA_SPEC, values)

@@ -18,7 +18,7 @@ from redmax_ros.core.dynamics.springs import spring_kernel
 from redmax_ros.core.dynamics.tree_forces import dense_crba_kernel, nle_wrench_kernel, spring_cross_kernel
 from redmax_ros.core.jit import njit, njit_inline
 from redmax_ros.core.solvers.pcg import add_point_block, spring_blocks_kernel
-from redmax_ros.core.solvers.recursive import bias_kernel, jtw_kernel
+from redmax_ros.core.solvers.recursive import bias_kernel, jtw_kernel, jv_kernel
 from redmax_ros.core.step.compiled.manifold import difference
 
 
@@ -34,10 +34,24 @@ def _add_point_wrench(W, j, x, f, sign):
 
 
 @njit_inline
-def spring_terms(m, d, h):
+def shifted_sites(m, d):
+    """BDF2: d.Xf = x(q*) - J (q* (-) q^), the site positions of q^ to O(h^2) (step/scheme.py): the world twists
+    of d.back by one J pass, then v_o + w x x per site."""
+    jv_kernel(m.parents, m.idx_v, m.nv_j, d.St, d.back, d.ovb)
+    for s in range(d.X.shape[0]):
+        y = d.ovb[m.site_jid[s]]
+        x = d.X[s]
+        d.Xf[s, 0] = x[0] - (y[0] + y[4] * x[2] - y[5] * x[1])
+        d.Xf[s, 1] = x[1] - (y[1] + y[5] * x[0] - y[3] * x[2])
+        d.Xf[s, 2] = x[2] - (y[2] + y[3] * x[1] - y[4] * x[0])
+
+
+@njit_inline
+def spring_terms(m, d, h, shifted):
     """Per maximal spring (dynamics/springs.spring_kernel, the formulas of every pipeline): force on end a
     (d.spring_f), C = h D + h^2 K (d.spring_C), end positions (d.pa, d.pb); site velocities v_o + w x x first
-    when an explicit spring has damping."""
+    when an explicit spring has damping. ``shifted`` (BDF2): forces, K and D of the site positions of q^
+    (:func:`shifted_sites`), applied at those of q* (d.X) as the pipelines do."""
     P = m.spring_a.shape[0]
     if P == 0:
         return
@@ -48,8 +62,13 @@ def spring_terms(m, d, h):
             d.V[s, 0] = y[0] + y[4] * x[2] - y[5] * x[1]
             d.V[s, 1] = y[1] + y[5] * x[0] - y[3] * x[2]
             d.V[s, 2] = y[2] + y[3] * x[1] - y[4] * x[0]
-    spring_kernel(d.X, m.spring_a, m.spring_b, m.spring_k, m.spring_d, m.spring_rest, m.spring_explicit, d.V,
-                  d.spring_f, d.spring_K, d.spring_D, d.spring_l)
+    if shifted:
+        shifted_sites(m, d)
+        spring_kernel(d.Xf, m.spring_a, m.spring_b, m.spring_k, m.spring_d, m.spring_rest, m.spring_explicit, d.V,
+                      d.spring_f, d.spring_K, d.spring_D, d.spring_l)
+    else:
+        spring_kernel(d.X, m.spring_a, m.spring_b, m.spring_k, m.spring_d, m.spring_rest, m.spring_explicit, d.V,
+                      d.spring_f, d.spring_K, d.spring_D, d.spring_l)
     hh = h * h
     for s in range(P):
         a, b = m.spring_a[s], m.spring_b[s]
@@ -61,9 +80,10 @@ def spring_terms(m, d, h):
 
 
 @njit_inline
-def rhs(m, d, q, v, tau, h):
-    """b of Eq. (2), reduced coordinates (tree_forces.rhs): J^T (I ov - h W_nle + h W_ext) + armature qdot
-    + h (tau - K_r (q - q_rest)). Needs kinematics and spring_terms."""
+def rhs(m, d, q, v, vm, ovm, tau, h):
+    """b of Eq. (2), reduced coordinates (tree_forces.rhs): J^T (I ovm - h W_nle + h W_ext) + armature vm
+    + h (tau - K_r (q - q_rest)), the bias forces of the velocity v (its twists d.ov), the momentum of vm (its
+    twists ovm; BDF2's v^, else v and d.ov). Needs kinematics and spring_terms."""
     nj = m.parents.shape[0]
     bias_kernel(m.parents, m.idx_v, m.nv_j, d.St, d.ov, v, d.R, d.p, d.c_local, d.acc)
     nle_wrench_kernel(d.I, d.ov, d.acc, m.gravity, d.W)
@@ -86,19 +106,19 @@ def rhs(m, d, q, v, tau, h):
         for r in range(6):
             s = 0.0
             for c in range(6):
-                s += d.I[j, r, c] * d.ov[j, c]
+                s += d.I[j, r, c] * ovm[j, c]
             d.W[j, r] = (-h * d.W[j, r] + s) + h * d.ext[j, r]
     jtw_kernel(m.parents, m.idx_v, m.nv_j, d.St, d.W, d.F, d.b)
     nv = d.b.shape[0]
     if m.scalars[1] != 0.0:  # joint springs: q - q_rest on the manifold
         difference(m.kind, m.idx_q, m.idx_v, m.q_rest, q, d.dq)
         for i in range(nv):
-            d.b[i] += m.armature[i] * v[i]
+            d.b[i] += m.armature[i] * vm[i]
         for i in range(nv):
             d.b[i] += h * (tau[i] - m.stiffness[i] * d.dq[i])
     else:
         for i in range(nv):
-            d.b[i] += m.armature[i] * v[i]
+            d.b[i] += m.armature[i] * vm[i]
         for i in range(nv):
             d.b[i] += h * tau[i]
 
@@ -162,9 +182,11 @@ def hyper_reduce(T_col, T_ratio, A, b, AR, bR):
 
 
 @njit_inline
-def assemble(m, d, q, v, tau, h):
-    """Stage 2: d.AR, d.bR of Eq. (2) at the kinematics in d."""
-    spring_terms(m, d, h)
-    rhs(m, d, q, v, tau, h)
+def assemble(m, d, q, v, vm, ovm, tau, h, shifted):
+    """Stage 2: d.AR, d.bR of Eq. (2) at the kinematics in d; ``q`` the configuration of the joint springs,
+    ``vm``/``ovm`` the momentum's velocity and twists, ``shifted`` the springs at q^ (BDF2, :func:`rhs`,
+    :func:`spring_terms`)."""
+    spring_terms(m, d, h, shifted)
+    rhs(m, d, q, v, vm, ovm, tau, h)
     lhs(m, d, h)
     hyper_reduce(m.T_col, m.T_ratio, d.A, d.b, d.AR, d.bR)

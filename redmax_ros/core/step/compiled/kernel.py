@@ -1,14 +1,17 @@
 """The compiled RedMax step: one native call per step, ``step_kernel``, reading as the list of its stages (each
 ``f(m, d, ...)`` in its own module, Model static, Data the preallocated workspace):
 
-    kinematics(m, d, q, qdot_r)            # 1  forward kinematics, twists, inertias, sites (kinematics.py)
-    assemble(m, d, q, qdot_r, tau, h)      # 2  A_R, b_R of Eq. (2), Eq. (9-10) (forces.py)
-    rows(m, d, q, h, gj, sv)               # 3  loops, prescribed joints and sites (Eq. 7), limits (rows.py)
+    point(m, d, q, qdot_R, history, hh)    # 0  BDF1, or BDF2's q^, q*, v*, v^ (scheme.py; step/scheme.py)
+    kinematics(m, d, q*, v*)               # 1  forward kinematics, twists, inertias, sites (kinematics.py)
+    assemble(m, d, q^, v*, v^, tau, hh)    # 2  A_R, b_R of Eq. (2), Eq. (9-10) (forces.py)
+    rows(m, d, q^, hh, gj, sv)             # 3  loops, prescribed joints and sites (Eq. 7), limits (rows.py)
     kkt_solve_into(A_R, b_R, G, g, ...)    # 4  Cholesky + Schur complement of Eq. (6)/(7) (solvers/kkt.py)
     active_set(m, d)                       # 4' joint limits of Eq. (5), when one is crossed (limits.py)
-    update_configuration(m, d, q, h)       # 5  manifold update, loop post-stabilization (update.py)
-    required_forces(m, d, tau, h)          # 6  Eq. 7 torques and site forces (update.py)
+    update_configuration(m, d, q^, hh)     # 5  manifold update, loop post-stabilization (update.py)
+    required_forces(m, d, tau, hh)         # 6  Eq. 7 torques and site forces (update.py)
     energies(m, d, q+, qdot_r+)            #    diagnostics (energy.py)
+
+with hh = h for BDF1 (q^ = q* = q_k, v^ = v* = qdot_k: the paper's step) and hh = 2h/3 for BDF2.
 
 It returns a status: OK, or REFERENCE with the stage that asked for it in d.out[OUT_STAGE]: whatever the
 kernel does not finish itself (a joint-limit active set that does not settle; a loop projection that
@@ -29,7 +32,9 @@ from redmax_ros.core.step.compiled.kinematics import kinematics
 from redmax_ros.core.step.compiled.limits import active_set, bilateral_violation
 from redmax_ros.core.step.compiled.model import model_views
 from redmax_ros.core.step.compiled.rows import rows
-from redmax_ros.core.step.compiled.update import required_forces, to_reduced, update_configuration
+from redmax_ros.core.step.compiled.scheme import point
+from redmax_ros.core.step.compiled.update import required_forces, update_configuration
+from redmax_ros.core.solvers.recursive import jv_kernel
 from redmax_ros.core.step.state import MAX_SPEED, impulse_beyond, row_beyond
 
 drop_stale()  # before numba looks at the cache of the kernels below (cache.py)
@@ -58,27 +63,33 @@ def _handoff(out, stage):
 
 
 @njit
-def step_kernel(mf, mi, mt, df, di, dt, q, vR, tau, h, gj, sv):
+def step_kernel(mf, mi, mt, df, di, dt, q, vR, tau, h, gj, sv, qp, vp, hist):
     """One step from (q, qdot_R) with joint torques tau (nv,) [N m, N], prescribed joint velocities gj and
-    site velocities sv (ns, 3) [m/s]; outputs in the Data (q_new, v_hyper, v_new, lam, effort, site_force, out)."""
-    return one_step(model_views(mf, mi, mt), data_views(df, di, dt), q, vR, tau, h, gj, sv)
+    site velocities sv (ns, 3) [m/s]; ``hist`` nonzero: BDF2 with the history (qp, vp) = (q_k-1, qdot_R,k-1) of
+    a step of h, else BDF1; outputs in the Data (q_new, v_hyper, v_new, lam, effort, site_force, out)."""
+    return one_step(model_views(mf, mi, mt), data_views(df, di, dt), q, vR, tau, h, gj, sv, qp, vp, hist)
 
 
 @njit_inline
-def one_step(m, d, q, vR, tau, h, gj, sv):
+def one_step(m, d, q, vR, tau, h, gj, sv, qp, vp, hist):
     """The stages of one step on the Model and Data namedtuples; returns OK or REFERENCE."""
     d.out[OUT_STAGE] = 0.0
     vv = vR @ vR
     if not (_finite_sum(q) and vv - vv == 0.0 and _finite_sum(tau)) or vv > MAX_SPEED * MAX_SPEED:
         return _handoff(d.out, STAGE_INPUT)  # step/state.applied_torques names it
-    to_reduced(m.T_col, m.T_ratio, vR, d.v_r)
-    kinematics(m, d, q, d.v_r)  # 1
-    assemble(m, d, q, d.v_r, tau, h)  # 2
+    hh = 2.0 * h / 3.0 if hist else h
+    point(m, d, q, vR, qp, vp, hist, hh)  # 0
+    kinematics(m, d, d.q_lin, d.v_r)  # 1
+    if hist:  # 2, BDF2: the momentum of v^, springs at q^
+        jv_kernel(m.parents, m.idx_v, m.nv_j, d.St, d.v_mom, d.ovm)
+        assemble(m, d, d.q_base, d.v_r, d.v_mom, d.ovm, tau, hh, True)
+    else:
+        assemble(m, d, d.q_base, d.v_r, d.v_r, d.ov, tau, hh, False)
     if not _finite_sum(d.bR):
         return _handoff(d.out, STAGE_INPUT)
-    if impulse_beyond(d.AR, m.T, tau, d.free_mask, h, MAX_SPEED) >= 0:
+    if impulse_beyond(d.AR, m.T, tau, d.free_mask, hh, MAX_SPEED) >= 0:
         return _handoff(d.out, STAGE_IMPULSE)
-    rows(m, d, q, h, gj, sv)  # 3
+    rows(m, d, d.q_base, hh, gj, sv)  # 3
     if d.g.shape[0]:
         if not _finite_sum(d.g):
             return _handoff(d.out, STAGE_INPUT)
@@ -103,10 +114,10 @@ def one_step(m, d, q, vR, tau, h, gj, sv):
         return _handoff(d.out, STAGE_SPEED)
     d.out[OUT_VIOL_VEL] = viol
     d.out[OUT_RESIDUAL] = kkt_residual(d.AR, d.bR, d.v_hyper, d.G, d.lam, m.limit_rows, d.mu)
-    converged, viol_pos = update_configuration(m, d, q, h)  # 5
+    converged, viol_pos = update_configuration(m, d, d.q_base, hh)  # 5
     if not converged or not _finite_sum(d.q_new):
         return _handoff(d.out, STAGE_PROJECTION)
-    required_forces(m, d, tau, h)  # 6
+    required_forces(m, d, tau, hh)  # 6
     ek, ep, es = energies(m, d, d.q_new, d.v_new)
     if not (ek + ep + es) - (ek + ep + es) == 0.0:
         return _handoff(d.out, STAGE_ENERGY)
@@ -118,14 +129,20 @@ def one_step(m, d, q, vR, tau, h, gj, sv):
 
 
 @njit
-def step_n_kernel(mf, mi, mt, df, di, dt, q, vR, tau, h, gj, sv, n):
+def step_n_kernel(mf, mi, mt, df, di, dt, q, vR, tau, h, gj, sv, n, qp, vp, hist, bdf2):
     """Up to n steps with the same commands, (q, vR) advanced in place; returns the number of steps taken
-    (< n: the next step was handed back, d.out[OUT_STAGE] says why). The Data holds the last step's outputs."""
+    (< n: the next step was handed back, d.out[OUT_STAGE] says why). The Data holds the last step's outputs.
+    ``bdf2`` nonzero: integrator.scheme bdf2, the history (qp, vp) kept in place (the state before the last
+    step taken; ``hist`` whether the input's history is valid for h), else every step is BDF1."""
     m = model_views(mf, mi, mt)
     d = data_views(df, di, dt)
     for k in range(n):
-        if one_step(m, d, q, vR, tau, h, gj, sv) != OK:
+        if one_step(m, d, q, vR, tau, h, gj, sv, qp, vp, hist) != OK:
             return k
+        if bdf2:
+            qp[:] = q
+            vp[:] = vR
+            hist = 1
         q[:] = d.q_new
         vR[:] = d.v_hyper
     return n

@@ -90,6 +90,8 @@ def unsupported(mech) -> list:
         out.append("catalogue joints/force elements")
     if mech.coriolis_implicit:
         out.append("integrator.coriolis: implicit")
+    if mech.scheme == "bdf2" and mech.loop_baumgarte:
+        out.append("integrator.scheme: bdf2 with stabilization: baumgarte")
     if mech.nv > PIN_DATA_MAX_NV:
         out.append(f"more than {PIN_DATA_MAX_NV} DOFs")
     if mech.T is not None and ((np.asarray(mech.T) != 0).sum(1) != 1).any():

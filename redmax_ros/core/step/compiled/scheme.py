@@ -1,0 +1,38 @@
+"""Stage 0 of the compiled step, ``point(m, d, q, vR, qp, vp, hh)``: where the step is linearised and from where
+it advances, as step/scheme.bdf2_point computes it (the same operations in the same order; pin.integrate and
+pin.difference by manifold.py, bit for bit):
+
+    BDF2 (a history (q_k-1, qdot_k-1) of the same step size):
+        d = q_k (-) q_k-1,  q^ = q_k (+) d / 3,  v* = 2 qdot_k - qdot_k-1,  v^ = (4 qdot_k - qdot_k-1) / 3,
+        q* = q^ (+) hat h v*  (hat h = 2h/3)
+    BDF1 (Eq. 2): q^ = q* = q_k, v* = v^ = qdot_k.
+
+Outputs: d.q_base (q^), d.q_lin (q*), d.v_r (v*, reduced), d.v_mom (v^, reduced), d.back (q* (-) q^, reduced)."""
+from __future__ import annotations
+
+from redmax_ros.core.jit import njit_inline
+from redmax_ros.core.step.compiled.manifold import difference, integrate
+from redmax_ros.core.step.compiled.update import to_reduced
+
+
+@njit_inline
+def point(m, d, q, vR, qp, vp, hist, hh):
+    """Fill the step's points (module docstring); ``hist`` nonzero: BDF2 from the history (qp, vp), else BDF1."""
+    if not hist:
+        d.q_base[:] = q
+        d.q_lin[:] = q
+        to_reduced(m.T_col, m.T_ratio, vR, d.v_r)
+        d.v_mom[:] = d.v_r
+        return
+    difference(m.kind, m.idx_q, m.idx_v, qp, q, d.bdf_d)
+    for i in range(d.bdf_d.shape[0]):
+        d.step_v[i] = d.bdf_d[i] / 3.0
+    integrate(m.kind, m.idx_q, m.idx_v, q, d.step_v, d.q_base)
+    for i in range(vR.shape[0]):
+        d.v_lin[i] = 2.0 * vR[i] - vp[i]
+        d.v_mom_h[i] = (4.0 * vR[i] - vp[i]) / 3.0
+    to_reduced(m.T_col, m.T_ratio, d.v_lin, d.v_r)
+    to_reduced(m.T_col, m.T_ratio, d.v_mom_h, d.v_mom)
+    for i in range(d.back.shape[0]):
+        d.back[i] = hh * d.v_r[i]
+    integrate(m.kind, m.idx_q, m.idx_v, d.q_base, d.back, d.q_lin)

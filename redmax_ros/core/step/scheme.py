@@ -1,0 +1,74 @@
+"""The time-integration scheme of a step: BDF1 (the paper's Eq. 2, the default, ``integrator.scheme: euler``)
+or a linearly implicit BDF2 (``integrator.scheme: bdf2``); the derivation is docs/bdf2.md.
+
+BDF2 (Sueda's notes §3.4.2, Eq. 3.76-3.81: u+ = 4/3 u_k - 1/3 u_k-1 + 2/3 h f(u+)) applied to the RedMax
+equations of motion, velocity form, with hat h = 2h/3:
+
+    q+ = q^ (+) hat h qdot+,         q^ = q_k (+) 1/3 (q_k (-) q_k-1)                (3.77b)
+    M (qdot+ - v^) = hat h f(q+, qdot+),   v^ = 4/3 qdot_k - 1/3 qdot_k-1             (3.77a)
+
+The notes solve (3.80) by Newton iterations; here it is linearly implicit (one solve per step, like Eq. 2):
+the forces are linearised about the predicted state v* = 2 qdot_k - qdot_k-1 (v* - qdot+ = O(h^2)) and
+q* = q^ (+) hat h v* (so q* - q+ = hat h (v* - qdot+) = O(h^3)): M(q*), the explicit terms and the
+constraint rows G(q*) err by O(h^3) per step (an implicit-explicit BDF2 with extrapolated explicit terms,
+as Ascher, Ruuth & Wetton 1995's SBDF2). Extrapolating only to O(h^2), q_k (+) (q_k (-) q_k-1), is not
+enough with configuration-dependent rows: G(q*) qdot+ = 0 then misses the velocity of the exact solution
+by O(h^2) every step (measured on the four-bar: local velocity error O(h^2), global order 1). The elastic
+forces act at q^, f(q+) ~ f(q^) - K hat h qdot+ (exact for joint springs, which are linear in q).
+So a BDF2 step is the step of Eq. (2) with
+
+    * kinematics, mass matrix, bias forces, Jacobians and constraint rows at (q*, v*), at time t_k+1;
+    * step size hat h in the LHS, (M + hat h D + hat h^2 K) qdot+ (the notes' Eq. 3.81 Hessian);
+    * RHS M v^ + hat h (f(q*, v*) - nle(q*, v*)), joint springs at q^, and maximal springs with the
+      forces of their end points at q^, x(q^) ~ x(q*) - J (q* (-) q^), applied through the Jacobians at q*;
+    * q+ = q^ (+) hat h qdot+, joint limits lower <= q^ + hat h qdot+ <= upper, trajectories aiming from q^;
+    * required torques -*G^T lam / hat h (the constraint force at t_k+1 of the discrete equation above).
+
+The start-up step (no history: after load, reset or set_state, or when the step size changed) is the BDF1
+step of Eq. (2); one first-order step contributes O(h^2) to the global error, so the order stays 2 (observed
+on the four-bar and the slider-crank: 2.13, 2.08; the notes start with SDIRK2, Eq. 3.66-3.75, which measured
+the same here, at two solves and without an exact replay of the required torques of its first step). A
+velocity that violates the bilateral rows (a loop's v0 given on one joint only) is projected by the first
+step in any scheme with an O(h) error (the rows at the step's point, not at t_0): from such a state the
+global error is O(h); start from a consistent velocity for second order. The history (q_k-1, qdot_k-1, h)
+is part of the State.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import pinocchio as pin
+
+@dataclass(frozen=True)
+class History:
+    """What BDF2 needs of the step before: its start configuration and velocity and its size."""
+    q: np.ndarray  # (nq,) q_k-1
+    v: np.ndarray  # (ndof,) hyper-reduced qdot_k-1
+    h: float  # s, the step from q_k-1 to q_k
+
+
+@dataclass(frozen=True)
+class Bdf2Point:
+    """Where a BDF2 step is linearised and from where it advances (module docstring)."""
+    q_lin: np.ndarray  # (nq,) q* = q^ (+) hat h v*: kinematics, M, nle, Jacobians, rows
+    v_lin: np.ndarray  # (ndof,) v* = 2 qdot_k - qdot_k-1, hyper-reduced
+    q_base: np.ndarray  # (nq,) q^ = q_k (+) (q_k (-) q_k-1) / 3: q+ = q^ (+) hat h qdot+
+    v_mom: np.ndarray  # (nv,) v^ = 4/3 qdot_k - 1/3 qdot_k-1, reduced: RHS M v^
+    back: np.ndarray  # (nv,) q* (-) q^ = hat h v*, reduced tangent [rad, m]
+    h: float  # s, hat h = 2 h / 3
+
+
+def bdf2_point(model, to_reduced, q, v, history: History | None, h: float) -> Bdf2Point | None:
+    """The Bdf2Point of the step of h from (q, v) with ``history``; None when the step must start up (no
+    history, or it was made with another step size: the BDF1 step of Eq. 2). ``model``: the pin.Model of the configuration space;
+    ``to_reduced``: hyper-reduced -> reduced velocities (T = J_rR)."""
+    if history is None or history.h != h:
+        return None
+    hh = 2.0 * h / 3.0
+    d = pin.difference(model, history.q, q)  # q_k (-) q_k-1, tangent [rad, m]
+    q_base = pin.integrate(model, q, d / 3.0)
+    v_lin = 2.0 * v - history.v
+    back = hh * to_reduced(v_lin)
+    v_mom = to_reduced((4.0 * v - history.v) / 3.0)
+    return Bdf2Point(pin.integrate(model, q_base, back), v_lin, q_base, v_mom, back, hh)
