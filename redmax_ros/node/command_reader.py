@@ -1,9 +1,9 @@
-"""The command subscriptions (joint_commands, point_commands) read by a thread of their own, in bursts.
+"""The command subscriptions (joint_commands, joint_trajectory, point_commands) read by one thread, in bursts.
 
 rclpy's executors call Python once per message; under a flood (10 kHz of joint_commands) that thread
 took the GIL ~7000 times a second for ~75 us each and the free-run simulation thread, which shares the
 GIL, fell to 16-26 % of its unflooded real-time factor (redmax_bench node --only flood, before this
-module). Here one thread waits on both subscriptions with rclpy's wait set (GIL released), then takes
+module). Here one thread waits on the subscriptions with rclpy's wait set (GIL released), then takes
 every message that is there (raw bytes, ``Subscription.take_message``) and hands each to its callback
 (validation and coalescing, engine.py) under one GIL acquisition. After a burst (more than one message
 in a drain) it sleeps ``burst_pause`` [s] (GIL released) before waiting again, so under a flood it

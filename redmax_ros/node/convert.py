@@ -15,6 +15,7 @@ from geometry_msgs.msg import Point, Pose, Quaternion, Vector3
 from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import JointState
 from std_msgs.msg import ColorRGBA, Header
+from trajectory_msgs.msg import JointTrajectory
 from visualization_msgs.msg import Marker, MarkerArray
 
 from redmax_msgs.msg import Coupling as CouplingMsg
@@ -59,24 +60,25 @@ def _check_names(names, what):
         seen.add(n)
 
 
-def joint_command(msg: JointState, desc) -> tuple[dict, dict]:
-    """sensor_msgs/JointState -> (prescribed velocities, applied torques), each joint -> array.
+def joint_command(msg: JointState, desc) -> tuple[dict, dict, dict]:
+    """sensor_msgs/JointState -> (prescribed velocities, applied torques, position targets), each
+    joint -> array.
 
     ``name`` entries are joint names (1-DOF joints) or per-DOF names ``<joint>[i]`` as listed in
     the scene's ``velocity_names``; a multi-DOF joint must be given with all its DOFs. ``velocity``
-    (prescription) and ``effort`` (applied torque) are each either empty or as long as ``name``;
-    ``position`` must be empty (position commands are not supported)."""
+    (prescription), ``position`` (a target held by the velocity-level position law, positions per
+    DOF as in joint_states) and ``effort`` (applied torque) are each either empty or as long as
+    ``name``; ``position`` and ``velocity`` not both."""
     names = list(msg.name)
-    vel, eff = list(msg.velocity), list(msg.effort)
+    vel, eff, pos = list(msg.velocity), list(msg.effort), list(msg.position)
     if not names:
         raise CommandRejected("joint command: no names given")
     _check_names(names, "joint command")
-    if len(msg.position):
-        raise CommandRejected("joint command: position commands are not supported "
-                              "(leave 'position' empty; prescribe velocities)")
-    if not vel and not eff:
-        raise CommandRejected("joint command: both 'velocity' and 'effort' are empty")
-    for field, vals in (("velocity", vel), ("effort", eff)):
+    if pos and vel:
+        raise CommandRejected("joint command: give 'position' (a target) or 'velocity' (a prescription), not both")
+    if not vel and not eff and not pos:
+        raise CommandRejected("joint command: 'position', 'velocity' and 'effort' are all empty")
+    for field, vals in (("velocity", vel), ("effort", eff), ("position", pos)):
         if vals and len(vals) != len(names):
             raise CommandRejected(f"joint command: {len(names)} name(s) but {len(vals)} {field} value(s)")
         for n, x in zip(names, vals):
@@ -90,7 +92,7 @@ def joint_command(msg: JointState, desc) -> tuple[dict, dict]:
             raise CommandRejected(f"joint command: unknown joint '{n}' in scene '{desc.name}' (known: {known})")
         joint, comp = index[n]
         parts.setdefault(joint, {})[comp] = i
-    velocities, torques = {}, {}
+    velocities, torques, positions = {}, {}, {}
     for joint, comps in parts.items():
         nv = desc.joint_nv[joint]
         if len(comps) != nv:
@@ -101,11 +103,121 @@ def joint_command(msg: JointState, desc) -> tuple[dict, dict]:
             velocities[joint] = np.array([vel[i] for i in order])
         if eff:
             torques[joint] = np.array([eff[i] for i in order])
-    bad = [j for j in velocities if j not in desc.prescribable_joints]
+        if pos:
+            positions[joint] = np.array([pos[i] for i in order])
+    bad = [j for j in list(velocities) + list(positions) if j not in desc.prescribable_joints]
     if bad:
         raise CommandRejected(f"joint command: joint '{bad[0]}' cannot be prescribed in scene '{desc.name}' "
                               f"(prescribable: {', '.join(desc.prescribable_joints)})")
-    return velocities, torques
+    _check_position_joints(list(positions), desc, "joint command")
+    return velocities, torques, positions
+
+
+def _check_position_joints(joints, desc, what):
+    """Position targets and trajectories need joints whose positions are coordinates (the core's
+    trajectory joints: nq = nv, or a continuous revolute joint's (cos, sin))."""
+    for j in joints:
+        nq, nv = desc.joint_nq[j], desc.joint_nv[j]
+        if not (nq == nv or (nq, nv) == (2, 1)):
+            raise CommandRejected(f"{what}: joint '{j}' ({desc.joint_types[j]}) cannot follow positions: its "
+                                  "positions are not coordinates")
+
+
+def _duration(d) -> float:
+    """builtin_interfaces Duration/Time -> seconds, correctly rounded (0.2 s is 0.2)."""
+    return (d.sec * 1_000_000_000 + d.nanosec) / 1e9
+
+
+class TrajectoryCommand:
+    """A validated trajectory_msgs/JointTrajectory for one joint, resolved against the current state
+    when it is applied (``prescription``): per DOF the piecewise-cubic (Hermite) q_p(t) through the
+    waypoints at times ``start + time_from_start``, ``start`` = the message's stamp in sim time or,
+    for a zero stamp, the time it is applied. When the first waypoint lies after the start, the
+    joint's position (and, with waypoint velocities, its velocity) at the start is the first point;
+    with velocities the curve has them at the waypoints (C1), without it is the C2 cubic spline with
+    zero rate at its ends. After the last waypoint the last position is held."""
+
+    def __init__(self, joint: str, start, times, positions, velocities, gain: float):
+        self.joint, self.start, self.gain = joint, start, float(gain)
+        self.times = np.asarray(times, float)  # (P,) time_from_start [s]
+        self.positions = np.asarray(positions, float)  # (P, nv)
+        self.velocities = None if velocities is None else np.asarray(velocities, float)  # (P, nv) or None
+
+    def prescription(self, t_now: float, q_now, v_now) -> tuple:
+        """(the core's trajectory prescription {position: [...], b}, end time [s])."""
+        t0 = t_now if self.start is None else float(self.start)
+        ts = t0 + self.times
+        pos, vel = self.positions, self.velocities
+        begin = max(t0, t_now)
+        if ts[0] > begin + 1e-12:  # from where the joint is now
+            ts = np.concatenate([[begin], ts])
+            pos = np.vstack([np.asarray(q_now, float)[None, :], pos])
+            if vel is not None:
+                vel = np.vstack([np.asarray(v_now, float)[None, :], vel])
+        fns = []
+        for k in range(pos.shape[1]):
+            if len(ts) == 1:
+                fns.append(float(pos[0, k]))
+            elif vel is None:
+                fns.append({"type": "cubic", "points": [[float(t), float(x)] for t, x in zip(ts, pos[:, k])]})
+            else:
+                fns.append({"type": "cubic", "points": [[float(t), float(x), float(v)]
+                                                        for t, x, v in zip(ts, pos[:, k], vel[:, k])]})
+        return {"position": fns, "b": self.gain}, float(ts[-1])
+
+
+def joint_trajectory(msg: JointTrajectory, desc, gain: float) -> dict:
+    """trajectory_msgs/JointTrajectory -> joint -> TrajectoryCommand. ``joint_names`` as joint_commands'
+    names (per-DOF names for multi-DOF joints, all DOFs of a joint); every point has one position per
+    name, velocities for all points or none (accelerations and effort are not used); time_from_start
+    strictly increasing, >= 0. A zero header stamp starts the trajectory when it is applied."""
+    names = list(msg.joint_names)
+    if not names:
+        raise CommandRejected("joint trajectory: no joint_names given")
+    _check_names(names, "joint trajectory")
+    pts = list(msg.points)
+    if not pts:
+        raise CommandRejected("joint trajectory: no points given")
+    times = [_duration(p.time_from_start) for p in pts]
+    if times[0] < 0 or any(b <= a for a, b in zip(times, times[1:])):
+        raise CommandRejected(f"joint trajectory: time_from_start must be >= 0 and strictly increasing, got {times}")
+    with_vel = [len(p.velocities) > 0 for p in pts]
+    if any(with_vel) and not all(with_vel):
+        raise CommandRejected("joint trajectory: give velocities for every point or for none")
+    for i, p in enumerate(pts):
+        for field, vals in (("positions", p.positions), ("velocities", p.velocities)):
+            if field == "velocities" and not with_vel[0]:
+                continue
+            if len(vals) != len(names):
+                raise CommandRejected(f"joint trajectory: point {i}: {len(names)} joint name(s) but {len(vals)} "
+                                      f"{field}")
+            if not all(math.isfinite(x) for x in vals):
+                raise CommandRejected(f"joint trajectory: point {i}: non-finite {field}")
+    index = desc.dof_index
+    parts: dict = {}
+    for i, n in enumerate(names):
+        if n not in index:
+            raise CommandRejected(f"joint trajectory: unknown joint '{n}' in scene '{desc.name}' "
+                                  f"(known: {', '.join(desc.velocity_names)})")
+        joint, comp = index[n]
+        parts.setdefault(joint, {})[comp] = i
+    stamp = msg.header.stamp
+    start = None if stamp.sec == 0 and stamp.nanosec == 0 else _duration(stamp)
+    out = {}
+    for joint, comps in parts.items():
+        nv = desc.joint_nv[joint]
+        if len(comps) != nv:
+            need = ", ".join(f"{joint}[{k}]" for k in range(nv))
+            raise CommandRejected(f"joint trajectory: joint '{joint}' has {nv} DOFs; give all of {need}")
+        if joint not in desc.prescribable_joints:
+            raise CommandRejected(f"joint trajectory: joint '{joint}' cannot be prescribed in scene '{desc.name}' "
+                                  f"(prescribable: {', '.join(desc.prescribable_joints)})")
+        order = [comps[k] for k in range(nv)]
+        pos = [[p.positions[i] for i in order] for p in pts]
+        vel = [[p.velocities[i] for i in order] for p in pts] if with_vel[0] else None
+        out[joint] = TrajectoryCommand(joint, start, times, pos, vel, gain)
+    _check_position_joints(list(out), desc, "joint trajectory")
+    return out
 
 
 def point_command(msg: PointVelocityCommand, desc) -> dict:
@@ -152,6 +264,13 @@ class SceneInfo:
         self.prescribable_sites = list(d.prescribable_sites)
         self.joint_names = list(d.joint_names)
         self.joint_nv = {j: int(nv) for j, nv in zip(d.joint_names, d.joint_nv)}
+        self.joint_nq = {j: int(nq) for j, nq in zip(d.joint_names, d.joint_nq)}
+        self.joint_types = dict(zip(d.joint_names, d.joint_types))
+        self.joint_offset = {}  # joint -> index of its first DOF in velocity_names (joint_states order)
+        k = 0
+        for j, nv in self.joint_nv.items():
+            self.joint_offset[j] = k
+            k += nv
         # DOF name (as in velocity_names) -> (joint, component)
         self.dof_index = {}
         for j, nv in self.joint_nv.items():
@@ -279,7 +398,7 @@ def markers_msg(t, poses: dict, springs: list, frame_id="world", scale=0.02) -> 
     for i, (name, (p, quat)) in enumerate(poses.items()):
         m = Marker()
         m.header = Header(stamp=stamp, frame_id=frame_id)
-        m.ns, m.id, m.type, m.action = "bodies", i, Marker.CUBE, Marker.ADD
+        m.ns, m.id, m.type, m.action = name, i, Marker.CUBE, Marker.ADD  # ns: the body name (RViz lists it)
         m.pose = Pose(position=Point(x=float(p[0]), y=float(p[1]), z=float(p[2])),
                       orientation=Quaternion(x=float(quat[0]), y=float(quat[1]), z=float(quat[2]), w=float(quat[3])))
         m.scale = Vector3(x=scale, y=scale, z=scale)

@@ -10,7 +10,7 @@ were handed in (a FIFO job queue), so
 Jobs that arrive while a multi-step request runs wait until it finishes (they are applied at a
 deterministic step).
 
-Commands (joint_commands, point_commands) are validated in the thread that receives them, against
+Commands (joint_commands, joint_trajectory, point_commands) are validated in the thread that receives them, against
 the scene description, and coalesced: the latest value per joint, torque and site waits in a pending
 table, and one queued job (never more) applies the whole table before the next step or request. A
 flood of commands therefore costs the stepping thread one table per step, whatever the rate;
@@ -33,7 +33,7 @@ import numpy as np
 
 from redmax_ros.core import CommandError, SceneError, SceneNotFound, Simulator, State, StepBudget, StepError
 
-from .convert import CommandRejected, SceneInfo, joint_command, point_command
+from .convert import CommandRejected, SceneInfo, TrajectoryCommand, joint_command, joint_trajectory, point_command
 from .pacing import Pacer, RateMeter, decimation
 
 # simulation_interfaces/msg/Result codes
@@ -68,6 +68,9 @@ class NullSink:
     def scene_loaded(self, info: SceneInfo): ...
     def state(self, t, q, v, effort, site_forces, diag, step_index): ...
     def markers(self, t, poses, springs): ...
+    def frames(self, t, sim): ...
+    def robot_model(self, sim): ...
+    def status(self, text: str): ...
     def diagnostics(self, values: dict, ok: bool, message: str): ...
     def sim_state(self, state: int): ...
     def prescriptions(self, t, joints: dict, sites: dict): ...
@@ -79,13 +82,17 @@ class NullSink:
 class Engine:
     def __init__(self, sink, scene="hand", overrides=(), *, initial_state=PLAYING, real_time_factor=1.0,
                  publish_rate=0.0, marker_rate=0.0, command_timeout=0.0, diagnostics_period=1.0,
-                 max_steps_per_request=1_000_000, publish_solver_stats=True, scene_dirs=(), step_budget_ms=50.0):
+                 max_steps_per_request=1_000_000, publish_solver_stats=True, scene_dirs=(), step_budget_ms=50.0,
+                 tf_rate=0.0, status_period=0.0, position_gain=5.0):
         self.sink = sink
         self.base_overrides = list(overrides)
         self.scene_dirs = [str(d) for d in scene_dirs]  # load requests: scenes/ and these only (_load_scene)
         self.rtf = float(real_time_factor)
         self.publish_rate = float(publish_rate)
         self.marker_rate = float(marker_rate)
+        self.tf_rate = float(tf_rate)  # body frames (sink.frames: /tf, odom) in Hz of sim time; 0 = off
+        self.status_period = float(status_period)  # wall seconds between free-run status lines; 0 = off
+        self.position_gain = float(position_gain)  # b [1/s] of position targets and trajectories
         self.command_timeout = float(command_timeout)
         self.diagnostics_period = float(diagnostics_period)
         self.max_steps_per_request = int(max_steps_per_request)
@@ -100,6 +107,7 @@ class Engine:
         self._thread = None
         self.pacer = Pacer(self.rtf)
         self.meter = RateMeter()
+        self._status_mark = None  # (wall time, sim time, step index, failures) of the last status line
         self.last_diag = None
         self.failures = 0
         self.command_errors = 0
@@ -181,6 +189,7 @@ class Engine:
 
     def _loop(self):
         next_diag = time.monotonic() + self.diagnostics_period
+        next_status = time.monotonic() + self.status_period
         while True:
             job, step_due = None, False
             with self._cv:
@@ -224,6 +233,9 @@ class Engine:
                         self._safe(self.sink.sim_state, self.state)
                         self._safe(self.sink.warn, f"free-run stopped, simulation paused: {out.message}")
                 now = time.monotonic()
+                if self.status_period > 0 and now >= next_status:
+                    next_status = now + self.status_period
+                    self._status(now)
                 if now >= next_diag:
                     next_diag = now + self.diagnostics_period
                     try:
@@ -260,9 +272,11 @@ class Engine:
         self.cmd_times = {}  # ("joint"|"torque"|"site", name) -> sim time of the command
         self.publish_every = decimation(self.publish_rate, sim.dt)
         self.marker_every = decimation(self.marker_rate, sim.dt) if self.marker_rate > 0 else 0
+        self.tf_every = decimation(self.tf_rate, sim.dt) if self.tf_rate > 0 else 0
         if hasattr(self, "pacer"):
             self.pacer.anchor(sim.time)
         self.sink.scene_loaded(self.info)
+        self.sink.robot_model(sim)
 
     def publish_current(self):
         """Hand the current (not stepped) state to the sink: after start, reset and load."""
@@ -273,6 +287,8 @@ class Engine:
         self._publish_prescriptions()
         if self.marker_every:
             self.sink.markers(s.time, s.body_poses(), s.spring_segments())
+        if self.tf_every:
+            self.sink.frames(s.time, s)
 
     def _publish_prescriptions(self):
         self.sink.prescriptions(self.sim.time, self.sim.prescribed_joints(), self.sim.prescribed_sites())
@@ -330,9 +346,25 @@ class Engine:
                 sink.state(res.t, res.q, res.v, res.effort, res.site_forces, d, k)
             if self.marker_every and k % self.marker_every == 0:
                 sink.markers(res.t, sim.body_poses(), sim.spring_segments())
+            if self.tf_every and (k % self.tf_every == 0 or (lockstep and i == n - 1)):
+                sink.frames(res.t, sim)
             if feedback is not None:
                 feedback(i + 1, n, res.t)
         return Outcome(OK, "", steps=n, t=sim.time)
+
+    def _status(self, now):
+        """One console line while PLAYING (every status_period wall seconds): sim time, real-time
+        factor and steps/s since the previous line, step failures."""
+        mark = (now, self.sim.time, self.step_index, self.failures)
+        last, self._status_mark = self._status_mark, mark
+        if self.state != PLAYING or last is None or now <= last[0]:
+            return
+        dw = now - last[0]
+        rtf = (mark[1] - last[1]) / dw
+        sps = (mark[2] - last[2]) / dw
+        self.sink.status(f"{self.info.name}: t = {mark[1]:.3f} s sim, RTF {rtf:.3g}, {sps:.4g} steps/s, "
+                         f"{self.failures} step failure(s)" + (f", {self.command_errors} command error(s)"
+                                                               if self.command_errors else ""))
 
     def _report(self):
         vals = self.meter.report(self.sim.time)
@@ -357,7 +389,7 @@ class Engine:
         info = self.info
         self.commands_received += 1
         try:
-            velocities, torques = joint_command(msg, info)
+            velocities, torques, positions = joint_command(msg, info)
             for j in velocities:
                 if j not in info.prescribable_joints:
                     raise CommandRejected(f"joint command: joint '{j}' is not prescribable in scene '{info.name}' "
@@ -365,8 +397,22 @@ class Engine:
         except (CommandRejected, CommandError) as e:
             self._reject(str(e))
             return
+        b = self.position_gain  # a position target: the core's trajectory with a constant q_p, held
         self._enqueue([(("joint", j), v) for j, v in velocities.items()]
+                      + [(("joint", j), {"position": [float(x) for x in v], "b": b}) for j, v in positions.items()]
                       + [(("torque", j), v) for j, v in torques.items()])
+
+    def joint_trajectory(self, msg):
+        """trajectory_msgs/JointTrajectory (any thread): validated here (convert.joint_trajectory), then
+        coalesced with the joint commands (the latest prescription per joint wins); resolved against the
+        state when applied (convert.TrajectoryCommand)."""
+        self.commands_received += 1
+        try:
+            cmds = joint_trajectory(msg, self.info, self.position_gain)
+        except (CommandRejected, CommandError) as e:
+            self._reject(str(e))
+            return
+        self._enqueue([(("joint", j), c) for j, c in cmds.items()])
 
     def point_command(self, msg):
         """redmax_msgs/PointVelocityCommand (any thread): validated here, then coalesced."""
@@ -431,8 +477,15 @@ class Engine:
     def set_state(self, target) -> Outcome:
         return self.call(self._set_state, int(target))
 
-    def load(self, scene, overrides=()) -> Outcome:
-        return self.call(self._load_scene, str(scene), list(overrides))
+    def load(self, scene, overrides=(), stop=False) -> Outcome:
+        """Load a scene (by name or path, confined to scenes/ and scene_dirs); ``stop``: leave the
+        simulation STOPPED afterwards (simulation_interfaces LoadWorld)."""
+        return self.call(self._load_scene, str(scene), list(overrides), bool(stop))
+
+    def query(self, fn):
+        """``fn(sim)`` with exclusive use of the Simulator, after everything submitted before
+        (entity states: body poses and twists of one state)."""
+        return self.call(lambda: fn(self.sim))
 
     def release(self, joints=(), sites=()) -> Outcome:
         return self.call(self._release, list(joints), list(sites))
@@ -463,6 +516,18 @@ class Engine:
         velocities = {n: v for (k, n), v in pending.items() if k == "joint"}
         torques = {n: v for (k, n), v in pending.items() if k == "torque"}
         sites = {n: v for (k, n), v in pending.items() if k == "site"}
+        t = self.sim.time
+        ends = {}  # joint -> end time of its trajectory: the command timeout counts from there
+        trajectories = [n for n, v in velocities.items() if isinstance(v, TrajectoryCommand)]
+        if trajectories:
+            pos, vel = self.info.positions(self.sim.state.q), self.sim.joint_velocities()
+            for n in trajectories:
+                off = self.info.joint_offset.get(n)
+                if off is None:  # validated against another scene (a load came in between)
+                    self._reject(f"joint trajectory: unknown joint '{n}' in scene '{self.info.name}'")
+                    return
+                sl = slice(off, off + self.info.joint_nv[n])
+                velocities[n], ends[n] = velocities[n].prescription(t, pos[sl], vel[sl])
         try:
             if velocities:
                 self.sim.prescribe_joints(velocities)
@@ -473,9 +538,8 @@ class Engine:
         except CommandError as e:  # validated against another scene (a load came in between)
             self._reject(str(e))
             return
-        t = self.sim.time
         for key in pending:
-            self.cmd_times[key] = t
+            self.cmd_times[key] = max(t, ends.get(key[1], t)) if key[0] == "joint" else t
         self._publish_prescriptions()
 
     def _step(self, n, feedback, cancelled):
@@ -532,7 +596,7 @@ class Engine:
             self.sink.quit()
         return Outcome(OK, f"{STATE_NAMES[cur]} -> {STATE_NAMES[target]}")
 
-    def _load_scene(self, scene, overrides):
+    def _load_scene(self, scene, overrides, stop=False):
         if not scene:
             return Outcome(NOT_FOUND, "no scene given")
         try:  # confined (docs/node.md, "Security"): the start scene (self._load) is the operator's choice
@@ -547,6 +611,9 @@ class Engine:
         self.meter.reset(sim.time)
         self.last_diag = None
         self.publish_current()
+        if stop and self.state not in (STOPPED, QUITTING):
+            self.state = STOPPED
+            self.sink.sim_state(STOPPED)
         return Outcome(OK, f"loaded '{self.info.name}'")
 
     def _release(self, joints, sites):
@@ -588,6 +655,13 @@ class Engine:
         if "marker_rate" in kw:
             self.marker_rate = float(kw["marker_rate"])
             self.marker_every = decimation(self.marker_rate, self.sim.dt) if self.marker_rate > 0 else 0
+        if "tf_rate" in kw:
+            self.tf_rate = float(kw["tf_rate"])
+            self.tf_every = decimation(self.tf_rate, self.sim.dt) if self.tf_rate > 0 else 0
+        if "status_period" in kw:
+            self.status_period = float(kw["status_period"])
+        if "position_gain" in kw:
+            self.position_gain = float(kw["position_gain"])
         if "command_timeout" in kw:
             self.command_timeout = float(kw["command_timeout"])
         if "max_steps_per_request" in kw:

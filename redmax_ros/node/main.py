@@ -21,6 +21,8 @@ import time
 
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+from geometry_msgs.msg import Point, Pose, Quaternion, Transform, TransformStamped, Twist, Vector3
+from nav_msgs.msg import Odometry
 from rcl_interfaces.msg import (FloatingPointRange, IntegerRange, ParameterDescriptor, ParameterType,
                                 SetParametersResult)
 from rclpy.action import ActionServer, CancelResponse, GoalResponse
@@ -34,6 +36,9 @@ from rclpy.signals import SignalHandlerOptions
 from rclpy.serialization import deserialize_message
 from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import JointState
+from std_msgs.msg import String
+from tf2_msgs.msg import TFMessage
+from trajectory_msgs.msg import JointTrajectory
 from visualization_msgs.msg import MarkerArray
 
 try:  # optional: an rclpy without the EventsExecutor serves everything from the node's executor
@@ -52,10 +57,12 @@ from redmax_ros.logging.mcap_log import McapLogger
 from . import engine as eng
 from . import step_server
 from .command_reader import CommandReader
-from .cdr import JointStateEncoder, SolverStatsEncoder, StepRecords, encode_clock, serialize_message
+from .cdr import JointStateEncoder, SolverStatsEncoder, StepRecords, TFMessageEncoder, encode_clock, serialize_message
 from .convert import StateMessages, description_msg, diagnostics_msg, markers_msg, point_prescriptions_msg
 from .convert import prescriptions_msg, time_msg
+from .robot_model import BodyPoses, BodyTwists, Frames, urdf_text
 from .sender import Sender
+from .sim_interfaces import StandardInterfaces
 
 # ------------------------------------------------------------------------------------------------
 # QoS per topic (documented in docs/node.md)
@@ -81,6 +88,11 @@ def service_qos(depth: int) -> QoSProfile:
 
 QOS_LATCHED = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1, reliability=ReliabilityPolicy.RELIABLE,
                          durability=DurabilityPolicy.TRANSIENT_LOCAL)
+# /tf and /tf_static as tf2_ros' broadcasters offer them (static: transient local, one message holding
+# every static transform, replaced on a scene load)
+QOS_TF = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100, reliability=ReliabilityPolicy.RELIABLE,
+                    durability=DurabilityPolicy.VOLATILE)
+QOS_TF_STATIC = QOS_LATCHED
 
 MODES = ("free_run", "lockstep")
 SOLVERS = ("",) + CORE_SOLVERS
@@ -136,6 +148,14 @@ PARAMETERS = {
                              "0 = every step. The last step of a step request is always published.",
                              0.0, 1.0e6)),
     "marker_rate": (30.0, _d("markers rate in Hz of simulated time; 0 = off.", 0.0, 1000.0)),
+    "tf_rate": (50.0, _d("/tf (every moving body's world pose) and odom (floating or planar bases) rate in Hz of "
+                         "simulated time; 0 = off. The last step of a step request is always published.",
+                         0.0, 1.0e6)),
+    "status_period": (5.0, _d("Wall seconds between one-line console status reports in free-run (sim time, "
+                              "real-time factor, steps/s, step failures); 0 = silent.", 0.0, 3600.0)),
+    "position_gain": (5.0, _d("Gain b [1/s] of the velocity-level position law that holds position targets "
+                              "(joint_commands position) and follows joint_trajectory: each step prescribes "
+                              "qdot = qdot_p + b (q_p - q).", 0.0, 1.0e6)),
     "command_timeout": (0.5, _d("A commanded joint/site prescription or joint torque is released to passive "
                                 "dynamics when no newer command arrives within this many seconds of simulated "
                                 "time (one warning per release); 0 = hold forever.", 0.0, 3600.0)),
@@ -163,7 +183,7 @@ PARAMETERS = {
                                  0.0, 1.0e7, read_only=True)),
 }
 RUNTIME = ("real_time_factor", "publish_rate", "marker_rate", "command_timeout", "diagnostics_period",
-           "max_steps_per_request", "step_budget_ms")
+           "max_steps_per_request", "step_budget_ms", "tf_rate", "status_period", "position_gain")
 
 
 def _check_value(name, v):
@@ -276,11 +296,18 @@ class RedmaxNode(Node):
         self.pub_state = self._pub(SimulationState, "simulation_state", QOS_LATCHED)
         self.pub_pj = self._pub(JointState, "prescribed_joints", QOS_LATCHED)
         self.pub_pp = self._pub(PointVelocityCommand, "prescribed_points", QOS_LATCHED)
+        self.pub_tf = self._pub(TFMessage, "/tf", QOS_TF)
+        self.pub_tf_static = self._pub(TFMessage, "/tf_static", QOS_TF_STATIC)
+        self.pub_description = self._pub(String, "robot_description", QOS_LATCHED)
+        self.pub_odom = self._pub(Odometry, "odom", QOS_STATE)
+        self._model = None  # (Frames, BodyTwists, URDF text, BodyPoses, TFMessageEncoder) of the scene (robot_model)
+        self._model_published = False
 
         # --- inputs (raw: the same bytes are logged and decoded once); subscribed at the end of
         # __init__, when the simulation exists (see _start_inputs)
         self._inputs = {"joint_commands": (JointState, self._on_joint_command),
-                        "point_commands": (PointVelocityCommand, self._on_point_command)}
+                        "point_commands": (PointVelocityCommand, self._on_point_command),
+                        "joint_trajectory": (JointTrajectory, self._on_joint_trajectory)}
         self._subs = {self.resolve_topic_name(short): (cls, QOS_COMMAND, None)
                       for short, (cls, _) in self._inputs.items()}
         self._topic_by_short = {short: self.resolve_topic_name(short) for short in self._inputs}
@@ -305,7 +332,8 @@ class RedmaxNode(Node):
             real_time_factor=p["real_time_factor"], publish_rate=p["publish_rate"],
             marker_rate=p["marker_rate"], command_timeout=p["command_timeout"],
             diagnostics_period=p["diagnostics_period"], max_steps_per_request=p["max_steps_per_request"],
-            scene_dirs=list(p["scene_dirs"] or []), step_budget_ms=p["step_budget_ms"])
+            scene_dirs=list(p["scene_dirs"] or []), step_budget_ms=p["step_budget_ms"],
+            tf_rate=p["tf_rate"], status_period=p["status_period"], position_gain=p["position_gain"])
 
         # --- logging
         if p["log_path"]:
@@ -330,6 +358,8 @@ class RedmaxNode(Node):
                                     cancel_callback=lambda gh: CancelResponse.ACCEPT, callback_group=g,
                                     goal_service_qos_profile=sq, result_service_qos_profile=sq,
                                     cancel_service_qos_profile=sq, feedback_pub_qos_profile=sq)
+        # simulation_interfaces (the standard, sim_interfaces.py) under ~/: /<ns>/<name>/step_simulation, ...
+        self._standard = StandardInterfaces(self, g, sq)
         self.add_post_set_parameters_callback(self._apply_parameters)
 
         self.engine.start()
@@ -357,7 +387,7 @@ class RedmaxNode(Node):
         """Command subscriptions and step_simulation: the latency-critical inputs.
 
         By default each group is served by a helper node spun by rclpy's C++ EventsExecutor in a
-        thread of its own: ``<name>_commands`` (joint_commands, point_commands) and ``<name>_step``
+        thread of its own: ``<name>_commands`` (joint_commands, joint_trajectory, point_commands) and ``<name>_step``
         (step_simulation). rclpy's Python executors rebuild their wait set over all of this node's
         entities for every callback; measured here (load ~1), a step request waited 1.1-1.5 ms
         between the client's call and our callback under the MultiThreadedExecutor and 0.25-0.3 ms
@@ -439,7 +469,25 @@ class RedmaxNode(Node):
 
     def _initial_publish(self):
         self.sim_state(self.engine.state)
+        self._model_published = True
+        self._publish_model()
         self.engine.publish_current()
+
+    def run_request(self, fn, inline=False):
+        """Run a request for another module (sim_interfaces.py) as the node's own services do:
+        exceptions become OPERATION_FAILED, what it published is out before it returns; ``inline``:
+        publish in this thread (a caller that waits for the states anyway, as step requests)."""
+        if inline:
+            with self._sender.inline():
+                return self._guard(fn)
+        return self._guard(fn)
+
+    def scene_changed(self, out):
+        """Log the outcome of a scene load (load_scene, load_world)."""
+        if out.ok:
+            self.get_logger().info(f"loaded scene '{self.engine.info.name}'")
+        else:
+            self.get_logger().error(f"scene load: {out.message}")
 
     # ------------------------------------------------------------------ parameters
     def _validate_parameters(self, params) -> SetParametersResult:
@@ -524,6 +572,62 @@ class RedmaxNode(Node):
             return None
         return StepRecords(lg, *topics, self.stats_enc)
 
+    def robot_model(self, sim):
+        """A scene was adopted: its frames, twist evaluator and URDF (robot_model.py); published on
+        robot_description and /tf_static (both transient local) once the node has started."""
+        try:
+            frames = Frames(sim, self.frame_id)
+            self._model = (frames, BodyTwists(sim.mech), urdf_text(sim, self.frame_id),
+                           BodyPoses(sim.mech, frames.moving), TFMessageEncoder(frames.world, frames.moving))
+        except Exception as e:  # a model the URDF writer does not understand: no robot model, the rest runs
+            self._model = None
+            self.get_logger().error(f"robot model of scene '{sim.scene_name}' not built: {type(e).__name__}: {e}")
+        if self._model_published:
+            self._publish_model()
+
+    def _publish_model(self):
+        if self._model is None:
+            return
+        frames, _, urdf, _, _ = self._model
+        self._send(self.pub_description, String(data=urdf))
+        tf = TFMessage()
+        stamp = time_msg(0.0)
+        for parent, child, p, q in frames.static:
+            tf.transforms.append(_transform(stamp, parent, child, p, q))
+        self._send(self.pub_tf_static, tf)
+
+    def frames(self, t, sim):
+        """/tf: every moving body's world pose (robot_model.BodyPoses: Pinocchio forward kinematics,
+        the core's body poses to rounding), encoded by cdr.TFMessageEncoder; odom for each floating or
+        planar base: pose in the world frame, twist in the body frame. Built only when subscribed or
+        logged."""
+        if self._model is None:
+            return
+        frames, twists, _, body_poses, tf_enc = self._model
+        names = self._topic_names
+        lg = self.logger_mcap
+        if self.pub_tf.handle.get_subscription_count() or (lg is not None and lg.logs(names[self.pub_tf])):
+            P, Q = body_poses(sim.state.q)
+            self._send_bytes(self.pub_tf, tf_enc.encode(t, P, Q))
+        if frames.floating and (self.pub_odom.handle.get_subscription_count()
+                                or (lg is not None and lg.logs(names[self.pub_odom]))):
+            poses = sim.body_poses()
+            tw = twists(sim.state.q, sim.joint_velocities(), frames.floating)
+            stamp = time_msg(t)
+            for b in frames.floating:
+                p, q = poses[b]
+                m = Odometry(child_frame_id=b)
+                m.header.stamp, m.header.frame_id = stamp, frames.world
+                m.pose.pose = Pose(position=Point(x=float(p[0]), y=float(p[1]), z=float(p[2])),
+                                   orientation=Quaternion(x=float(q[0]), y=float(q[1]), z=float(q[2]), w=float(q[3])))
+                lin, ang = tw[b][2], tw[b][3]
+                m.twist.twist = Twist(linear=Vector3(x=float(lin[0]), y=float(lin[1]), z=float(lin[2])),
+                                      angular=Vector3(x=float(ang[0]), y=float(ang[1]), z=float(ang[2])))
+                self._send(self.pub_odom, m)
+
+    def status(self, text):
+        self.get_logger().info(text)
+
     def markers(self, t, poses, springs):
         self._send(self.pub_markers, markers_msg(t, poses, springs, self.frame_id))
 
@@ -568,6 +672,10 @@ class RedmaxNode(Node):
     def _on_joint_command(self, data):
         self._log_in(self._topic_of("joint_commands"), data)
         self.engine.joint_command(deserialize_message(data, JointState))
+
+    def _on_joint_trajectory(self, data):
+        self._log_in(self._topic_of("joint_trajectory"), data)
+        self.engine.joint_trajectory(deserialize_message(data, JointTrajectory))
 
     def _on_point_command(self, data):
         self._log_in(self._topic_of("point_commands"), data)
@@ -691,6 +799,14 @@ class RedmaxNode(Node):
             self.logger_mcap.close()
             if self.logger_mcap.error is not None:
                 self.get_logger().error(f"MCAP logging failed: {self.logger_mcap.error}")
+
+
+def _transform(stamp, parent, child, p, q) -> TransformStamped:
+    m = TransformStamped(child_frame_id=child)
+    m.header.stamp, m.header.frame_id = stamp, parent
+    m.transform = Transform(translation=Vector3(x=float(p[0]), y=float(p[1]), z=float(p[2])),
+                            rotation=Quaternion(x=float(q[0]), y=float(q[1]), z=float(q[2]), w=float(q[3])))
+    return m
 
 
 def main(argv=None):

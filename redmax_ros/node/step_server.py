@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import ctypes
 import threading
+import time
 
 from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy  # loads librcl (for load_library)
 
@@ -31,7 +32,13 @@ from redmax_msgs.srv import StepSimulation
 from .sender import load_library
 
 RCL_RET_OK = 0
+RCL_RET_TIMEOUT = 2
 RCL_RET_SERVICE_TAKE_FAILED = 601
+# rmw_fastrtps returns RMW_RET_TIMEOUT ("client will not receive response") when the response writer has
+# not matched the client's response reader within its max_blocking_time: a client created just before its
+# call, discovery slowed by load (22 of 64 fresh clients in one CI run at load ~4). The send is retried
+# (each attempt blocks up to max_blocking_time) until this many seconds have passed.
+RESPONSE_RETRY_S = 5.0
 
 
 class _RequestId(ctypes.Structure):  # rmw_request_id_t
@@ -67,12 +74,14 @@ def _rcl():
         rcl = load_library("librcl.so")
         fns = None
         if rcl is not None:
+            rcutils = load_library("librcutils.so")
             try:
                 take, send = rcl.rcl_take_request, rcl.rcl_send_response
                 take.argtypes = [ctypes.c_void_p, ctypes.POINTER(_RequestId), ctypes.c_void_p]
                 send.argtypes = [ctypes.c_void_p, ctypes.POINTER(_RequestId), ctypes.c_void_p]
                 take.restype = send.restype = ctypes.c_int
-                fns = (take, send)
+                reset = rcutils.rcutils_reset_error if rcutils is not None else (lambda: None)
+                fns = (take, send, reset)
             except AttributeError:
                 fns = None
         _RCL = fns or False
@@ -96,7 +105,7 @@ class StepServer:
         fns = _rcl()
         if fns is None:
             raise RuntimeError("librcl not found through ctypes")
-        self._take, self._send = fns
+        self._take, self._send, self._reset_error = fns
         self.node = node
         self.handler = handler
         self.on_error = on_error
@@ -109,6 +118,7 @@ class StepServer:
         self._ws = _rclpy.WaitSet(0, 1, 0, 0, 1, 0, self._context.handle)
         self._stop = False
         self.served = 0
+        self.retried_sends = 0  # sends repeated after a middleware timeout (client not matched yet)
         self._thread = threading.Thread(target=self._run, name="redmax-step", daemon=True)
 
     @property
@@ -163,9 +173,20 @@ class StepServer:
                     resp.completed_steps = done
                     resp.sim_time.sec, resp.sim_time.nanosec = split_time(t)
                     self.served += 1  # before the send: a client holding the response sees it counted
-                    ret = send(ptr, hp, sp)
+                    ret = self._send_retrying(ptr, hp, sp)
                     if ret != RCL_RET_OK and not self._stop and self._context.ok():
                         self._error(f"step_simulation: rcl_send_response failed (rcl code {ret})")
+
+    def _send_retrying(self, ptr, hp, sp) -> int:
+        """rcl_send_response, retried while it times out on a client the middleware has not matched yet
+        (RESPONSE_RETRY_S in all); the last rcl return code."""
+        end = time.monotonic() + RESPONSE_RETRY_S
+        while True:
+            ret = self._send(ptr, hp, sp)
+            if ret != RCL_RET_TIMEOUT or self._stop or not self._context.ok() or time.monotonic() > end:
+                return ret
+            self.retried_sends += 1
+            self._reset_error()
 
     def close(self, timeout=5.0):
         self._stop = True

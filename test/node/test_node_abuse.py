@@ -52,7 +52,11 @@ def test_64_concurrent_step_requests_are_all_answered_in_order(node, client):
     client.reset()
     eng = node.engine
     k0 = eng.step_index
-    clients = [client.node.create_client(StepSimulation, f"{NS}/step_simulation") for _ in range(64)]
+    # each client's response reader receives every client's responses (Fast DDS filters by request id
+    # after the reader queue): with rclpy's default depth 10 a slow executor loses its own response among
+    # the other 63 (seen in CI at load ~4: 22 of 64). docs/node.md: depth >= the number of concurrent clients.
+    qos = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
+    clients = [client.node.create_client(StepSimulation, f"{NS}/step_simulation", qos_profile=qos) for _ in range(64)]
     try:
         for c in clients:
             assert c.wait_for_service(timeout_sec=10)

@@ -1,16 +1,20 @@
 """The node in-process, free-run (PLAYING): commands reach the running simulation, published
 joint velocities match, the timeout releases with one warning, pausing and playing work."""
 import os
+import time
 
 import pytest
 
 from node_fixtures import Client, run_node_in_thread  # noqa: F401  (first: skips without ROS)
 
+from rcl_interfaces.srv import SetParameters  # noqa: E402
+from rclpy.parameter import Parameter  # noqa: E402
+
 from redmax_msgs.msg import Result, SimulationState  # noqa: E402
 
 NS = f"/freerun{os.getpid()}"
 PARAMS = {"scene": "hand", "mode": "free_run", "real_time_factor": 2.0, "command_timeout": 0.3,
-          "marker_rate": 20.0}
+          "marker_rate": 20.0, "status_period": 0.4}
 
 
 @pytest.fixture(scope="module")
@@ -76,3 +80,28 @@ def test_pause_and_play(client):
     c.wait_for(lambda: len(c.joint_states) >= n + 3, what="stepped states")
     assert c.set_state(SimulationState.PLAYING).result.result == Result.OK
     c.wait_for(lambda: len(c.joint_states) > n + 50, what="playing again")
+
+
+def test_console_status_line_and_silencing_it(client):
+    """In free-run a one-line status every status_period wall seconds (sim time, RTF, steps/s,
+    failures) on the console (rosout); status_period 0 silences it."""
+    c = client
+    assert c.call("get_state").state.state == SimulationState.PLAYING
+
+    def lines():
+        with c.lock:
+            return [r.msg for r in c.rosout if "steps/s" in r.msg and "RTF" in r.msg]
+    c.wait_for(lambda: len(lines()) >= 2, what="two status lines")
+    line = lines()[-1]
+    assert line.startswith("hand: t = ") and "step failure(s)" in line
+    rtf = float(line.split("RTF ")[1].split(",")[0])
+    assert 0.5 < rtf < 2.5  # paced at real_time_factor 2
+    cli = c.node.create_client(SetParameters, f"{NS}/redmax/set_parameters")
+    assert cli.wait_for_service(timeout_sec=10)
+    fut = cli.call_async(SetParameters.Request(parameters=[Parameter("status_period", value=0.0).to_parameter_msg()]))
+    c.wait_for(fut.done, what="set_parameters")
+    assert fut.result().results[0].successful
+    time.sleep(0.3)  # a line already on its way
+    n = len(lines())
+    time.sleep(1.5)
+    assert len(lines()) == n
