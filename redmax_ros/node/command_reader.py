@@ -1,4 +1,5 @@
-"""The command subscriptions (joint_commands, joint_trajectory, point_commands) read by one thread, in bursts.
+"""The command subscriptions (joint_commands, joint_trajectory, point_commands, body_commands) read by one
+thread, in bursts.
 
 rclpy's executors call Python once per message; under a flood (10 kHz of joint_commands) that thread
 took the GIL ~7000 times a second for ~75 us each and the free-run simulation thread, which shares the

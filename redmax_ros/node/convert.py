@@ -11,7 +11,7 @@ import math
 import numpy as np
 from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
-from geometry_msgs.msg import Point, Pose, Quaternion, Vector3
+from geometry_msgs.msg import Point, Pose, Quaternion, Twist, Vector3, Wrench
 from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import JointState
 from std_msgs.msg import ColorRGBA, Header
@@ -19,11 +19,13 @@ from trajectory_msgs.msg import JointTrajectory
 from visualization_msgs.msg import Marker, MarkerArray
 
 from redmax_msgs.msg import Coupling as CouplingMsg
-from redmax_msgs.msg import PointForces, PointVelocityCommand, SceneDescription, SolverStats
+from redmax_msgs.msg import (BodyTwistCommand, BodyTwists, BodyWrenches, PointForces, PointVelocityCommand,
+                             SceneDescription, SolverStats)
 
 from redmax_ros.core import DofPositions
 
 WORLD_FRAMES = ("", "world")
+BODY_FRAME = "body"  # BodyTwistCommand header.frame_id: each body's own frame
 
 
 class CommandRejected(ValueError):
@@ -246,6 +248,50 @@ def point_command(msg: PointVelocityCommand, desc) -> dict:
     return out
 
 
+def body_command(msg: BodyTwistCommand, desc) -> dict:
+    """redmax_msgs/BodyTwistCommand -> body -> the core's body-twist prescription
+    ``{"angular": [wx, wy, wz], "linear": [vx, vy, vz], "frame": "body" | "world"}`` (angular [rad/s],
+    linear [m/s] = velocity of the body origin; None = a free component, NaN in the message).
+    header.frame_id "" or "world": world-aligned axes at each body's origin; "body": each body's own
+    frame. A body with all six components NaN, or any infinite component, is rejected. Whether the
+    scene steps on the Pinocchio pipeline is the core's check (Simulator.prescribe_bodies)."""
+    fid = msg.header.frame_id
+    if fid in WORLD_FRAMES:
+        frame = "world"
+    elif fid == BODY_FRAME:
+        frame = BODY_FRAME
+    else:
+        raise CommandRejected(f"body command: frame '{fid}' is not supported (use 'world' or empty for "
+                              "world-aligned axes at the body origin, 'body' for the body's own frame)")
+    bodies = list(msg.bodies)
+    if not bodies:
+        raise CommandRejected("body command: no body names given")
+    _check_names(bodies, "body command")
+    if len(msg.twists) != len(bodies):
+        raise CommandRejected(f"body command: {len(bodies)} body(ies) but {len(msg.twists)} twist(s)")
+    out = {}
+    for b, tw in zip(bodies, msg.twists):
+        if b not in desc.bodies:
+            raise CommandRejected(f"body command: unknown body '{b}' in scene '{desc.name}' "
+                                  f"(known: {', '.join(desc.bodies)})")
+        presc = {"frame": frame}
+        given = 0
+        for key, vec in (("angular", tw.angular), ("linear", tw.linear)):
+            vals = [vec.x, vec.y, vec.z]
+            for c, x in zip("xyz", vals):
+                if math.isinf(x):
+                    raise CommandRejected(f"body command: non-finite {key}.{c} = {x} for body '{b}' "
+                                          "(NaN marks a free component)")
+            comps = [None if math.isnan(x) else float(x) for x in vals]
+            given += sum(x is not None for x in comps)
+            presc[key] = comps
+        if not given:
+            raise CommandRejected(f"body command: all six twist components of body '{b}' are NaN (free); "
+                                  "prescribe at least one (release_commands releases a body)")
+        out[b] = presc
+    return out
+
+
 # ------------------------------------------------------------------------------------------------
 # description
 
@@ -260,6 +306,7 @@ class SceneInfo:
         self.velocity_names = list(d.velocity_names)
         self.position_names = list(d.position_names)
         self.sites = list(d.sites)
+        self.bodies = list(d.bodies)
         self.prescribable_joints = list(d.prescribable_joints)
         self.prescribable_sites = list(d.prescribable_sites)
         self.joint_names = list(d.joint_names)
@@ -312,6 +359,8 @@ class StateMessages:
         self.js.name = list(info.velocity_names)
         self.pf = PointForces(check_fields=False)
         self.pf.header.frame_id = frame_id
+        self.bw = BodyWrenches(check_fields=False)
+        self.bw.header.frame_id = frame_id
         self.clock = Clock(check_fields=False)
         self.stats = SolverStats(check_fields=False)
 
@@ -328,6 +377,17 @@ class StateMessages:
         m.header.stamp = time_msg(t)
         m.sites = list(site_forces)
         m.forces = [Vector3(x=float(f[0]), y=float(f[1]), z=float(f[2])) for f in site_forces.values()]
+        return m
+
+    def body_wrenches(self, t, wrenches: dict) -> BodyWrenches:
+        """body -> (frame 'body' | 'world', the core's required wrench (6,) [torque N m; force N])."""
+        m = self.bw
+        m.header.stamp = time_msg(t)
+        m.bodies = list(wrenches)
+        m.frames = [f for f, _ in wrenches.values()]
+        m.wrenches = [Wrench(force=Vector3(x=float(w[3]), y=float(w[4]), z=float(w[5])),
+                             torque=Vector3(x=float(w[0]), y=float(w[1]), z=float(w[2])))
+                      for _, w in wrenches.values()]
         return m
 
     def clock_msg(self, t) -> Clock:
@@ -378,6 +438,27 @@ def point_prescriptions_msg(t, sites: dict, frame_id="world") -> PointVelocityCo
     m.header.frame_id = frame_id
     m.sites = list(sites)
     m.velocities = [Vector3(x=float(v[0]), y=float(v[1]), z=float(v[2])) for v in sites.values()]
+    return m
+
+
+_TWIST_COMPONENTS = ("wx", "wy", "wz", "vx", "vy", "vz")  # Simulator.prescribed_bodies' component names
+
+
+def body_prescriptions_msg(t, bodies: dict, frame_id="world") -> BodyTwists:
+    """Simulator.prescribed_bodies() (body -> {components, values, frame}) as redmax_msgs/BodyTwists:
+    per body its frame and the twist with NaN for the components not prescribed."""
+    m = BodyTwists()
+    m.header.stamp = time_msg(t)
+    m.header.frame_id = frame_id
+    m.bodies = list(bodies)
+    m.frames = [str(p["frame"]) for p in bodies.values()]
+    twists = []
+    for p in bodies.values():
+        v = [math.nan] * 6
+        for c, x in zip(p["components"], p["values"]):
+            v[_TWIST_COMPONENTS.index(c)] = float(x)
+        twists.append(Twist(angular=Vector3(x=v[0], y=v[1], z=v[2]), linear=Vector3(x=v[3], y=v[4], z=v[5])))
+    m.twists = twists
     return m
 
 

@@ -10,10 +10,10 @@ were handed in (a FIFO job queue), so
 Jobs that arrive while a multi-step request runs wait until it finishes (they are applied at a
 deterministic step).
 
-Commands (joint_commands, joint_trajectory, point_commands) are validated in the thread that receives them, against
-the scene description, and coalesced: the latest value per joint, torque and site waits in a pending
-table, and one queued job (never more) applies the whole table before the next step or request. A
-flood of commands therefore costs the stepping thread one table per step, whatever the rate;
+Commands (joint_commands, joint_trajectory, point_commands, body_commands) are validated in the thread that
+receives them, against the scene description, and coalesced: the latest value per joint, torque, site and
+body waits in a pending table, and one queued job (never more) applies the whole table before the next step
+or request. A flood of commands therefore costs the stepping thread one table per step, whatever the rate;
 invalid ones never reach it. The counts are in /diagnostics (commands_received, commands_coalesced,
 command_errors). The node (``main.py``) translates ROS messages into calls on this class and
 implements the ``sink`` that publishes and logs what the engine produces.
@@ -33,7 +33,8 @@ import numpy as np
 
 from redmax_ros.core import CommandError, SceneError, SceneNotFound, Simulator, State, StepBudget, StepError
 
-from .convert import CommandRejected, SceneInfo, TrajectoryCommand, joint_command, joint_trajectory, point_command
+from .convert import (CommandRejected, SceneInfo, TrajectoryCommand, body_command, joint_command, joint_trajectory,
+                      point_command)
 from .pacing import Pacer, RateMeter, decimation
 
 # simulation_interfaces/msg/Result codes
@@ -66,14 +67,14 @@ class NullSink:
     """What the engine reports to; the node overrides every method."""
 
     def scene_loaded(self, info: SceneInfo): ...
-    def state(self, t, q, v, effort, site_forces, diag, step_index): ...
+    def state(self, t, q, v, effort, site_forces, diag, step_index, body_wrenches): ...
     def markers(self, t, poses, springs): ...
     def frames(self, t, sim): ...
     def robot_model(self, sim): ...
     def status(self, text: str): ...
     def diagnostics(self, values: dict, ok: bool, message: str): ...
     def sim_state(self, state: int): ...
-    def prescriptions(self, t, joints: dict, sites: dict): ...
+    def prescriptions(self, t, joints: dict, sites: dict, bodies: dict): ...
     def command_error(self, text: str): ...
     def warn(self, text: str): ...
     def quit(self): ...
@@ -114,7 +115,7 @@ class Engine:
         self.commands_received = 0
         self.commands_coalesced = 0
         self._pending_lock = threading.Lock()
-        self._batch = None  # the open batch of pending commands: ("joint" | "torque" | "site", name) -> value
+        self._batch = None  # the open batch of pending commands: ("joint" | "torque" | "site" | "body", name) -> value
         self._batch_job = False  # a queued job will apply the open batch
         self._adopt(self.sim)
 
@@ -269,7 +270,7 @@ class Engine:
         sim.budget = self.step_budget
         self.info = SceneInfo(sim.describe(), getattr(getattr(sim, "spec", None), "solver", ""))
         self.step_index = 0
-        self.cmd_times = {}  # ("joint"|"torque"|"site", name) -> sim time of the command
+        self.cmd_times = {}  # ("joint"|"torque"|"site"|"body", name) -> sim time of the command
         self.publish_every = decimation(self.publish_rate, sim.dt)
         self.marker_every = decimation(self.marker_rate, sim.dt) if self.marker_rate > 0 else 0
         self.tf_every = decimation(self.tf_rate, sim.dt) if self.tf_rate > 0 else 0
@@ -283,7 +284,7 @@ class Engine:
         s = self.sim
         tau = getattr(getattr(s, "commands", None), "joint_torques", None)
         effort = np.zeros(self.info.d.nv) if tau is None else np.asarray(tau, float)
-        self.sink.state(s.time, s.joint_positions(), s.joint_velocities(), effort, {}, None, self.step_index)
+        self.sink.state(s.time, s.joint_positions(), s.joint_velocities(), effort, {}, None, self.step_index, {})
         self._publish_prescriptions()
         if self.marker_every:
             self.sink.markers(s.time, s.body_poses(), s.spring_segments())
@@ -291,13 +292,15 @@ class Engine:
             self.sink.frames(s.time, s)
 
     def _publish_prescriptions(self):
-        self.sink.prescriptions(self.sim.time, self.sim.prescribed_joints(), self.sim.prescribed_sites())
+        self.sink.prescriptions(self.sim.time, self.sim.prescribed_joints(), self.sim.prescribed_sites(),
+                                self.sim.prescribed_bodies())
 
     # ------------------------------------------------------------------ stepping
     def _expire_commands(self):
-        """Commands older than command_timeout (sim time) end: a commanded joint or site the scene
-        prescribes itself (the walker's crank, the hand's held elbow) goes back to the scene's
-        prescription, any other one to passive dynamics; a commanded torque goes back to zero."""
+        """Commands older than command_timeout (sim time) end: a commanded joint, site or body the
+        scene prescribes itself (the walker's crank, the hand's held elbow, catalogue/body_twist's
+        lower rod) goes back to the scene's prescription, any other one to passive dynamics; a
+        commanded torque goes back to zero."""
         if self.command_timeout <= 0 or not self.cmd_times:
             return
         t = self.sim.time
@@ -314,6 +317,9 @@ class Engine:
             elif kind == "site":
                 self.sim.restore_prescriptions(sites=[name])
                 (restored if name in spec.prescribed_sites else released).append(f"site '{name}'")
+            elif kind == "body":
+                self.sim.restore_prescriptions(bodies=[name])
+                (restored if name in spec.prescribed_bodies else released).append(f"body '{name}'")
             else:
                 self.sim.set_joint_torques({name: np.zeros(self.info.joint_nv[name])})
                 released.append(f"torque '{name}'")
@@ -343,7 +349,7 @@ class Engine:
             self.meter.add(d.iterations, d.wall_time)
             self.last_diag = d
             if k % self.publish_every == 0 or (lockstep and i == n - 1):
-                sink.state(res.t, res.q, res.v, res.effort, res.site_forces, d, k)
+                sink.state(res.t, res.q, res.v, res.effort, res.site_forces, d, k, self._body_wrenches(res))
             if self.marker_every and k % self.marker_every == 0:
                 sink.markers(res.t, sim.body_poses(), sim.spring_segments())
             if self.tf_every and (k % self.tf_every == 0 or (lockstep and i == n - 1)):
@@ -351,6 +357,15 @@ class Engine:
             if feedback is not None:
                 feedback(i + 1, n, res.t)
         return Outcome(OK, "", steps=n, t=sim.time)
+
+    def _body_wrenches(self, res) -> dict:
+        """body -> (frame, required wrench (6,) [torque N m; force N]) of a StepResult; {} when no body
+        is prescribed."""
+        w = res.body_wrenches
+        if not w:
+            return {}
+        frames = self.sim.prescribed_bodies()
+        return {n: (frames[n]["frame"], f) for n, f in w.items()}
 
     def _status(self, now):
         """One console line while PLAYING (every status_period wall seconds): sim time, real-time
@@ -424,6 +439,18 @@ class Engine:
             return
         self._enqueue([(("site", s), v) for s, v in sites.items()])
 
+    def body_command(self, msg):
+        """redmax_msgs/BodyTwistCommand (any thread): validated here (convert.body_command), then coalesced
+        (the latest prescription per body wins). The core checks the step pipeline when the batch is
+        applied (a data-free path rejects it with the core's message)."""
+        self.commands_received += 1
+        try:
+            bodies = body_command(msg, self.info)
+        except (CommandRejected, CommandError) as e:
+            self._reject(str(e))
+            return
+        self._enqueue([(("body", b), v) for b, v in bodies.items()])
+
     def _enqueue(self, items):
         """Add validated commands to the open batch (the latest value per key wins). While PLAYING the
         simulation thread applies the batch before its next step (no job, no thread hop: a flood costs
@@ -487,8 +514,9 @@ class Engine:
         (entity states: body poses and twists of one state)."""
         return self.call(lambda: fn(self.sim))
 
-    def release(self, joints=(), sites=()) -> Outcome:
-        return self.call(self._release, list(joints), list(sites))
+    def release(self, joints=(), sites=(), bodies=()) -> Outcome:
+        """Release named joints (prescription and torque), sites and bodies; all empty: everything prescribed."""
+        return self.call(self._release, list(joints), list(sites), list(bodies))
 
     def configure(self, **kw) -> Outcome:
         return self.call(self._configure, kw)
@@ -504,8 +532,9 @@ class Engine:
         self.sink.command_error(text)
 
     def _apply_batch(self, batch):
-        """Apply a batch of commands (latest per joint, torque, site) at once: one prescription update
-        and one prescribed_* publication, whatever number of messages it came in."""
+        """Apply a batch of commands (latest per joint, torque, site, body) at once: one prescription update
+        and one prescribed_* publication, whatever number of messages it came in. Body twists the core
+        refuses (the data-free step path) are rejected with its message; the rest of the batch applies."""
         with self._pending_lock:
             if self._batch is batch:
                 self._batch = None
@@ -516,6 +545,7 @@ class Engine:
         velocities = {n: v for (k, n), v in pending.items() if k == "joint"}
         torques = {n: v for (k, n), v in pending.items() if k == "torque"}
         sites = {n: v for (k, n), v in pending.items() if k == "site"}
+        bodies = {n: v for (k, n), v in pending.items() if k == "body"}
         t = self.sim.time
         ends = {}  # joint -> end time of its trajectory: the command timeout counts from there
         trajectories = [n for n, v in velocities.items() if isinstance(v, TrajectoryCommand)]
@@ -538,6 +568,14 @@ class Engine:
         except CommandError as e:  # validated against another scene (a load came in between)
             self._reject(str(e))
             return
+        if bodies:
+            try:
+                self.sim.prescribe_bodies(bodies)  # all or nothing
+            except CommandError as e:  # the data-free path, or validated against another scene
+                self._reject(str(e))
+                pending = {k: v for k, v in pending.items() if k[0] != "body"}
+                if not pending:
+                    return
         for key in pending:
             self.cmd_times[key] = max(t, ends.get(key[1], t)) if key[0] == "joint" else t
         self._publish_prescriptions()
@@ -616,11 +654,12 @@ class Engine:
             self.sink.sim_state(STOPPED)
         return Outcome(OK, f"loaded '{self.info.name}'")
 
-    def _release(self, joints, sites):
+    def _release(self, joints, sites, bodies=()):
         sim = self.sim
-        if not joints and not sites:
+        if not joints and not sites and not bodies:
             joints = list(sim.prescribed_joints()) + [n for k, n in self.cmd_times if k == "torque"]
             sites = list(sim.prescribed_sites())
+            bodies = list(sim.prescribed_bodies())
         names = []
         for j in joints:
             if j in self.info.joint_nv:
@@ -632,16 +671,22 @@ class Engine:
         for s in sites:
             if s not in self.info.sites:
                 return Outcome(NOT_FOUND, f"unknown site '{s}' (known: {', '.join(self.info.sites)})")
+        for b in bodies:
+            if b not in self.info.bodies:
+                return Outcome(NOT_FOUND, f"unknown body '{b}' (known: {', '.join(self.info.bodies)})")
         names = list(dict.fromkeys(names))
         sim.release_joints(names)
         if names:
             sim.set_joint_torques({j: np.zeros(self.info.joint_nv[j]) for j in names})
         sim.release_sites(sites)
+        sim.release_bodies(bodies)
         for j in names:
             self.cmd_times.pop(("joint", j), None)
             self.cmd_times.pop(("torque", j), None)
         for s in sites:
             self.cmd_times.pop(("site", s), None)
+        for b in bodies:
+            self.cmd_times.pop(("body", b), None)
         self._publish_prescriptions()
         return Outcome(OK, "")
 

@@ -47,7 +47,9 @@ except ImportError:
     EventsExecutor = None
 
 from redmax_msgs.action import SimulateSteps
-from redmax_msgs.msg import PointForces, PointVelocityCommand, Result, SimulationState, SolverStats
+from redmax_msgs.msg import BodyTwists as BodyTwistsMsg  # robot_model.BodyTwists is the twist evaluator
+from redmax_msgs.msg import (BodyTwistCommand, BodyWrenches, PointForces, PointVelocityCommand, Result,
+                             SimulationState, SolverStats)
 from redmax_msgs.srv import (DescribeScene, GetSimulationState, LoadScene, ReleaseCommands, ResetSimulation,
                              SetSimulationState, StepSimulation)
 
@@ -58,7 +60,8 @@ from . import engine as eng
 from . import step_server
 from .command_reader import CommandReader
 from .cdr import JointStateEncoder, SolverStatsEncoder, StepRecords, TFMessageEncoder, encode_clock, serialize_message
-from .convert import StateMessages, description_msg, diagnostics_msg, markers_msg, point_prescriptions_msg
+from .convert import (StateMessages, body_prescriptions_msg, description_msg, diagnostics_msg, markers_msg,
+                      point_prescriptions_msg)
 from .convert import prescriptions_msg, time_msg
 from .robot_model import BodyPoses, BodyTwists, Frames, urdf_text
 from .sender import Sender
@@ -144,7 +147,8 @@ PARAMETERS = {
                             "set_simulation_state.", read_only=True, constraints="free_run or lockstep")),
     "real_time_factor": (1.0, _d("Free-run pacing: simulated seconds per wall second; 0 = as fast as possible.",
                                  0.0, 1000.0)),
-    "publish_rate": (0.0, _d("joint_states / clock / point_forces / solver_stats rate in Hz of simulated time; "
+    "publish_rate": (0.0, _d("joint_states / clock / point_forces / body_wrenches / solver_stats rate in Hz of "
+                             "simulated time; "
                              "0 = every step. The last step of a step request is always published.",
                              0.0, 1.0e6)),
     "marker_rate": (30.0, _d("markers rate in Hz of simulated time; 0 = off.", 0.0, 1000.0)),
@@ -156,7 +160,7 @@ PARAMETERS = {
     "position_gain": (5.0, _d("Gain b [1/s] of the velocity-level position law that holds position targets "
                               "(joint_commands position) and follows joint_trajectory: each step prescribes "
                               "qdot = qdot_p + b (q_p - q).", 0.0, 1.0e6)),
-    "command_timeout": (0.5, _d("A commanded joint/site prescription or joint torque is released to passive "
+    "command_timeout": (0.5, _d("A commanded joint/site/body prescription or joint torque is released to passive "
                                 "dynamics when no newer command arrives within this many seconds of simulated "
                                 "time (one warning per release); 0 = hold forever.", 0.0, 3600.0)),
     "diagnostics_period": (1.0, _d("Wall seconds between /diagnostics messages.", 0.05, 60.0)),
@@ -171,7 +175,8 @@ PARAMETERS = {
                                      "middleware, below it every request is answered in arrival order. Also the "
                                      "depth of the action's feedback topic.", 10, 100000, read_only=True,
                                      integer=True)),
-    "frame_id": ("world", _d("Frame of joint-state-independent outputs (point forces, markers).", read_only=True)),
+    "frame_id": ("world", _d("Frame of joint-state-independent outputs (point forces, markers; the world frame "
+                             "of body_wrenches and prescribed_bodies).", read_only=True)),
     "log_path": ("", _d("Directory for MCAP logs ('' = no logging). Each run writes "
                         "<log_path>/<scene>_<date>_<time>/<scene>_<i>.mcap.", read_only=True)),
     "log_topics": (Parameter.Type.STRING_ARRAY,
@@ -289,6 +294,7 @@ class RedmaxNode(Node):
         self._topic_names = {}
         self.pub_js = self._pub(JointState, "joint_states", QOS_STATE)
         self.pub_pf = self._pub(PointForces, "point_forces", QOS_STATE)
+        self.pub_bw = self._pub(BodyWrenches, "body_wrenches", QOS_STATE)
         self.pub_stats = self._pub(SolverStats, "solver_stats", QOS_STATE)
         self.pub_clock = self._pub(Clock, "/clock", QOS_CLOCK)
         self.pub_markers = self._pub(MarkerArray, "markers", QOS_MARKERS)
@@ -296,6 +302,7 @@ class RedmaxNode(Node):
         self.pub_state = self._pub(SimulationState, "simulation_state", QOS_LATCHED)
         self.pub_pj = self._pub(JointState, "prescribed_joints", QOS_LATCHED)
         self.pub_pp = self._pub(PointVelocityCommand, "prescribed_points", QOS_LATCHED)
+        self.pub_pb = self._pub(BodyTwistsMsg, "prescribed_bodies", QOS_LATCHED)
         self.pub_tf = self._pub(TFMessage, "/tf", QOS_TF)
         self.pub_tf_static = self._pub(TFMessage, "/tf_static", QOS_TF_STATIC)
         self.pub_description = self._pub(String, "robot_description", QOS_LATCHED)
@@ -307,6 +314,7 @@ class RedmaxNode(Node):
         # __init__, when the simulation exists (see _start_inputs)
         self._inputs = {"joint_commands": (JointState, self._on_joint_command),
                         "point_commands": (PointVelocityCommand, self._on_point_command),
+                        "body_commands": (BodyTwistCommand, self._on_body_command),
                         "joint_trajectory": (JointTrajectory, self._on_joint_trajectory)}
         self._subs = {self.resolve_topic_name(short): (cls, QOS_COMMAND, None)
                       for short, (cls, _) in self._inputs.items()}
@@ -320,6 +328,7 @@ class RedmaxNode(Node):
         if p["solver"]:
             overrides.append(f"solver={p['solver']}")
         self._last_pf_nonempty = False
+        self._last_bw_nonempty = False
         self._publish_errors = set()
         self._sender = Sender(context_ok=self.context.ok, on_error=self._publish_error)
         self.msgs = None
@@ -387,7 +396,8 @@ class RedmaxNode(Node):
         """Command subscriptions and step_simulation: the latency-critical inputs.
 
         By default each group is served by a helper node spun by rclpy's C++ EventsExecutor in a
-        thread of its own: ``<name>_commands`` (joint_commands, joint_trajectory, point_commands) and ``<name>_step``
+        thread of its own: ``<name>_commands`` (joint_commands, joint_trajectory, point_commands, body_commands) and
+        ``<name>_step``
         (step_simulation). rclpy's Python executors rebuild their wait set over all of this node's
         entities for every callback; measured here (load ~1), a step request waited 1.1-1.5 ms
         between the client's call and our callback under the MultiThreadedExecutor and 0.25-0.3 ms
@@ -508,7 +518,7 @@ class RedmaxNode(Node):
         self.js_enc = JointStateEncoder(info.velocity_names, "")
         self._desc_cache = (None, None)
 
-    def state(self, t, q, v, effort, site_forces, diag, step_index):
+    def state(self, t, q, v, effort, site_forces, diag, step_index, body_wrenches=None):
         """One published step: the messages are serialized once (joint_states, /clock and
         solver_stats by the fast CDR encoders, test_node_cdr.py checks them against rclpy's
         serializer), logged together (one lock, one log time), then published in this order.
@@ -516,13 +526,17 @@ class RedmaxNode(Node):
         encoded only if it is logged or has a subscriber, and handed to DDS only with a
         subscriber (without one it could reach nobody). solver_stats is built only when logged
         or subscribed (its KKT residual is computed for it). When all three are logged by the
-        writer process and no point forces go out, the log records are built in one piece
-        (cdr.StepRecords: the same bytes as write_many would hand over)."""
+        writer process and no point forces or body wrenches go out, the log records are built in one
+        piece (cdr.StepRecords: the same bytes as write_many would hand over). ``body_wrenches``: body ->
+        (frame 'body' | 'world', required wrench (6,) [torque N m; force N]); body_wrenches goes out
+        while any body is prescribed, plus one empty message after the last is released (as
+        point_forces)."""
         lg = self.logger_mcap
         njs = self.pub_js.handle.get_subscription_count()
         nclock = self.pub_clock.handle.get_subscription_count()
         nstats = self.pub_stats.handle.get_subscription_count()
-        if lg is not None and diag is not None and not (site_forces or self._last_pf_nonempty):
+        if lg is not None and diag is not None and not (site_forces or self._last_pf_nonempty or body_wrenches
+                                                        or self._last_bw_nonempty):
             rec = self._step_records
             if rec is None or rec[0] is not lg:
                 rec = self._step_records = (lg, self._make_step_records(lg))
@@ -552,6 +566,9 @@ class RedmaxNode(Node):
         if site_forces or self._last_pf_nonempty:
             out.append((self.pub_pf, serialize_message(self.msgs.point_forces(t, site_forces)), None))
             self._last_pf_nonempty = bool(site_forces)
+        if body_wrenches or self._last_bw_nonempty:
+            out.append((self.pub_bw, serialize_message(self.msgs.body_wrenches(t, body_wrenches or {})), None))
+            self._last_bw_nonempty = bool(body_wrenches)
         pub = self.pub_stats
         if diag is not None and (nstats or self._stats_forced or (lg is not None and lg.logs(names[pub]))):
             out.append((pub, self.stats_enc.encode(t, step_index, diag), nstats))
@@ -647,9 +664,10 @@ class RedmaxNode(Node):
     def sim_state(self, state):
         self._send(self.pub_state, SimulationState(state=state))
 
-    def prescriptions(self, t, joints, sites):
+    def prescriptions(self, t, joints, sites, bodies):
         self._send(self.pub_pj, prescriptions_msg(t, joints, self.frame_id))
         self._send(self.pub_pp, point_prescriptions_msg(t, sites, self.frame_id))
+        self._send(self.pub_pb, body_prescriptions_msg(t, bodies, self.frame_id))
 
     def command_error(self, text):
         if text not in self._logged_errors:  # each distinct error once
@@ -680,6 +698,10 @@ class RedmaxNode(Node):
     def _on_point_command(self, data):
         self._log_in(self._topic_of("point_commands"), data)
         self.engine.point_command(deserialize_message(data, PointVelocityCommand))
+
+    def _on_body_command(self, data):
+        self._log_in(self._topic_of("body_commands"), data)
+        self.engine.body_command(deserialize_message(data, BodyTwistCommand))
 
     def _topic_of(self, short):
         return self._topic_by_short[short]
@@ -733,7 +755,8 @@ class RedmaxNode(Node):
         return resp
 
     def _srv_release(self, req, resp):
-        resp.result = self._result(self._guard(lambda: self.engine.release(list(req.joints), list(req.sites))))
+        resp.result = self._result(self._guard(lambda: self.engine.release(list(req.joints), list(req.sites),
+                                                                                list(req.bodies))))
         return resp
 
     def _description(self):

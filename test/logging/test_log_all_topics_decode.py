@@ -1,8 +1,9 @@
 """Every topic of a node's log decodes with both mcap_ros2 and rosbags (issue 17).
 
 One node run (subprocess, hand, lockstep, logging) publishes every topic it has - joint_states,
-point_forces, solver_stats, /clock, markers, /diagnostics, simulation_state, prescribed_joints,
-prescribed_points, /tf, /tf_static, robot_description (odom: the hand has no floating base) - and receives both logged inputs (joint_commands, point_commands); then every
+point_forces, body_wrenches, solver_stats, /clock, markers, /diagnostics, simulation_state, prescribed_joints,
+prescribed_points, prescribed_bodies, /tf, /tf_static, robot_description (odom: the hand has no floating
+base) - and receives the logged inputs (joint_commands, point_commands, body_commands); then every
 record of every channel is decoded with mcap_ros2, with rosbags' AnyReader (types from the file's
 schemas) and with rosbags' deserializer given the Jazzy typestore plus redmax_msgs from msg_defs/,
 and each record must have exactly the CDR length of its message (no trailing bytes: rosbags rejects
@@ -40,11 +41,13 @@ NS = f"/logall{PID}"  # a namespace of our own, in case another run shares the R
 JOINTS = (["elbow", "wrist[0]", "wrist[1]"], [0.4, 0.1, -0.1])
 TORQUE = (["index_pip"], [0.01])
 SITE, SITE_VEL = "index_tip", (0.0, 0.02, 0.03)
+BODY, BODY_WY = "middle_dist", 0.2  # body-frame omega_y of the middle fingertip's link [rad/s]; the rest free
 
 # every topic of the node (docs/node.md, Topics) -> its type
 TOPICS = {
     f"{NS}/joint_states": "sensor_msgs/msg/JointState",
     f"{NS}/point_forces": "redmax_msgs/msg/PointForces",
+    f"{NS}/body_wrenches": "redmax_msgs/msg/BodyWrenches",
     f"{NS}/solver_stats": "redmax_msgs/msg/SolverStats",
     "/clock": "rosgraph_msgs/msg/Clock",
     f"{NS}/markers": "visualization_msgs/msg/MarkerArray",
@@ -52,8 +55,10 @@ TOPICS = {
     f"{NS}/simulation_state": "redmax_msgs/msg/SimulationState",
     f"{NS}/prescribed_joints": "sensor_msgs/msg/JointState",
     f"{NS}/prescribed_points": "redmax_msgs/msg/PointVelocityCommand",
+    f"{NS}/prescribed_bodies": "redmax_msgs/msg/BodyTwists",
     f"{NS}/joint_commands": "sensor_msgs/msg/JointState",
     f"{NS}/point_commands": "redmax_msgs/msg/PointVelocityCommand",
+    f"{NS}/body_commands": "redmax_msgs/msg/BodyTwistCommand",
     "/tf": "tf2_msgs/msg/TFMessage",
     "/tf_static": "tf2_msgs/msg/TFMessage",
     f"{NS}/robot_description": "std_msgs/msg/String",
@@ -63,7 +68,7 @@ TOPICS = {
 # channels without records in this run: the hand has no floating base (odom: test/node/test_node_frames.py
 # logs and decodes it for one)
 NO_RECORDS = {f"{NS}/odom", f"{NS}/joint_trajectory"}  # joint_trajectory: test/node/test_node_trajectory.py
-INPUTS = {f"{NS}/joint_commands", f"{NS}/point_commands", f"{NS}/joint_trajectory"}  # logged as received (the client's bytes)
+INPUTS = {f"{NS}/joint_commands", f"{NS}/point_commands", f"{NS}/body_commands", f"{NS}/joint_trajectory"}  # logged as received (the client's bytes)
 
 
 def _stamp_ns(st):
@@ -77,8 +82,8 @@ def _stamp_ns(st):
 @pytest.fixture(scope="module")
 def run(tmp_path_factory, ros):
     """The node (hand, lockstep, logging) driven through every topic: joint velocity and torque
-    commands, a point command, steps (states, clock, stats, point forces, markers), a release (the
-    empty point_forces), a reset, play/pause (diagnostics, states), then QUITTING (the log closes)."""
+    commands, a point command, a body-twist command, steps (states, clock, stats, point forces, body
+    wrenches, markers), a release (the empty point_forces and body_wrenches), a reset, play/pause (diagnostics, states), then QUITTING (the log closes)."""
     import subprocess
 
     logdir = tmp_path_factory.mktemp("logs")
@@ -97,13 +102,15 @@ def run(tmp_path_factory, ros):
         client.command_joints(TORQUE[0], efforts=TORQUE[1], wait_ack=False)  # a torque: not in prescribed_joints
         client.wait_for(lambda: len(client.prescribed) > n0, what="torque command acknowledgement")
         client.command_points([SITE], [SITE_VEL])
+        client.command_bodies([BODY], [((None, BODY_WY, None), None)], frame="body")
         r = client.step(30)
         assert r.result.result == Result.OK, r.result.error_message
         client.wait_for(lambda: len(client.point_forces) >= 30, what="30 point forces")
+        client.wait_for(lambda: len(client.body_wrenches) >= 30, what="30 body wrenches")
         with client.lock:
             out["prescribed_after_commands"] = client.prescribed[-1]
         n0 = len(client.prescribed)
-        r = client.call("release", client.cli["release"].srv_type.Request(sites=[SITE]))
+        r = client.call("release", client.cli["release"].srv_type.Request(sites=[SITE], bodies=[BODY]))
         assert r.result.result == Result.OK, r.result.error_message
         client.wait_for(lambda: len(client.prescribed) > n0, what="release acknowledgement")
         assert client.step(5).result.result == Result.OK
@@ -119,6 +126,8 @@ def run(tmp_path_factory, ros):
         time.sleep(0.2)  # the last messages still in the client's executor
         with client.lock:  # what the client got over DDS (rclpy decoding the node's bytes)
             out["received"] = {"joint_states": list(client.joint_states), "point_forces": list(client.point_forces),
+                               "body_wrenches": list(client.body_wrenches),
+                               "prescribed_bodies": list(client.prescribed_bodies),
                                "prescribed_joints": list(client.prescribed),
                                "simulation_state": list(client.states)}
     finally:
@@ -262,12 +271,13 @@ def _is_subsequence(part, whole):
     return all(any(p == w for w in it) for p in part)
 
 
-@pytest.mark.parametrize("topic", ["joint_states", "point_forces", "prescribed_joints", "simulation_state"])
+@pytest.mark.parametrize("topic", ["joint_states", "point_forces", "body_wrenches", "prescribed_joints",
+                                   "prescribed_bodies", "simulation_state"])
 def test_logged_values_equal_what_the_client_received(run, topic):
     """What a subscriber got over DDS (rclpy's decoding of the node's bytes) is in the log, in the
     same order, with the same values as both readers decode them."""
     received = [_plain(m) for m in run["received"][topic]]
-    assert len(received) >= {"joint_states": 40, "point_forces": 30}.get(topic, 2), len(received)
+    assert len(received) >= {"joint_states": 40, "point_forces": 30, "body_wrenches": 30}.get(topic, 2), len(received)
     for decode in (_mcap_ros2, _rosbags_anyreader):
         logged = [_plain(m) for t, m in decode(run["path"]) if t == f"{NS}/{topic}"]
         assert _is_subsequence(received, logged), (decode.__name__, topic)
@@ -317,6 +327,26 @@ def test_prescribed_points_and_point_forces(decoded):
     assert any(list(m.sites) == [] and len(m.forces) == 0 for m in pf)  # the empty one on release
 
 
+def test_prescribed_bodies_and_body_wrenches(decoded):
+    pb = decoded[f"{NS}/prescribed_bodies"]
+    with_body = [m for m in pb if list(m.bodies) == [BODY]]
+    assert with_body, [list(m.bodies) for m in pb]
+    m = with_body[-1]
+    assert list(m.frames) == ["body"] and m.header.frame_id == "world"
+    tw = m.twists[0]
+    assert tw.angular.y == BODY_WY and all(math.isnan(x) for x in (tw.angular.x, tw.angular.z, tw.linear.x,
+                                                                   tw.linear.y, tw.linear.z))
+    assert list(pb[-1].bodies) == [] and len(pb[-1].twists) == 0  # released (the hand prescribes no body)
+    bw = decoded[f"{NS}/body_wrenches"]
+    full = [m for m in bw if list(m.bodies) == [BODY]]
+    assert len(full) >= 30 and all(list(m.frames) == ["body"] and len(m.wrenches) == 1 for m in full)
+    for m in full:  # only the prescribed component (torque about the body's y axis) is non-zero
+        w = m.wrenches[0]
+        assert math.isfinite(w.torque.y) and (w.torque.x, w.torque.z, w.force.x, w.force.y, w.force.z) == (0.0,) * 5
+    assert any(abs(m.wrenches[0].torque.y) > 0 for m in full)
+    assert any(list(m.bodies) == [] and len(m.wrenches) == 0 for m in bw)  # the empty one on release
+
+
 def test_commands_are_logged_as_sent(decoded):
     jc = decoded[f"{NS}/joint_commands"]
     assert [list(m.name) for m in jc] == [JOINTS[0], TORQUE[0]]
@@ -325,6 +355,9 @@ def test_commands_are_logged_as_sent(decoded):
     pc = decoded[f"{NS}/point_commands"]
     assert len(pc) == 1 and list(pc[0].sites) == [SITE]
     assert (pc[0].velocities[0].x, pc[0].velocities[0].y, pc[0].velocities[0].z) == SITE_VEL
+    bc = decoded[f"{NS}/body_commands"]
+    assert len(bc) == 1 and list(bc[0].bodies) == [BODY] and bc[0].header.frame_id == "body"
+    assert bc[0].twists[0].angular.y == BODY_WY and math.isnan(bc[0].twists[0].linear.x)
 
 
 def test_states_clock_stats_markers_diagnostics(decoded):
@@ -359,7 +392,9 @@ def _messages():
     from std_msgs.msg import ByteMultiArray, Empty, Int64MultiArray
     from unique_identifier_msgs.msg import UUID
 
-    from redmax_msgs.msg import PointForces, SolverStats
+    from geometry_msgs.msg import Twist, Wrench
+
+    from redmax_msgs.msg import BodyTwistCommand, BodyWrenches, PointForces, SolverStats
     from redmax_ros.node import convert
 
     def js(names, q=(), v=(), e=(), frame="world", t=0.125):
@@ -388,6 +423,14 @@ def _messages():
         "prescribed_points_none": convert.point_prescriptions_msg(1.0, {}),
         "point_forces": PointForces(sites=["index_tip", "thumb_tip"], forces=[Vector3(x=1.0), Vector3(z=-2.5)]),
         "point_forces_empty": PointForces(),
+        "prescribed_bodies_nan": convert.body_prescriptions_msg(
+            0.5, {"lower": {"components": ["wy", "vz"], "values": np.array([-1.0, 0.25]), "frame": "world"},
+                  "box": {"components": ["wx", "wy", "wz"], "values": np.array([0.1, 0.2, 0.3]), "frame": "body"}}),
+        "prescribed_bodies_none": convert.body_prescriptions_msg(0.5, {}),
+        "body_wrenches": BodyWrenches(bodies=["lower", "box"], frames=["world", "body"],
+                                      wrenches=[Wrench(torque=Vector3(y=-0.5)), Wrench(force=Vector3(x=1.0, z=2.0))]),
+        "body_wrenches_empty": BodyWrenches(),
+        "body_command_nan": BodyTwistCommand(bodies=["box"], twists=[Twist(angular=Vector3(x=math.nan, y=1.0))]),
         "simulation_state": SimulationState(state=SimulationState.PAUSED),
         "markers": convert.markers_msg(0.25, poses, springs, "world"),
         "markers_no_springs": convert.markers_msg(0.25, poses, [], "world"),
@@ -426,7 +469,7 @@ def test_serialize_message_is_rclpys_without_the_trailing_bytes(name):
     assert [b for i, b in enumerate(ours) if i not in pad] == [b for i, b in enumerate(ref[:len(ours)]) if i not in pad]
     assert all(ours[i] == 0 for i in pad)
     back = deserialize_message(ours, type(m))  # float32 fields round: compare with rclpy's round trip
-    assert back == deserialize_message(ref, type(m)) or name == "js_full_nan"  # NaN != NaN
+    assert back == deserialize_message(ref, type(m)) or name.endswith("_nan")  # NaN != NaN
     store = jazzy_typestore()
     t = _rosbags_type(m)
     assert bytes(store.serialize_cdr(store.deserialize_cdr(ours, t), t)) == ours

@@ -29,7 +29,8 @@ from rcl_interfaces.msg import Log  # noqa: E402
 from sensor_msgs.msg import JointState  # noqa: E402
 
 from redmax_msgs.action import SimulateSteps  # noqa: E402
-from redmax_msgs.msg import PointForces, PointVelocityCommand, SimulationState  # noqa: E402
+from redmax_msgs.msg import (BodyTwistCommand, BodyTwists, BodyWrenches, PointForces, PointVelocityCommand,  # noqa: E402
+                             SimulationState)
 from redmax_msgs.srv import (DescribeScene, GetSimulationState, LoadScene, ReleaseCommands,  # noqa: E402
                              ResetSimulation, SetSimulationState, StepSimulation)
 
@@ -49,11 +50,15 @@ class Client:
         self.lock = threading.RLock()
         self.joint_states: list = []
         self.point_forces: list = []
+        self.body_wrenches: list = []
         self.prescribed: list = []
+        self.prescribed_bodies: list = []
         self.states: list = []
         self.rosout: list = []
         n.create_subscription(JointState, p + "joint_states", self._store(self.joint_states), QOS_STATE)
         n.create_subscription(PointForces, p + "point_forces", self._store(self.point_forces), QOS_STATE)
+        n.create_subscription(BodyWrenches, p + "body_wrenches", self._store(self.body_wrenches), QOS_STATE)
+        n.create_subscription(BodyTwists, p + "prescribed_bodies", self._store(self.prescribed_bodies), QOS_LATCHED)
         n.create_subscription(JointState, p + "prescribed_joints", self._store(self.prescribed), QOS_LATCHED)
         n.create_subscription(SimulationState, p + "simulation_state", self._store(self.states), QOS_LATCHED)
         n.create_subscription(Log, "/rosout", self._store(self.rosout),
@@ -61,6 +66,7 @@ class Client:
                                          durability=DurabilityPolicy.TRANSIENT_LOCAL))
         self.pub_joint = n.create_publisher(JointState, p + "joint_commands", 10)
         self.pub_point = n.create_publisher(PointVelocityCommand, p + "point_commands", 10)
+        self.pub_body = n.create_publisher(BodyTwistCommand, p + "body_commands", 10)
         self.cli = {
             "step": n.create_client(StepSimulation, p + "step_simulation"),
             "reset": n.create_client(ResetSimulation, p + "reset_simulation"),
@@ -112,7 +118,7 @@ class Client:
         for name, c in self.cli.items():
             assert c.wait_for_service(timeout_sec=timeout), f"service {name} not available"
         end = time.monotonic() + timeout
-        while self.pub_joint.get_subscription_count() == 0 or self.pub_point.get_subscription_count() == 0:
+        while any(pub.get_subscription_count() == 0 for pub in (self.pub_joint, self.pub_point, self.pub_body)):
             assert time.monotonic() < end, "node's command subscriptions not matched"
             time.sleep(0.01)
 
@@ -153,6 +159,7 @@ class Client:
         with self.lock:
             self.joint_states.clear()
             self.point_forces.clear()
+            self.body_wrenches.clear()
 
     def command_joints(self, names, velocities=(), efforts=(), wait_ack=True):
         """Publish a joint command; with wait_ack, wait until prescribed_joints reflects it (the
@@ -187,6 +194,25 @@ class Client:
         self.pub_point.publish(m)
         if wait_ack:
             self.wait_for(lambda: len(self.prescribed) > n0, what="prescription acknowledgement")
+
+    def command_bodies(self, bodies, twists, frame="world", wait_ack=True):
+        """Publish a BodyTwistCommand; ``twists``: per body (angular (3,), linear (3,)) [rad/s, m/s], None or
+        NaN for a free component. With wait_ack, wait until prescribed_bodies has a newer message."""
+        from geometry_msgs.msg import Twist, Vector3
+
+        def vec(x):
+            x = [float("nan") if c is None else float(c) for c in (x if x is not None else (None,) * 3)]
+            return Vector3(x=x[0], y=x[1], z=x[2])
+        m = BodyTwistCommand(bodies=list(bodies), twists=[Twist(angular=vec(a), linear=vec(lin)) for a, lin in twists])
+        m.header.frame_id = frame
+        if wait_ack:
+            self.wait_for(lambda: len(self.prescribed_bodies) > 0, what="latched prescribed_bodies")
+        with self.lock:
+            n0 = len(self.prescribed_bodies)
+        self.pub_body.publish(m)
+        if wait_ack:
+            self.wait_for(lambda: len(self.prescribed_bodies) > n0, what="prescribed_bodies acknowledgement")
+        return m
 
     def errors(self):
         with self.lock:

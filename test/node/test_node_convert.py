@@ -13,7 +13,7 @@ def _desc(types, nq, nv):
     names = [f"j{i}" for i in range(len(types))]
     vnames = [n if v == 1 else f"{n}[{k}]" for n, v in zip(names, nv) for k in range(v)]
     return SimpleNamespace(name="x", dt=1e-3, joint_names=names, joint_types=types, joint_nq=nq, joint_nv=nv,
-                           velocity_names=vnames, position_names=[], sites=[], prescribable_joints=[],
+                           velocity_names=vnames, position_names=[], sites=[], bodies=[], prescribable_joints=[],
                            prescribable_sites=[], nq=sum(nq), nv=sum(nv), ndof=sum(nv))
 
 
@@ -36,3 +36,37 @@ def test_positions_identity_when_nq_equals_nv():
     info = SceneInfo(_desc(["revolute", "universal"], [1, 2], [1, 2]))
     q = np.array([0.1, 0.2, 0.3])
     assert info.positions(q) is q or np.array_equal(info.positions(q), q)
+
+
+def test_body_command_translation_and_prescribed_bodies_message():
+    """BodyTwistCommand -> the core's prescription (NaN = None = free; frame from header.frame_id), and the
+    core's prescribed_bodies() -> BodyTwists with NaN where free; errors name the body and the problem."""
+    import math
+
+    from geometry_msgs.msg import Twist, Vector3
+
+    from redmax_msgs.msg import BodyTwistCommand
+    from redmax_ros.node.convert import CommandRejected, body_command, body_prescriptions_msg
+
+    desc = SimpleNamespace(name="s", bodies=["a", "b"])
+    nan = math.nan
+    m = BodyTwistCommand(bodies=["b"], twists=[Twist(angular=Vector3(x=nan, y=2.0, z=nan),
+                                                     linear=Vector3(x=0.5, y=nan, z=nan))])
+    for fid, frame in (("", "world"), ("world", "world"), ("body", "body")):
+        m.header.frame_id = fid
+        assert body_command(m, desc) == {"b": {"angular": [None, 2.0, None], "linear": [0.5, None, None],
+                                               "frame": frame}}
+    m.header.frame_id = "b"
+    with pytest.raises(CommandRejected, match="frame 'b' is not supported"):
+        body_command(m, desc)
+    m.header.frame_id = ""
+    m.bodies = ["c"]
+    with pytest.raises(CommandRejected, match="unknown body 'c' in scene 's'"):
+        body_command(m, desc)
+    msg = body_prescriptions_msg(1.5, {"a": {"components": ["wz", "vx"], "values": np.array([1.0, -2.0]),
+                                             "frame": "body"}}, "map")
+    assert list(msg.bodies) == ["a"] and list(msg.frames) == ["body"] and msg.header.frame_id == "map"
+    tw = msg.twists[0]
+    assert (tw.angular.z, tw.linear.x) == (1.0, -2.0)
+    assert all(math.isnan(x) for x in (tw.angular.x, tw.angular.y, tw.linear.y, tw.linear.z))
+    assert msg.header.stamp.sec == 1 and msg.header.stamp.nanosec == 500_000_000
