@@ -32,7 +32,7 @@ from redmax_ros.core import Simulator, State, StepError, Workspace
 from redmax_ros.core.dynamics.kinematics import site_jacobians, site_positions
 from redmax_ros.core.step import baselines
 from redmax_ros.core.step.backends import make_backend
-from redmax_bench import mujoco_export
+from redmax_bench import exudyn_planar, mujoco_export
 from redmax_bench.maximal import MaximalModel
 
 MAX_SPEED = 1e6  # |v| above this is a blow-up (same limit as the stepper's)
@@ -321,7 +321,17 @@ class _Recorder:
         return True
 
 
-def run_ours(problem, h, energy_cap=None, budget=None, name="ours (direct)", require_solver=None):
+def secant_rate(hyb, t, h):
+    """The prescribed joint's velocity row for the step [t, t + h] of the paper's step: the secant of q_p."""
+    return (hyb.q(t + h) - hyb.q(t)) / h
+
+
+def end_rate(hyb, t, h):
+    """The prescribed joint's velocity row for BDF2: q_p's rate at the step's end time t + h (step/scheme.py)."""
+    return hyb.v(t + h)
+
+
+def run_ours(problem, h, energy_cap=None, budget=None, name="ours (direct)", require_solver=None, rate=secant_rate):
     sim = problem.sim
     sim.reset()
     sim.dt = h
@@ -337,7 +347,7 @@ def run_ours(problem, h, energy_cap=None, budget=None, name="ours (direct)", req
             else:
                 for _ in range(rec.n_sub):
                     t = sim.time
-                    sim.commands.joint_velocities[hyb.joint] = np.array([(hyb.q(t + h) - hyb.q(t)) / h])
+                    sim.commands.joint_velocities[hyb.joint] = np.array([rate(hyb, t, h)])
                     res = sim.step(1)
         except StepError as e:
             run.wall += time.perf_counter() - t0
@@ -469,6 +479,37 @@ def run_mujoco(problem, h, integrator, energy_cap=None, budget=None):
     return run
 
 
+def run_exudyn(problem, h, energy_cap=None, budget=None):
+    """Exudyn's generalized-alpha on the planar export (exudyn_planar.py), one SolveDynamic call for the run;
+    CPU time is that call's (model building excluded, as for MuJoCo)."""
+    mech = problem.mech
+    model = exudyn_planar.PlanarModel(mech, problem.q0, mech.to_reduced(problem.vR0), h, problem.T, problem.sample_dt)
+    rec = _Recorder(problem, h, "Exudyn generalized-alpha", energy_cap, budget)
+    run = rec.run
+    ok, cpu, wall = model.solve()
+    run.cpu, run.wall, run.steps = cpu, wall, int(round(problem.T / h))
+    if not ok:
+        return run.fail("nonconvergence", "Exudyn: SolveDynamic did not converge")
+    t, q, v = model.samples()
+    ws = Workspace(mech, pin_data=True)
+    for k in range(problem.n_samples):
+        i = int(np.argmin(np.abs(t - (k + 1) * problem.sample_dt)))
+        if abs(t[i] - (k + 1) * problem.sample_dt) > 0.5 * h:
+            return run.fail("nonconvergence", f"Exudyn: no sample at t = {(k + 1) * problem.sample_dt:g} s")
+        E = baselines.mechanical_energy(mech, ws, q[i], v[i]) if np.all(np.isfinite(v[i])) else float("nan")
+        if not rec.record(k, q[i], E, loop_residual(mech, ws.data, q[i]), None, float(np.abs(v[i]).max())):
+            return run
+    return run
+
+
+def _exudyn_applies(p):
+    if not exudyn_planar.available():
+        return "exudyn is not installed (pip install exudyn)"
+    if p.hybrid is not None:
+        return "prescribed motion (hybrid dynamics) is not in the Exudyn export"
+    return exudyn_planar.applies(p.mech)
+
+
 # ---------------------------------------------------------------------------------------------
 # methods (one line each to add a curve)
 
@@ -551,7 +592,14 @@ def _ours_pcg(rtol=None):
     return run
 
 
+def _ours_bdf2(problem, h, energy_cap=None, budget=None):
+    """Our step with integrator.scheme bdf2 (step/scheme.py), the prescribed joint's rate at each step's end."""
+    p2 = make_problem(problem.case, problem.T, problem.sample_dt, ["integrator.scheme=bdf2"])
+    return run_ours(p2, h, energy_cap=energy_cap, budget=budget, name="ours BDF2 (direct)", rate=end_rate)
+
+
 register_method("ours (direct)", lambda p, h, **kw: run_ours(p, h, **kw), color="C3", marker="o", lw=2.2)
+register_method("ours BDF2 (direct)", _ours_bdf2, color="C1", marker="*", lw=2.2, ms=8)
 for _tol, _c in ((1e-4, "#f4a259"), (1e-8, "#c0661b")):  # PCG at several tolerances
     register_method(f"ours (PCG rtol {_tol:g})", _ours_pcg(_tol), _pcg_applies, color=_c, marker="o", ms=4)
 register_method("semi-implicit Euler (Pinocchio)", lambda p, h, **kw: run_explicit(p, h, "sie", name="semi-implicit Euler (Pinocchio)", **kw),
@@ -563,6 +611,7 @@ register_method("MuJoCo Euler", lambda p, h, **kw: run_mujoco(p, h, "euler", **k
 register_method("MuJoCo implicitfast", lambda p, h, **kw: run_mujoco(p, h, "implicitfast", **kw), _mujoco_applies,
                 color="C5", marker="P", ls="--")
 register_method("MuJoCo RK4", lambda p, h, **kw: run_mujoco(p, h, "rk4", **kw), _mujoco_applies, color="C8", marker="X", ls="--")
+register_method("Exudyn generalized-alpha", run_exudyn, _exudyn_applies, color="C6", marker="h", ls="-.")
 register_method("MuJoCo discrete", lambda p, h, **kw: run_mujoco(p, h, "discrete", **kw), _mujoco_applies,
                 color="C9", marker="s", ls="--")  # MuJoCo 3.13+: implicit in joint/tendon stiffness
 
