@@ -1,7 +1,7 @@
 """ament_python build script for redmax_ros.
 
 Used both by colcon (apt ROS install, see README "Using an apt ROS install") and
-by ``pip install -e .[test,bench]`` in the PyPI-wheel venv made by scripts/setup.sh.
+by ``pip install -e .[test,bench,cluster]`` in the PyPI-wheel venv made by scripts/setup.sh.
 In both cases the data files below land in ``<prefix>/share/redmax_ros`` and the
 ament index marker in ``<prefix>/share/ament_index/resource_index/packages``, so
 ``ament_index_python.get_package_share_directory('redmax_ros')`` works.
@@ -64,17 +64,22 @@ setup(
         "pyyaml",
         "mcap",
         "mcap-ros2-support",
+        "tqdm",  # progress bars of redmax_run, redmax_sweep and redmax_bench
+        "pyarrow",  # redmax_sweep's Parquet results table (redmax_ros/sweep/table.py)
     ],
     extras_require={
-        # Benchmarks (redmax_bench): MuJoCo as a comparator, matplotlib for the charts.
-        "bench": ["mujoco", "matplotlib"],
+        # Benchmarks (redmax_bench): MuJoCo and Exudyn as comparators, matplotlib for the charts.
+        "bench": ["mujoco", "matplotlib", "exudyn>=1.9"],
         "test": ["pytest", "rosbags", "mcap", "mcap-ros2-support"],
+        # redmax_sweep --ray and redmax_bench --ray: sweeps on a Ray cluster (docs/sweeps.md)
+        "cluster": ["ray[default]>=2.40,<3"],
     },
     entry_points={
         "console_scripts": [
             "redmax_run = redmax_ros.runner:main",
             "redmax_node = redmax_ros.node.main:cli",
             "redmax_bench = redmax_bench.cli:main",
+            "redmax_sweep = redmax_ros.sweep.cli:main",
         ],
     },
 )

@@ -6,6 +6,7 @@
     redmax_bench accuracy --only stability --quick
     redmax_bench accuracy --charts-only         # redraw PNGs from the accuracy*.json in --out
     redmax_bench accuracy ... --out DIR         # results directory (default bench/results under the cwd)
+    redmax_bench accuracy ... --workers 2       # independent runs on 2 local processes (or --ray auto)
 
 Work-precision: for each case (registered below with ``register_case``) and each method
 (registered in ``methods.py`` with ``register_method``), runs over the case's time steps; error
@@ -35,6 +36,7 @@ from redmax_bench import methods as M
 from redmax_bench import mujoco_export as mx
 from redmax_bench.common import add_out_argument, results_dir, write_json
 from redmax_bench.methods import Case, register_case
+from redmax_ros.sweep.pool import run_all
 
 ERROR_TARGET = 1e-3  # the issue's headline error level
 TIME_KEY = "cpu_per_sim_s"  # charts and ratios use process CPU time per simulated second (see docs/benchmarks.md)
@@ -144,17 +146,59 @@ def export_failures(ver: dict) -> dict:
     return bad
 
 
-def work_precision(case_names, method_names, log=print, export_bad=None, cache_dir=None) -> dict:
-    out = {}
+def reference_task(task) -> dict:
+    """Worker task: the reference solution of case ``task = (case name, cache dir)`` (computed, or read from the
+    cache, where it is left for the method runs); returns its summary."""
+    cname, cache_dir = task
+    problem = M.make_problem(M.CASES[cname])
+    ref = M.reference(problem, log=lambda *a: None, cache_dir=cache_dir)
+    return {"method": ref.method, "h": ref.h, "halving_diff": ref.halving_diff, "wall_s": ref.wall, "E0": ref.E0,
+            "T": problem.T, "sample_dt": problem.sample_dt}
+
+
+def work_task(task) -> dict:
+    """Worker task: one work-precision run ``task = (case, method, h [s], cache dir)``, timed best of
+    TIMING_REPEATS for runs under 2 s of CPU; returns its row (status, CPU and wall time per simulated second,
+    errors against the cached reference)."""
+    cname, mname, h, cache_dir = task
+    case, meth = M.CASES[cname], M.METHODS[mname]
+    problem = M.make_problem(case)
+    ref = M.reference(problem, log=lambda *a: None, cache_dir=cache_dir)
+    r = meth.run(problem, h, budget=RUN_BUDGET)
+    err = M.errors(problem, ref, r)
+    cpu, wall = r.cpu, r.wall
+    for _ in range(TIMING_REPEATS - 1):  # short runs: best of a few, against the shared machine's noise
+        if r.status != "ok" or cpu > 2.0:
+            break
+        again = meth.run(problem, h, budget=RUN_BUDGET)
+        cpu, wall = min(cpu, again.cpu), min(wall, again.wall)
+    ok = r.status == "ok"
+    return {"h": h, "status": r.status, "reason": r.reason, "steps": r.steps,
+            "cpu_per_sim_s": cpu / problem.T if ok else None,
+            "wall_per_sim_s": wall / problem.T if ok else None, **err}
+
+
+def fan_out(fn, tasks, workers=0, ray=None, desc=None) -> list:
+    """fn(task) for every task through redmax_sweep's runner (redmax_ros/sweep/pool.py: ``workers`` local
+    processes, 0 = this process; or Ray at ``ray``), results in task order; a failed task raises RuntimeError."""
+    return run_all(fn, tasks, workers=workers, ray_address=ray, progress=True, desc=desc)
+
+
+def work_precision(case_names, method_names, log=print, export_bad=None, cache_dir=None, workers=0, ray=None) -> dict:
+    """Per case, per method, per h of the case: the run's error against the reference and its cost. The
+    references, then the (case, method, h) runs, are independent tasks fanned out by ``fan_out``; the result
+    does not depend on ``workers`` / ``ray`` (the timings aside)."""
+    cache_dir = str(Path(cache_dir or M.default_cache_dir()).resolve())  # absolute: workers may run elsewhere
+    refs = dict(zip(case_names, fan_out(reference_task, [(c, cache_dir) for c in case_names], workers, ray,
+                                        "references")))
+    out, tasks = {}, []
     for cname in case_names:
         case = M.CASES[cname]
-        log(f"\n== {cname} ({case.chart}) ==")
         problem = M.make_problem(case)
-        ref = M.reference(problem, log=log, cache_dir=cache_dir)
-        rec = {"chart": case.chart, "scene": case.scene, "overrides": case.overrides, "T": problem.T,
-               "sample_dt": problem.sample_dt, "note": case.note,
-               "reference": {"method": ref.method, "h": ref.h, "halving_diff": ref.halving_diff,
-                             "wall_s": ref.wall, "E0": ref.E0},
+        ref = refs[cname]
+        rec = {"chart": case.chart, "scene": case.scene, "overrides": case.overrides, "T": ref["T"],
+               "sample_dt": ref["sample_dt"], "note": case.note,
+               "reference": {k: ref[k] for k in ("method", "h", "halving_diff", "wall_s", "E0")},
                "error_measure": "max over samples of |required elbow torque - reference| [N m]" if case.chart == "hybrid"
                else "max over samples of the RMS over DOFs of pin.difference(q_ref, q) [rad, m]",
                "methods": {}}
@@ -164,31 +208,28 @@ def work_precision(case_names, method_names, log=print, export_bad=None, cache_d
             if not why and mname.startswith("MuJoCo") and export_bad and cname in export_bad:
                 why = export_bad[cname]
             if why:
-                log(f"  {mname:34s} not applicable: {why}")
                 rec["methods"][mname] = {"applicable": False, "reason": why, "runs": []}
                 continue
-            runs = []
-            for h in case.hs:
-                r = meth.run(problem, h, budget=RUN_BUDGET)
-                err = M.errors(problem, ref, r)
-                cpu, wall = r.cpu, r.wall
-                for _ in range(TIMING_REPEATS - 1):  # short runs: best of a few, against the shared machine's noise
-                    if r.status != "ok" or cpu > 2.0:
-                        break
-                    again = meth.run(problem, h, budget=RUN_BUDGET)
-                    cpu, wall = min(cpu, again.cpu), min(wall, again.wall)
-                ok = r.status == "ok"
-                row = {"h": h, "status": r.status, "reason": r.reason, "steps": r.steps,
-                       "cpu_per_sim_s": cpu / problem.T if ok else None,
-                       "wall_per_sim_s": wall / problem.T if ok else None, **err}
-                runs.append(row)
-                e = case_error(case, err)
-                log(f"  {mname:34s} h={h:<7g} {r.status:9s} "
-                    + (f"{row[TIME_KEY] * 1e3:9.2f} ms/sim-s  err {e:.3e}" if ok and e is not None else r.reason))
-                if r.status == "not-applicable":
-                    break
-            rec["methods"][mname] = {"applicable": True, "runs": runs, "style": meth.style}
+            rec["methods"][mname] = {"applicable": True, "runs": [], "style": meth.style}
+            tasks += [(cname, mname, h, cache_dir) for h in case.hs]
         out[cname] = rec
+    for task, row in zip(tasks, fan_out(work_task, tasks, workers, ray, "work-precision")):
+        cname, mname, _, _ = task
+        runs = out[cname]["methods"][mname]["runs"]
+        if runs and runs[-1]["status"] == "not-applicable":
+            continue  # as the serial scan did: nothing after the first not-applicable h
+        runs.append(row)
+    for cname, rec in out.items():
+        case = M.CASES[cname]
+        log(f"\n== {cname} ({case.chart}) ==")
+        for mname, mrec in rec["methods"].items():
+            if not mrec["applicable"]:
+                log(f"  {mname:34s} not applicable: {mrec['reason']}")
+            for row in mrec["runs"]:
+                e = case_error(case, row)
+                ok = row["status"] == "ok"
+                log(f"  {mname:34s} h={row['h']:<7g} {row['status']:9s} "
+                    + (f"{row[TIME_KEY] * 1e3:9.2f} ms/sim-s  err {e:.3e}" if ok and e is not None else row["reason"]))
     return out
 
 
@@ -228,7 +269,7 @@ SWEEPS = {
                         "values": [1e-1, 1e0, 1e1, 1e2, 1e3, 1e4], "unit": "N m/rad",
                         "what": "chain of 3 links released at 0.5 rad, joint springs with rest 0"},
 }
-STAB_METHODS = ["ours (direct)", "ours (PCG rtol 1e-08)", "semi-implicit Euler (Pinocchio)", "RK4 (Pinocchio)", "maximal + Baumgarte",
+STAB_METHODS = ["ours (direct)", "ours BDF2 (direct)", "ours (PCG rtol 1e-08)", "semi-implicit Euler (Pinocchio)", "RK4 (Pinocchio)", "maximal + Baumgarte",
                 "MuJoCo Euler", "MuJoCo implicitfast", "MuJoCo RK4"]
 DRIFT_ENERGY = 0.5  # stable: energy never exceeds E0 + 0.5 S (S = E0 - E at static equilibrium) ...
 BLOWUP_ENERGY = 10.0  # ... blow-up above 10 S (or non-finite); in between: drift
@@ -249,7 +290,42 @@ def classify(run, E0, S):
     return "stable", f"max energy growth {growth:.2e} J, violation {v:.1e}"
 
 
-def stability(sweeps, method_names, T=5.0, budget=90.0, log=print) -> dict:
+def stability_row(task) -> dict:
+    """Worker task: the stability-map cell ``task = (sweep, method, value, T [s], budget [s])``: the h grid
+    scanned downwards until a run of T s is stable (classify); returns the cell's row."""
+    sw, mname, val, T, budget = task
+    meth = M.METHODS[mname]
+    case = Case(f"{sw['scene']} {sw['param']}={val:g}", "stability", sw["scene"],
+                sw["overrides"] + [f"{sw['param']}={_yaml_num(val)}"], T=T)
+    probe = M.make_problem(case, T=T, sample_dt=0.1)
+    why = meth.applies(probe)
+    if why:
+        return {"value": val, "h_max": None, "applicable": False, "reason": why, "tried": []}
+    mech = probe.mech
+    ws = Workspace(mech, pin_data=True)
+    E0 = baselines.mechanical_energy(mech, ws, probe.q0, mech.to_reduced(probe.vR0))
+    q_eq, _ = M.static_equilibrium(mech, probe.q0)
+    S = max(E0 - baselines.mechanical_energy(mech, ws, q_eq, np.zeros(mech.nv)), 1e-12)
+    tried, h_max = [], None
+    for h in H_GRID:
+        p = M.make_problem(case, T=T, sample_dt=max(h, 0.01))
+        r = meth.run(p, h, energy_cap=E0 + BLOWUP_ENERGY * S, budget=budget)
+        status, reason = classify(r, E0, S)
+        tried.append({"h": h, "status": status, "reason": reason, "wall_s": r.wall})
+        if status == "stable":
+            h_max = h
+            break
+        if status in ("timeout", "not-applicable"):
+            break
+    return {"value": val, "h_max": h_max, "applicable": True, "E0": E0, "S": S, "tried": tried}
+
+
+def stability(sweeps, method_names, T=5.0, budget=90.0, log=print, workers=0, ray=None) -> dict:
+    """Stability maps: per sweep, method and parameter value the largest stable h (stability_row); the cells
+    are independent tasks fanned out by ``fan_out`` (the result does not depend on ``workers`` / ``ray``, the
+    wall times in 'tried' aside)."""
+    tasks = [(sw, mname, val, T, budget) for sw in sweeps.values() for mname in method_names for val in sw["values"]]
+    rows = iter(fan_out(stability_row, tasks, workers, ray, "stability"))
     out = {}
     for sname, sw in sweeps.items():
         log(f"\n== stability vs {sname} ({sw['scene']}) ==")
@@ -258,36 +334,12 @@ def stability(sweeps, method_names, T=5.0, budget=90.0, log=print) -> dict:
                             "violation_max": VIOLATION_MAX, "h_grid": list(H_GRID)},
                "values": sw["values"], "methods": {}}
         for mname in method_names:
-            meth = M.METHODS[mname]
-            rows = []
-            for val in sw["values"]:
-                case = Case(f"{sw['scene']} {sw['param']}={val:g}", "stability", sw["scene"],
-                            sw["overrides"] + [f"{sw['param']}={_yaml_num(val)}"], T=T)
-                probe = M.make_problem(case, T=T, sample_dt=0.1)
-                why = meth.applies(probe)
-                if why:
-                    rows.append({"value": val, "h_max": None, "applicable": False, "reason": why, "tried": []})
-                    continue
-                mech = probe.mech
-                ws = Workspace(mech, pin_data=True)
-                E0 = baselines.mechanical_energy(mech, ws, probe.q0, mech.to_reduced(probe.vR0))
-                q_eq, _ = M.static_equilibrium(mech, probe.q0)
-                S = max(E0 - baselines.mechanical_energy(mech, ws, q_eq, np.zeros(mech.nv)), 1e-12)
-                tried, h_max = [], None
-                for h in H_GRID:
-                    p = M.make_problem(case, T=T, sample_dt=max(h, 0.01))
-                    r = meth.run(p, h, energy_cap=E0 + BLOWUP_ENERGY * S, budget=budget)
-                    status, reason = classify(r, E0, S)
-                    tried.append({"h": h, "status": status, "reason": reason, "wall_s": r.wall})
-                    if status == "stable":
-                        h_max = h
-                        break
-                    if status in ("timeout", "not-applicable"):
-                        break
-                rows.append({"value": val, "h_max": h_max, "applicable": True, "E0": E0, "S": S, "tried": tried})
-                fails = ", ".join(f"{t['h']:g}:{t['status']}" for t in tried if t["status"] != "stable")
-                log(f"  {mname:32s} {sw['param']}={val:<8g} largest stable h = {h_max}  [{fails}]")
-            res["methods"][mname] = {"rows": rows, "style": meth.style}
+            mrows = [next(rows) for _ in sw["values"]]
+            for row in mrows:
+                if row["applicable"]:
+                    fails = ", ".join(f"{t['h']:g}:{t['status']}" for t in row["tried"] if t["status"] != "stable")
+                    log(f"  {mname:32s} {sw['param']}={row['value']:<8g} largest stable h = {row['h_max']}  [{fails}]")
+            res["methods"][mname] = {"rows": mrows, "style": M.METHODS[mname].style}
         out[sname] = res
     return out
 
@@ -525,6 +577,10 @@ def main(argv=None) -> int:
     add_out_argument(ap)
     ap.add_argument("--cache", type=Path, default=None, metavar="DIR",
                     help="reference-solution cache (default: runs/accuracy_cache under the current directory)")
+    ap.add_argument("--workers", type=int, default=1,
+                    help="local worker processes for the independent runs (redmax_sweep's pool; 0: this process; "
+                         "default 1: timings as on one core)")
+    ap.add_argument("--ray", default=None, metavar="auto|ADDRESS|local", help="run the independent runs on Ray")
     a = ap.parse_args(argv)
     what = set(a.only or ["verify", "work", "stability"])
     cases = a.cases or list(M.CASES)
@@ -562,7 +618,7 @@ def main(argv=None) -> int:
         bad = export_failures(ver)
         for c, why in bad.items():
             print(f"  MuJoCo not timed on {c}: {why}")
-        res = work_precision(cases, meths, export_bad=bad, cache_dir=a.cache)
+        res = work_precision(cases, meths, export_bad=bad, cache_dir=a.cache, workers=a.workers, ray=a.ray)
         if a.merge and (rd / "accuracy.json").exists():
             old = json.loads((rd / "accuracy.json").read_text())["cases"]
             for cname, rec in res.items():
@@ -588,7 +644,7 @@ def main(argv=None) -> int:
         if a.quick:
             sw = {k: {**v, "values": v["values"][::2]} for k, v in sw.items()}
         sm = [m for m in STAB_METHODS if m in meths]
-        st = stability(sw, sm, T=1.0 if a.quick else 5.0)
+        st = stability(sw, sm, T=1.0 if a.quick else 5.0, workers=a.workers, ray=a.ray)
         if a.merge and (rd / "stability.json").exists():
             old = json.loads((rd / "stability.json").read_text())["sweeps"]
             for k, v in st.items():

@@ -17,6 +17,7 @@ SUBCOMMANDS = {
     "friction": "frictional joints and contact (Fig. 5c), BISP vs SP",
     "accuracy": "work-precision charts and stability maps",
     "budget": "step budget: time to failure and overshoot on abusive inputs, cost of its checks",
+    "sweep": "redmax_sweep: speed-up of 2 local workers over 1 (40 klann runs), Ray per-task overhead",
 }
 
 

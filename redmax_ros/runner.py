@@ -9,15 +9,22 @@ w:<body>[i], i = 0..5, for prescribed body twists (required wrench [torque N m; 
 prescription's frame).
 Prescriptions, joint trajectories included, are scene values: ``--set 'prescribed={joints: {hinge: {position:
 {type: sine, amplitude: 0.4, frequency: 0.5}, b: 5}}}'`` (docs/scenes.md, Constraints).
+``--controller module:function`` (or ``path/to/file.py:function``) calls ``function(t, state)`` before every
+step and applies the commands it returns (``apply_commands``); redmax_sweep (redmax_ros/sweep/) runs this
+module's loop (``run``) over grids of scene overrides.
 """
 from __future__ import annotations
 
 import argparse
+import hashlib
+import importlib
+import importlib.util
 import sys
 import time
 from pathlib import Path
 
 import numpy as np
+from tqdm import tqdm
 
 from redmax_ros.core import SOLVERS, CommandError, SceneError, Simulator, StepBudget, StepError
 
@@ -36,7 +43,109 @@ def parse_args(argv=None):
     ap.add_argument("--step-budget-ms", type=float, default=None, metavar="MS",
                     help="CPU time a step's iterative solvers may take before the step fails (default: the "
                          "core's StepBudget, 50 ms; 0: unlimited, ProxSuite's own iteration caps)")
+    ap.add_argument("--controller", default=None, metavar="MODULE:FUNCTION",
+                    help="a Python callable (t [s], State) -> commands (a dict, see apply_commands) called before "
+                         "every step; MODULE is a dotted module name or a path to a .py file")
     return ap.parse_args(argv)
+
+
+def scene_overrides(sets=(), dt=None, solver=None) -> list:
+    """The override list ["key=value", ...] for Simulator.load: ``sets``, then ``dt=`` (time step h [s]) and
+    ``solver=`` when given (what --set, --dt and --solver mean)."""
+    out = list(sets)
+    if dt is not None:
+        out.append(f"dt={dt}")
+    if solver is not None:
+        out.append(f"solver={solver}")
+    return out
+
+
+def load_simulator(scene: str, overrides=(), step_budget_ms=None) -> Simulator:
+    """Simulator.load(scene, overrides) held to the step budget of --step-budget-ms (CPU ms per step; 0:
+    unlimited; None: the core's default). Raises SceneError / CommandError."""
+    sim = Simulator.load(scene, list(overrides))
+    if step_budget_ms is not None:
+        sim.budget = StepBudget.from_ms(step_budget_ms)
+    return sim
+
+
+def step_count(sim: Simulator, duration=None) -> int:
+    """Number of steps of h = sim.dt that cover ``duration`` [s] (None: the scene's); ValueError unless positive."""
+    duration = duration if duration is not None else sim.spec.duration
+    if not duration > 0:
+        raise ValueError("--duration must be positive")
+    return max(1, int(round(duration / sim.dt)))
+
+
+def load_controller(text: str):
+    """The callable named by ``module:function`` (module: a dotted name on sys.path, or a path to a .py file;
+    function: a dotted attribute path). Raises ValueError naming what is missing."""
+    mod_name, sep, attr = text.rpartition(":")
+    if not sep or not mod_name or not attr:
+        raise ValueError(f"controller {text!r}: expected module:function")
+    try:
+        if mod_name.endswith(".py") or "/" in mod_name:
+            path = Path(mod_name).expanduser().resolve()
+            if not path.is_file():
+                raise ValueError(f"controller {text!r}: no such file {path}")
+            key = "redmax_controller_" + hashlib.sha1(str(path).encode()).hexdigest()[:12]
+            mod = sys.modules.get(key)
+            if mod is None:
+                spec = importlib.util.spec_from_file_location(key, path)
+                mod = importlib.util.module_from_spec(spec)
+                sys.modules[key] = mod
+                try:
+                    spec.loader.exec_module(mod)
+                except BaseException:
+                    sys.modules.pop(key, None)
+                    raise
+        else:
+            mod = importlib.import_module(mod_name)
+    except ImportError as e:
+        raise ValueError(f"controller {text!r}: cannot import {mod_name}: {e}") from None
+    fn = mod
+    for part in attr.split("."):
+        fn = getattr(fn, part, None)
+        if fn is None:
+            raise ValueError(f"controller {text!r}: {mod_name} has no attribute {attr}")
+    if not callable(fn):
+        raise ValueError(f"controller {text!r}: {attr} is not callable")
+    return fn
+
+
+COMMANDS = ("joint_torques", "joint_velocities", "site_velocities", "site_axes", "site_forces", "release_joints",
+            "release_sites")
+
+
+def apply_commands(sim: Simulator, cmd) -> None:
+    """Apply a controller's commands through the Simulator API (each is held until changed):
+
+    * ``joint_torques`` {joint: torque [N m] or force [N], nv values}: ``set_joint_torques``;
+    * ``joint_velocities`` {joint: velocity [rad/s, m/s] or a trajectory dict}: ``prescribe_joints``;
+    * ``site_velocities`` {site: [vx, vy, vz] m/s, world}, optional ``site_axes`` {site: axes}: ``prescribe_sites``;
+    * ``site_forces`` {site: [fx, fy, fz] N, world}: ``set_site_forces``;
+    * ``release_joints`` / ``release_sites`` [names]: back to passive dynamics.
+
+    ``None`` or {} changes nothing. CommandError for unknown keys, names or malformed values."""
+    if not cmd:
+        return
+    if not isinstance(cmd, dict):
+        raise CommandError(f"a controller must return a dict of commands or None, got {type(cmd).__name__}")
+    unknown = set(cmd) - set(COMMANDS)
+    if unknown:
+        raise CommandError(f"unknown controller command(s) {sorted(unknown)} (known: {', '.join(COMMANDS)})")
+    if cmd.get("release_joints"):
+        sim.release_joints(list(cmd["release_joints"]))
+    if cmd.get("release_sites"):
+        sim.release_sites(list(cmd["release_sites"]))
+    if cmd.get("joint_torques"):
+        sim.set_joint_torques(cmd["joint_torques"])
+    if cmd.get("joint_velocities"):
+        sim.prescribe_joints(cmd["joint_velocities"])
+    if cmd.get("site_velocities"):
+        sim.prescribe_sites(cmd["site_velocities"], cmd.get("site_axes"))
+    if cmd.get("site_forces") is not None:
+        sim.set_site_forces(cmd["site_forces"])
 
 
 def csv_header(sim: Simulator) -> list:
@@ -66,55 +175,49 @@ def csv_row(sim: Simulator, res) -> np.ndarray:
     return np.concatenate([np.atleast_1d(np.asarray(p, float)) for p in parts])
 
 
-class Progress:
-    """A one-line progress bar on stderr, shown only for runs that last more than ~2 s of wall time."""
-
-    def __init__(self, total: int, quiet: bool):
-        self.total, self.quiet = total, quiet
-        self.t0 = self.last = time.perf_counter()
-        self.shown = False
-
-    def update(self, done: int):
-        if self.quiet:
-            return
-        now = time.perf_counter()
-        if now - self.t0 < 2.0 or now - self.last < 0.25:
-            return
-        self.last, self.shown = now, True
-        frac = done / self.total
-        eta = (now - self.t0) * (1 - frac) / max(frac, 1e-9)
-        bar = "#" * int(30 * frac)
-        sys.stderr.write(f"\r[{bar:<30}] {100 * frac:5.1f}%  {done}/{self.total} steps  eta {eta:5.1f} s")
-        sys.stderr.flush()
-
-    def close(self):
-        if self.shown:
-            sys.stderr.write("\n")
+def progress_bar(total: int, quiet: bool, unit: str = "step", desc: str | None = None):
+    """A tqdm bar on stderr, shown only once the work has lasted 2 s of wall time (never when ``quiet``)."""
+    return tqdm(total=total, disable=quiet, delay=2.0, mininterval=0.25, unit=unit, desc=desc, leave=False,
+                dynamic_ncols=True)
 
 
-def run(sim: Simulator, n_steps: int, quiet=False):
-    """Step n times; returns (rows (n+1, C) incl. the initial state, error or None, wall time [s])."""
+def run(sim: Simulator, n_steps: int, quiet=False, controller=None, on_step=None):
+    """Step n times; returns (header, rows (k+1, C) incl. the initial state, StepError or None, wall time of the
+    stepping [s]); the rows stop at the last successful step. ``controller(t, state) -> commands`` is called
+    before each step and its commands applied (``apply_commands``; its exceptions propagate);
+    ``on_step(sim, res)`` after each successful step."""
     header = csv_header(sim)
     rows = np.empty((n_steps + 1, len(header)))
     r0 = initial_row(sim)
     rows[0, :len(r0)] = r0
     rows[0, len(r0):] = np.nan  # no required forces before the first step
-    bar = Progress(n_steps, quiet)
     err = None
     t0 = time.perf_counter()
     k = 0
-    for k in range(1, n_steps + 1):
-        try:
-            res = sim.step()
-        except StepError as e:
-            err = e
-            k -= 1
-            break
-        rows[k] = csv_row(sim, res)
-        bar.update(k)
+    with progress_bar(n_steps, quiet) as bar:
+        for k in range(1, n_steps + 1):
+            if controller is not None:
+                apply_commands(sim, controller(sim.time, sim.state))
+            try:
+                res = sim.step()
+            except StepError as e:
+                err = e
+                k -= 1
+                break
+            rows[k] = csv_row(sim, res)
+            if on_step is not None:
+                on_step(sim, res)
+            if k % 64 == 0:
+                bar.update(64)
     wall = time.perf_counter() - t0
-    bar.close()
     return header, rows[:k + 1], err, wall
+
+
+def write_csv(path: Path, header, rows) -> None:
+    """Write the trajectory CSV: the ``header`` line, then the rows at %.17g (float64 round-trips exactly)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    np.savetxt(path, rows, delimiter=",", header=",".join(header), comments="", fmt="%.17g")
 
 
 def initial_row(sim: Simulator) -> np.ndarray:
@@ -143,27 +246,20 @@ def summary(sim, header, rows, wall, err) -> str:
 
 def main(argv=None) -> int:
     a = parse_args(argv)
-    overrides = list(a.set)
-    if a.dt is not None:
-        overrides.append(f"dt={a.dt}")
-    if a.solver is not None:
-        overrides.append(f"solver={a.solver}")
     try:
-        sim = Simulator.load(a.scene, overrides)
-        if a.step_budget_ms is not None:
-            sim.budget = StepBudget.from_ms(a.step_budget_ms)
-    except (SceneError, CommandError) as e:
+        sim = load_simulator(a.scene, scene_overrides(a.set, a.dt, a.solver), a.step_budget_ms)
+        n = step_count(sim, a.duration)
+        controller = load_controller(a.controller) if a.controller else None
+    except (SceneError, CommandError, ValueError) as e:
         print(f"redmax_run: {e}", file=sys.stderr)
         return 2
-    duration = a.duration if a.duration is not None else sim.spec.duration
-    if not duration > 0:
-        print("redmax_run: --duration must be positive", file=sys.stderr)
+    try:
+        header, rows, err, wall = run(sim, n, a.quiet, controller)
+    except CommandError as e:
+        print(f"redmax_run: controller: {e}", file=sys.stderr)
         return 2
-    n = max(1, int(round(duration / sim.dt)))
-    header, rows, err, wall = run(sim, n, a.quiet)
     out = a.out or Path("runs") / f"{sim.scene_name}.csv"
-    out.parent.mkdir(parents=True, exist_ok=True)
-    np.savetxt(out, rows, delimiter=",", header=",".join(header), comments="", fmt="%.17g")
+    write_csv(out, header, rows)
     print(summary(sim, header, rows, wall, err))
     print(f"  wrote {out} ({len(rows)} rows x {len(header)} columns)")
     return 1 if err is not None else 0

@@ -4,7 +4,7 @@
 #   1. .venv/ (python3.11 -m venv), pip upgraded;
 #   2. ROS 2 Jazzy from PyPI wheels (rclpy, common interfaces, Fast DDS) plus the
 #      colcon/ament/rosidl wheels needed to build our interface package;
-#   3. this project, editable, with extras: pip install -e .[test,bench];
+#   3. this project, editable, with extras: pip install -e .[test,bench,cluster] (cluster: Ray);
 #   4. the include-path fix for the wheels' exported CMake files;
 #   5. msg_defs/ (redmax_msgs; simulation_interfaces and tf2_msgs, written from the standard packages'
 #      definitions, built only where no installed one exists) built with colcon into install_msgs/.
@@ -103,12 +103,12 @@ if [ "${REDMAX_FORCE_SETUP:-0}" != 1 ] && [ -f "$PIP_STAMP" ] \
   say "python packages up to date"
 else
   rm -f "$PIP_STAMP"
-  say "installing python packages (ROS 2 Jazzy wheels, project with [test,bench]); takes a few minutes the first time"
+  say "installing python packages (ROS 2 Jazzy wheels, project with [test,bench,cluster]); takes a few minutes the first time"
   "${PIP[@]}" install -q --upgrade pip
-  "${PIP[@]}" install -q "${ROS_WHEELS[@]}" -e ".[test,bench]"
+  "${PIP[@]}" install -q "${ROS_WHEELS[@]}" -e ".[test,bench,cluster]"
   # setup.cfg sends `setup.py install/develop` scripts to lib/redmax_ros (for colcon
   # and `ros2 run`); pip's wheel-based installs ignore it. Make sure that stays true.
-  for exe in redmax_run redmax_node redmax_bench; do
+  for exe in redmax_run redmax_node redmax_bench redmax_sweep; do
     [ -x "$VENV/bin/$exe" ] || die "pip did not put console script $exe into .venv/bin"
   done
   echo "$pip_hash" > "$PIP_STAMP"

@@ -7,8 +7,8 @@
   benchmarks that may run without them);
 * the core imports no ROS package, and the layers of the core import only downwards:
   geometry -> scene -> model -> solvers -> dynamics -> friction -> step -> simulator;
-* the node, the runner, the logging and the benchmarks use the core through its public API
-  (``redmax_ros.core`` and the public names of its sub-packages), never the reverse.
+* the node, the runner, the logging, the sweeps (redmax_ros/sweep/) and the benchmarks use the core through its
+  public API (``redmax_ros.core`` and the public names of its sub-packages), never the reverse.
 """
 from __future__ import annotations
 
@@ -191,9 +191,9 @@ def test_core_layers_import_only_downwards():
     assert bad == []
 
 
-@pytest.mark.parametrize("client", ["redmax_ros.node", "redmax_ros.logging", "redmax_ros.runner"])
+@pytest.mark.parametrize("client", ["redmax_ros.node", "redmax_ros.logging", "redmax_ros.runner", "redmax_ros.sweep"])
 def test_node_runner_and_logging_use_only_the_core_facade(client):
-    """Thin clients: the node, the runner and the logging import the core only as ``redmax_ros.core``."""
+    """Thin clients: the node, the runner, the logging and the sweeps import the core only as ``redmax_ros.core``."""
     bad = []
     for m, imps in IMPORTS.items():
         if not (m == client or m.startswith(client + ".")):

@@ -75,3 +75,20 @@ def test_body_wrench_columns(tmp_path):
     sim = Simulator.load("catalogue/body_twist")
     for k in range(1, 11):
         assert np.array_equal(rows[k, -6:], sim.step().body_wrenches["lower"])
+
+
+def test_controller_commands_each_step(tmp_path):
+    """--controller file.py:fn: fn(t, state) is called before every step and its torque applied, as setting
+    the same torque on the Simulator by hand; bad commands are reported (exit 2)."""
+    ctl = tmp_path / "ctl.py"
+    ctl.write_text("def pd(t, state):\n    return {'joint_torques': {'hinge': -5.0 * state.q[0] - 0.5 * state.v[0]}}\n"
+                   "def bad(t, state):\n    return {'joint_torque': {}}\n")
+    out = tmp_path / "p.csv"
+    assert runner.main(["pendulum", "--duration", "0.02", "--out", str(out), "--quiet", "--controller", f"{ctl}:pd"]) == 0
+    header, rows = read(out)
+    sim = Simulator.load("pendulum")
+    for k in range(1, 21):
+        sim.set_joint_torques({"hinge": -5.0 * sim.state.q[0] - 0.5 * sim.state.v[0]})
+        assert rows[k, header.index("q:hinge")] == sim.step().q[0]
+    assert runner.main(["pendulum", "--duration", "0.01", "--out", str(out), "--quiet", "--controller", f"{ctl}:bad"]) == 2
+    assert runner.main(["pendulum", "--quiet", "--controller", f"{ctl}:nope"]) == 2
