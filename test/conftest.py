@@ -16,7 +16,8 @@ Environment (``pytest_configure``, before any test module is imported):
   unless set. A node started by a test as a subprocess inherits them.
 
 Fixtures: ``ros_domain`` (session: the domain id, checked private), ``ros`` (module: rclpy.init and
-rclpy.shutdown around a test module's ROS tests) and ``load_sim`` (Simulator.load as a factory).
+rclpy.shutdown around a test module's ROS tests), ``load_sim`` (Simulator.load as a factory) and ``rk4_aba``
+(the RK4 reference of the order tests).
 """
 from __future__ import annotations
 
@@ -85,3 +86,27 @@ def load_sim():
     def load(name_or_path, overrides=(), solver=None):
         return Simulator.load(name_or_path, overrides, solver=solver)
     return load
+
+
+@pytest.fixture
+def rk4_aba():
+    """``rk4_aba(model, q, v, T, h=1e-4)``: the configuration after T s of classical RK4 on Pinocchio's ABA
+    (tree, no applied torques), q updated on the manifold: the reference of the order tests."""
+    import numpy as np
+    import pinocchio as pin
+
+    def run(model, q, v, T, h=1e-4):
+        d = model.createData()
+        q, v, tau = np.array(q, float), np.array(v, float), np.zeros(model.nv)
+        for _ in range(int(round(T / h))):
+            k1v, k1a = v, pin.aba(model, d, q, v, tau)
+            k2v = v + 0.5 * h * k1a
+            k2a = pin.aba(model, d, pin.integrate(model, q, 0.5 * h * k1v), k2v, tau)
+            k3v = v + 0.5 * h * k2a
+            k3a = pin.aba(model, d, pin.integrate(model, q, 0.5 * h * k2v), k3v, tau)
+            k4v = v + h * k3a
+            k4a = pin.aba(model, d, pin.integrate(model, q, h * k3v), k4v, tau)
+            q = pin.integrate(model, q, h / 6 * (k1v + 2 * k2v + 2 * k3v + k4v))
+            v = v + h / 6 * (k1a + 2 * k2a + 2 * k3a + k4a)
+        return q
+    return run

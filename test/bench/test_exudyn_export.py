@@ -2,7 +2,6 @@
 the four-bar reproduces RK4 on our reduced dynamics (pin.aba; the four-bar: our step at tiny h) at small h, keeps the
 loop closed, and converges at second order (generalized-alpha). Exudyn is part of the ``bench`` extra."""
 import numpy as np
-import pinocchio as pin
 import pytest
 
 from redmax_ros.core import Simulator
@@ -23,30 +22,15 @@ def _exudyn_q(sim, h, T, sample_dt):
     return t, q, v, v0
 
 
-def _rk4(sim, T, h=1e-4):
-    m = sim.mech.model
-    d = m.createData()
-    q, v, tau = sim.state.q.copy(), sim.joint_velocities(), np.zeros(m.nv)
-    for _ in range(int(round(T / h))):
-        f = lambda q, v: (v, pin.aba(m, d, q, v, tau))  # noqa: E731
-        k1 = f(q, v)
-        k2 = f(pin.integrate(m, q, 0.5 * h * k1[0]), v + 0.5 * h * k1[1])
-        k3 = f(pin.integrate(m, q, 0.5 * h * k2[0]), v + 0.5 * h * k2[1])
-        k4 = f(pin.integrate(m, q, h * k3[0]), v + h * k3[1])
-        q = pin.integrate(m, q, h / 6 * (k1[0] + 2 * k2[0] + 2 * k3[0] + k4[0]))
-        v = v + h / 6 * (k1[1] + 2 * k2[1] + 2 * k3[1] + k4[1])
-    return q
-
-
 @pytest.mark.parametrize("scene,over", [("pendulum", []), ("chain", ["params.n=5"])])
-def test_tree_scenes_match_rk4(scene, over):
+def test_tree_scenes_match_rk4(scene, over, rk4_aba):
     """At h = 1e-4 over 0.5 s the Exudyn joint angles equal RK4 on pin.aba to 1e-5 rad (the same state at t = 0;
     generalized-alpha is second order: measured 2e-8 on the pendulum, 1.3e-6 on chain-5)."""
     sim = Simulator.load(scene, over)
     t, q, _, _ = _exudyn_q(sim, 1e-4, 0.5, 0.05)
     i = int(np.argmin(np.abs(t - 0.5)))
     assert abs(t[i] - 0.5) < 1e-9
-    assert np.abs(q[i] - _rk4(sim, 0.5)).max() < 1e-5
+    assert np.abs(q[i] - rk4_aba(sim.mech.model, sim.state.q, sim.joint_velocities(), 0.5)).max() < 1e-5
 
 
 def test_fourbar_matches_our_step_and_keeps_the_loop_closed():
