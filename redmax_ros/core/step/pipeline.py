@@ -43,7 +43,7 @@ from redmax_ros.core.friction import staggered
 from redmax_ros.core.solvers.direct import solve_direct
 from redmax_ros.core.solvers.kkt import max_row_residual
 from redmax_ros.core.step import body_twist, trajectory
-from redmax_ros.core.step.scheme import History, bdf2_point
+from redmax_ros.core.step.scheme import bdf2_point, next_history
 from redmax_ros.core.step.state import (Diagnostics, State, StepResult, applied_torques, check_applied, check_inputs,
                                         check_rows, check_speed)
 
@@ -98,8 +98,7 @@ def _step(mech, ws, state: State, cmd, h: float, velocity, t0) -> tuple:
         raise StepError("non-finite energy after the step")
     diag = Diagnostics(ek, ep, es, ek + ep + es, viol_pos, vs.violation_vel, vs.iterations, vs.solver,
                        time.perf_counter() - t0, vs.sol, vs.friction)
-    new = state.advanced(h, q_new, v_hyper, vs.friction_cache,
-                         history=History(state.q, state.v, h) if mech.scheme == "bdf2" else None)
+    new = state.advanced(h, q_new, v_hyper, vs.friction_cache, history=next_history(mech.scheme, state.q, state.v, h))
     return new, StepResult(new.t, q_new, v_new, effort, site_forces, diag, wrenches)
 
 

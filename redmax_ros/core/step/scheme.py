@@ -59,11 +59,22 @@ class Bdf2Point:
     h: float  # s, hat h = 2 h / 3
 
 
+def continues(history: History | None, h: float) -> bool:
+    """Whether a step of h can be a BDF2 step from ``history``: one exists and was made with the same h (else
+    the step starts up with BDF1)."""
+    return history is not None and history.h == h
+
+
+def next_history(scheme: str, q, v, h: float) -> History | None:
+    """The history a step of h from (q, v) leaves in its State: (q, v, h) under BDF2, None under BDF1."""
+    return History(q, v, h) if scheme == "bdf2" else None
+
+
 def bdf2_point(model, to_reduced, q, v, history: History | None, h: float) -> Bdf2Point | None:
     """The Bdf2Point of the step of h from (q, v) with ``history``; None when the step must start up (no
     history, or it was made with another step size: the BDF1 step of Eq. 2). ``model``: the pin.Model of the configuration space;
     ``to_reduced``: hyper-reduced -> reduced velocities (T = J_rR)."""
-    if history is None or history.h != h:
+    if not continues(history, h):
         return None
     hh = 2.0 * h / 3.0
     d = pin.difference(model, history.q, q)  # q_k (-) q_k-1, tangent [rad, m]

@@ -27,7 +27,7 @@ from redmax_ros.core.step.compiled.data import (OUT_ITERS, OUT_E_KIN, OUT_E_POT,
 from redmax_ros.core.step.compiled.kernel import STAGE_NAMES, step_kernel, step_n_kernel
 from redmax_ros.core.step.compiled.model import build_model, unsupported
 from redmax_ros.core.step.pipeline import pinocchio_velocity, step as pipeline_step
-from redmax_ros.core.step.scheme import History, bdf2_point
+from redmax_ros.core.step.scheme import bdf2_point, continues, next_history
 from redmax_ros.core.step.state import BatchResult, Diagnostics, StepResult, step_each
 from redmax_ros.core.step.workspace import Workspace
 
@@ -99,8 +99,7 @@ class CompiledBackend:
 
     def _history(self, state, h) -> bool:
         """Whether the step of h from ``state`` is a BDF2 step (integrator.scheme bdf2 and a history of h)."""
-        hs = state.history
-        return self.bdf2 and hs is not None and hs.h == h
+        return self.bdf2 and continues(state.history, h)
 
     def _history_args(self, state, h):
         """(q_k-1, qdot_k-1, valid) for the kernel: copies of the history, or placeholders and 0."""
@@ -110,7 +109,7 @@ class CompiledBackend:
 
     def _advanced(self, state, h, q, v, qp, vp, steps=1):
         """The State after the kernel's steps, with BDF2's history (q_k-1, qdot_k-1, h) when the scheme keeps one."""
-        return state.advanced(h, q, v, steps=steps, history=History(qp, vp, h) if self.bdf2 else None)
+        return state.advanced(h, q, v, steps=steps, history=next_history(self.mech.scheme, qp, vp, h))
 
     def _handed_back(self, d):
         self.handoffs[STAGE_NAMES[int(d["out"][OUT_STAGE])]] += 1
