@@ -30,7 +30,8 @@ message) so the client measures the node rather than its own decoding.
 (e) free-run real-time factor under a flood of commands: node subprocess (hand, h = 1 ms,
     joint_states every step) at real_time_factor 0 and then 1 (set through the parameter service);
     a flooder subprocess (its own GIL) publishes joint_commands at 10 kHz for 5 s: valid (the wrist's
-    two DOFs, a slowly varying small velocity) or invalid (an unknown joint), interleaved with
+    two DOFs, a small velocity of zero mean, period 0.5 s of wall time, so that the wrist stays
+    within its limits at any real-time factor) or invalid (an unknown joint), interleaved with
     unflooded windows per round (none, valid, invalid). RTF = sim-time advance / wall time over the
     window from the raw joint_states stamps (and, as a check, the mean of the node's /diagnostics
     windows), in the flood, in its last 2 s and in the 3 s after it, per 0.5 s bins, and the longest
@@ -604,7 +605,8 @@ def _flooder(ns):
     node = Node("redmax_bench_flooder", namespace=ns)
     pub = node.create_publisher(JointState, "joint_commands", QoSProfile(
         history=HistoryPolicy.KEEP_LAST, depth=10, reliability=ReliabilityPolicy.RELIABLE))
-    # valid: the wrist's two DOFs, v = 0.05 sin(2 pi t / 5 s) [rad/s] at 10 kHz (pre-serialized, 500 levels)
+    # valid: the wrist's two DOFs, v = 0.05 sin(2 pi t / 0.5 s) [rad/s] at 10 kHz (pre-serialized, 500 levels); with a
+    # 5 s period the wrist drifted 0.6 rad in sim time at RTF 5 and the prescription met its limit (QP infeasible)
     valid = [serialize_message(JointState(name=["wrist[0]", "wrist[1]"],
                                           velocity=[0.05 * math.sin(2 * math.pi * k / 500), 0.0]))
              for k in range(500)]
@@ -618,7 +620,7 @@ def _flooder(ns):
         if not parts or parts[0] == "quit":
             break
         kind, rate, seconds = parts[0], float(parts[1]), float(parts[2])
-        period, per_level, lead = 1.0 / rate, max(1, int(rate * 5.0 / 500)), 2e-4
+        period, per_level, lead = 1.0 / rate, max(1, int(rate * 0.5 / 500)), 2e-4
         n = k = 0
         t0 = time.monotonic()
         stop = t0 + seconds

@@ -417,6 +417,12 @@ class Engine:
                       + [(("joint", j), {"position": [float(x) for x in v], "b": b}) for j, v in positions.items()]
                       + [(("torque", j), v) for j, v in torques.items()])
 
+    def command_superseded(self):
+        """A command dropped unread because a newer one sets the same prescriptions (command_reader.py):
+        counted as received and coalesced."""
+        self.commands_received += 1
+        self.commands_coalesced += 1
+
     def joint_trajectory(self, msg):
         """trajectory_msgs/JointTrajectory (any thread): validated here (convert.joint_trajectory), then
         coalesced with the joint commands (the latest prescription per joint wins); resolved against the

@@ -59,7 +59,8 @@ from redmax_ros.logging.mcap_log import McapLogger
 from . import engine as eng
 from . import step_server
 from .command_reader import CommandReader
-from .cdr import JointStateEncoder, SolverStatsEncoder, StepRecords, TFMessageEncoder, encode_clock, serialize_message
+from .cdr import (JointStateEncoder, SolverStatsEncoder, StepRecords, TFMessageEncoder, encode_clock, joint_state_key,
+                  serialize_message)
 from .convert import (StateMessages, body_prescriptions_msg, description_msg, diagnostics_msg, markers_msg,
                       point_prescriptions_msg)
 from .convert import prescriptions_msg, time_msg
@@ -430,7 +431,10 @@ class RedmaxNode(Node):
             for short, (cls, cb) in self._inputs.items():
                 subs.append(self._subscribe(cnode, self._topic_by_short[short], cls, cb, None))
                 cbs.append(cb)
-            commands = CommandReader(cnode, subs, cbs, on_error=self._publish_error)
+            keyed = [short == "joint_commands" for short in self._inputs]  # newer same-key commands supersede
+            commands = CommandReader(cnode, subs, cbs, on_error=self._publish_error,
+                                     keys=[joint_state_key if k else None for k in keyed],
+                                     superseded=[self._on_joint_command_superseded if k else None for k in keyed])
         step_name = self.resolve_service_name("step_simulation")
         if os.environ.get("REDMAX_STEP_SERVER", "raw") != "events" and step_server.available():
             step = _StepHelper(self, step_name)
@@ -690,6 +694,12 @@ class RedmaxNode(Node):
     def _on_joint_command(self, data):
         self._log_in(self._topic_of("joint_commands"), data)
         self.engine.joint_command(deserialize_message(data, JointState))
+
+    def _on_joint_command_superseded(self, data):
+        """A joint command a newer one with the same names and fields followed in one drain
+        (command_reader.py): logged as received, counted as coalesced, not read."""
+        self._log_in(self._topic_of("joint_commands"), data)
+        self.engine.command_superseded()
 
     def _on_joint_trajectory(self, data):
         self._log_in(self._topic_of("joint_trajectory"), data)
