@@ -27,11 +27,11 @@ import collections
 import threading
 import time
 from concurrent.futures import Future
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from redmax_ros.core import CommandError, SceneError, SceneNotFound, Simulator, State, StepBudget, StepError
+from redmax_ros.core import CommandError, SceneError, SceneNotFound, Simulator, StepBudget, StepError
 
 from .convert import (CommandRejected, SceneInfo, TrajectoryCommand, body_command, joint_command, joint_trajectory,
                       point_command)
@@ -609,10 +609,10 @@ class Engine:
             if scope & SCOPE_STATE:
                 t = sim.time
                 sim.reset()  # initial q, v, prescriptions and torques
-                sim.set_state(State(t, sim.state.q, sim.state.v))
+                sim.set_state(replace(sim.state, t=t, k=0, t0=None, history=None))  # deformables kept
                 self.cmd_times.clear()
             if scope & SCOPE_TIME:
-                sim.set_state(State(0.0, sim.state.q, sim.state.v))
+                sim.set_state(replace(sim.state, t=0.0, k=0, t0=None, history=None))  # deformables kept
                 self.step_index = 0
                 self.cmd_times = {k: 0.0 for k in self.cmd_times}
         self.pacer.anchor(sim.time)

@@ -43,14 +43,16 @@ class State:
     k: int = 0  # steps taken since the time origin t0
     t0: float | None = None  # time origin [s] (None: t); t = t0 + k h after k steps of h, one rounding
     history: object = None  # step.scheme.History (q_k-1, qdot_k-1, h) for integrator.scheme bdf2, else None
+    deform: object = None  # deformable.system.DeformState (vertex positions, velocities) with deformables, else None
 
-    def advanced(self, h: float, q, v, friction_cache=None, steps: int = 1, history=None) -> "State":
+    def advanced(self, h: float, q, v, friction_cache=None, steps: int = 1, history=None, deform=None) -> "State":
         """The state after ``steps`` steps of h: t = t0 + (k + steps) h, computed from the step count, not by
         accumulating h (after 380,910 steps of 1 ms the sum gave 380.909999998 s; t0 + k h is the float
         nearest to the exact time, so round(t * 1e9) is the exact nanosecond count when h is). ``history``:
-        what a BDF2 step needs of the last step (step.scheme.History), None for BDF1."""
+        what a BDF2 step needs of the last step (step.scheme.History), None for BDF1. ``deform``: the
+        deformables' state after the step (step/deformable_stages.py), None without deformables."""
         t0 = self.t if self.t0 is None else self.t0
-        return State(t0 + (self.k + steps) * h, q, v, friction_cache, self.k + steps, t0, history)
+        return State(t0 + (self.k + steps) * h, q, v, friction_cache, self.k + steps, t0, history, deform)
 
     def time_after(self, h: float) -> float:
         """t_k+1 = t0 + (k + 1) h: the time the next step of h ends at (as ``advanced`` computes it)."""
