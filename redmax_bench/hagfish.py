@@ -1,0 +1,142 @@
+"""redmax_bench hagfish: the paper's HAGFISH (Fig. 3, §6; scenes/hagfish.yaml) driven by a procedural tail
+motion that tries to tie an overhand knot, with self-collision as unilateral rows of the QP of Eq. (5)
+(docs/collisions.md). Per-step cost split into collision detection, QP (the velocity solve) and the rest,
+active contacts, QP iterations, steps/s at h = 1e-3 (target 200), the knot measures (crossing number of
+the centre line in the top view, tail through the loop), the worst penetration and the joint limits.
+Writes hagfish.json into --out.
+
+    redmax_bench hagfish [--steps N (default 3000 = 3 s: the knot is tied at 2.9 s)] [--out DIR]
+
+The drive: two body points (sites s19, s39) are held by PD forces [N] at :data:`ANCHORS` (the standing
+part, 5 cm above the floor) and the tail tip (site ``tail_tip``) is pulled by a PD force towards a target
+moving along :data:`WAYPOINTS` (world frame [m], times [s]): out and back (the loop), over the standing part,
+under it into the loop, up and over the loop's outgoing part; then held. Forces, not prescribed
+velocities, so the contact rows can always be met (a prescribed point pushed into the body would make the
+QP infeasible).
+"""
+from __future__ import annotations
+
+import argparse
+import time
+
+import numpy as np
+
+from redmax_ros.core import Simulator
+from redmax_bench.common import add_out_argument, write_json
+
+# Two body points (sites s19, s39) are held by PD forces above the floor at ANCHORS: the standing part of
+# the knot, a bar along x at z = 0.05 m with room under it. (t [s], target of the tail tip [m]): swing out to
+# +y and back, over the bar to -y (crossing 1, over), down and under the bar back to +y, inside the loop
+# (crossing 2, under), up and over the tail's outgoing part out of the loop (crossing 3, over), held there.
+ANCHORS = {"s19": (0.09, 0.0, 0.05), "s39": (0.18, 0.0, 0.05)}
+WAYPOINTS = [(0.0, (0.45, 0.0, 0.03)), (0.8, (0.26, 0.07, 0.06)), (1.3, (0.17, 0.06, 0.10)),
+             (1.7, (0.14, -0.05, 0.10)), (2.1, (0.14, -0.05, 0.01)), (2.5, (0.155, 0.03, 0.01)),
+             (2.7, (0.16, 0.03, 0.12)), (3.1, (0.24, -0.02, 0.12)), (4.0, (0.24, -0.02, 0.12))]
+KP_ANCHOR, KD_ANCHOR = 40.0, 1.0  # N/m, N s/m
+KP, KD = 20.0, 0.6  # N/m, N s/m
+
+
+def target(t: float) -> np.ndarray:
+    """Piecewise-linear waypoint target of the tail tip at time t [m]."""
+    ts = [w[0] for w in WAYPOINTS]
+    ps = np.array([w[1] for w in WAYPOINTS], float)
+    return np.array([np.interp(t, ts, ps[:, k]) for k in range(3)])
+
+
+def centre_line(sim) -> np.ndarray:
+    """(n, 3) world positions of the segments' body frames (the centre line) [m]."""
+    P = sim.body_poses()
+    return np.array([np.asarray(P[b][0], float) for b in sim.mech.bodies if b.startswith("seg")])
+
+
+def crossings(X: np.ndarray) -> list:
+    """Crossings of the polyline X (n,3) in the top view (xy): [(i, j, which is over)] for segments
+    i < j - 1 whose xy projections intersect; 'over' is the index of the higher one at the crossing."""
+    out = []
+    P = X[:, :2]
+    n = len(P) - 1
+    for i in range(n):
+        a, b = P[i], P[i + 1]
+        for j in range(i + 2, n):
+            c, d = P[j], P[j + 1]
+            M = np.array([b - a, c - d]).T
+            det = np.linalg.det(M)
+            if abs(det) < 1e-14:
+                continue
+            s, u = np.linalg.solve(M, c - a)
+            if 0 <= s <= 1 and 0 <= u <= 1:
+                zi = X[i, 2] + s * (X[i + 1, 2] - X[i, 2])
+                zj = X[j, 2] + u * (X[j + 1, 2] - X[j, 2])
+                out.append((i, j, i if zi > zj else j))
+    return out
+
+
+def knot_measures(X: np.ndarray) -> dict:
+    """Crossing number of the top view and whether the crossings alternate over/under along the body
+    (an overhand knot's diagram: 3 crossings, alternating)."""
+    cr = crossings(X)
+    events = sorted([(i, c[2] == c[0]) for c in cr for i in (c[0],)] + [(c[1], c[2] == c[1]) for c in cr])
+    alternating = len(events) >= 2 and all(events[k][1] != events[k + 1][1] for k in range(len(events) - 1))
+    return {"crossings": len(cr), "alternating": bool(alternating)}
+
+
+def run(steps: int, drive: bool = True, sim=None) -> dict:
+    """Step the hagfish ``steps`` times at its dt with the tail drive; the cost split and measures."""
+    sim = sim or Simulator.load("hagfish", budget=None)  # no step budget: a knot step's QP can take > 50 ms
+    mech = sim.mech
+    h = sim.spec.dt
+    tip = mech.site_index["tail_tip"]
+    anchors = {n: mech.site_index[n] for n in ANCHORS}
+    X0 = sim.site_positions()
+    x_prev, a_prev = X0[tip], {n: X0[i] for n, i in anchors.items()}
+    lo, hi = mech.lower, mech.upper
+    det = qp = tot = 0.0
+    rows = act = iters = 0
+    worst, worst_lim = np.inf, 0.0
+    max_active = 0
+    for k in range(steps):
+        Xs = sim.site_positions()
+        x = Xs[tip]
+        vtip = (x - x_prev) / h
+        x_prev = x
+        if drive:
+            f = {"tail_tip": KP * (target(sim.time) - x) - KD * vtip}
+            for n, i in anchors.items():
+                f[n] = KP_ANCHOR * (np.asarray(ANCHORS[n]) - Xs[i]) - KD_ANCHOR * (Xs[i] - a_prev[n]) / h
+                a_prev[n] = Xs[i]
+            sim.set_site_forces(f)
+        t0 = time.perf_counter()
+        res = sim.step()
+        tot += time.perf_counter() - t0
+        c = res.diagnostics.solution.contacts
+        det += c.t_detect + c.t_rows
+        qp += c.t_solve
+        rows += c.rows
+        act += c.active
+        max_active = max(max_active, c.active)
+        iters += res.diagnostics.iterations
+        worst = min(worst, c.min_distance)
+        qr = sim.joint_positions() if hasattr(sim, "joint_positions") else None
+        if qr is not None and len(qr) == mech.nv:
+            worst_lim = max(worst_lim, float(np.max(np.maximum(qr - hi, lo - qr))))
+    X = centre_line(sim)
+    out = {"steps": steps, "h": h, "nv": mech.nv, "steps_per_s": steps / tot,
+           "ms_per_step": 1e3 * tot / steps, "ms_detect": 1e3 * det / steps, "ms_qp": 1e3 * qp / steps,
+           "ms_rest": 1e3 * (tot - det - qp) / steps, "rows_per_step": rows / steps,
+           "active_per_step": act / steps, "max_active": max_active, "qp_iterations_per_step": iters / steps,
+           "worst_distance_m": worst, "worst_limit_excess_rad": worst_lim, "tip_error_m":
+           float(np.linalg.norm(sim.site_positions()[tip] - target(sim.time)))}
+    out.update(knot_measures(X))
+    return out
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(prog="redmax_bench hagfish", description=__doc__.split("\n")[0])
+    ap.add_argument("--steps", type=int, default=3000)
+    add_out_argument(ap)
+    a = ap.parse_args(argv)
+    r = run(a.steps)
+    for k, v in r.items():
+        print(f"{k:26s} {v}")
+    write_json(a.out, "hagfish", r)
+    return 0
