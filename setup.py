@@ -66,6 +66,8 @@ setup(
         "mcap-ros2-support",
         "tqdm",  # progress bars of redmax_run, redmax_sweep and redmax_bench
         "pyarrow",  # redmax_sweep's Parquet results table (redmax_ros/sweep/table.py)
+        "scipy",  # sparse LU of the coupled deformable solve (core/deformable/coupled_solve.py)
+        "meshio",  # tetrahedral mesh files of deformables (.msh, .vtk, .vtu; core/deformable/mesh_io.py)
     ],
     extras_require={
         # Benchmarks (redmax_bench): MuJoCo and Exudyn as comparators, matplotlib for the charts.

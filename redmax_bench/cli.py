@@ -18,6 +18,8 @@ SUBCOMMANDS = {
     "accuracy": "work-precision charts and stability maps",
     "budget": "step budget: time to failure and overshoot on abusive inputs, cost of its checks",
     "sweep": "redmax_sweep: speed-up of 2 local workers over 1 (40 klann runs), Ray per-task overhead",
+    "hagfish": "HAGFISH self-collision (Eq. 5 QP): cost split detection / QP / rest, contacts, knot measures",
+    "starfish": "STARFISH deformable coupling: cost split skeleton / mesh assembly / coupled solve, CPU vs vertices, RTF",
 }
 
 

@@ -6,7 +6,8 @@ CSV columns: t; q:<joint> and v:<joint> (``[i]`` per component of multi-DOF join
 E_spring, E_total [J]; violation (max loop-closure residual [m]); tau:<joint> for prescribed joints
 (required torque [N m] or force [N]), f:<site>[i] for prescribed sites (required force [N], world) and
 w:<body>[i], i = 0..5, for prescribed body twists (required wrench [torque N m; force N] in the
-prescription's frame).
+prescription's frame); with deformables E_def_kin, E_def_elastic [J] (their share, included in E_kin and
+E_spring) and attach_violation (the attachment drift before the post-stabilization [m], docs/deformables.md).
 Prescriptions, joint trajectories included, are scene values: ``--set 'prescribed={joints: {hinge: {position:
 {type: sine, amplitude: 0.4, frequency: 0.5}, b: 5}}}'`` (docs/scenes.md, Constraints).
 ``--controller module:function`` (or ``path/to/file.py:function``) calls ``function(t, state)`` before every
@@ -152,6 +153,8 @@ def csv_header(sim: Simulator) -> list:
     d = sim.describe()
     cols = ["t"] + [f"q:{n}" for n in d.position_names] + [f"v:{n}" for n in d.velocity_names]
     cols += ["E_kin", "E_pot", "E_spring", "E_total", "violation"]
+    if d.deformables:  # docs/deformables.md: the deformables' share of the energies, the attachment drift
+        cols += ["E_def_kin", "E_def_elastic", "attach_violation"]
     for name in sim.prescribed_joints():
         j = sim.mech.joint_index[name]
         cols += [f"tau:{name}"] if j.nv == 1 else [f"tau:{name}[{i}]" for i in range(j.nv)]
@@ -165,6 +168,9 @@ def csv_header(sim: Simulator) -> list:
 def csv_row(sim: Simulator, res) -> np.ndarray:
     dg = res.diagnostics
     parts = [[res.t], res.q, res.v, [dg.E_kin, dg.E_pot, dg.E_spring, dg.E_total, dg.violation_pos]]
+    rep = sim.deformable_report()
+    if rep is not None:
+        parts.append([rep["E_kin"], rep["E_elastic"], rep["attachment_drift"]])
     for name in sim.prescribed_joints():
         j = sim.mech.joint_index[name]
         parts.append(res.effort[j.idx_v:j.idx_v + j.nv])

@@ -24,7 +24,7 @@ OPTIONAL_MODULES = ("mujoco", "matplotlib", "exudyn", "ray", "rclpy", "redmax_ms
                     "rcl_interfaces", "zstandard", "lz4")
 ROS_MODULES = OPTIONAL_MODULES[4:] + ("rosidl_runtime_py", "ament_index_python")
 # layers of redmax_ros.core, bottom first; a module may import its own layer and the ones below
-CORE_LAYERS = [("errors", "jit", "linalg", "spatial"), ("geometry",), ("scene",), ("model",), ("solvers",),
+CORE_LAYERS = [("errors", "jit", "linalg", "spatial"), ("geometry",), ("deformable",), ("scene",), ("model",), ("solvers",),
                ("dynamics",), ("friction",), ("step",), ("simulator",)]
 
 

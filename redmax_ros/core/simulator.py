@@ -9,7 +9,7 @@ StepError("step budget exceeded: ...").
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -24,6 +24,7 @@ from redmax_ros.core.solvers.budget import StepBudget
 from redmax_ros.core.step.backends import make_backend
 from redmax_ros.core.step import body_twist, trajectory
 from redmax_ros.core.step.compile import compile_scene
+from redmax_ros.core.step.deformable_stages import deform_state
 from redmax_ros.core.step.state import Commands, State, StepResult, step_each
 
 
@@ -74,6 +75,7 @@ class SceneDescription:
     springs: list
     dt: float
     dof_positions: object = None  # dof_positions.DofPositions: one position per velocity DOF (joint_states)
+    deformables: list = field(default_factory=list)  # (name, kind 'string'|'fem', vertices, elements) per deformable
 
 
 DEFAULT_BUDGET = StepBudget()  # 50 ms CPU time of the iterative solvers (JIT excluded), QP caps 1000 / 50
@@ -168,8 +170,15 @@ class Simulator:
         return self.backend.workspace.to_reduced(self.state.v).copy()
 
     def energies(self) -> tuple:
-        """(E_kin, E_pot, E_spring) [J] of the current state (as the step's diagnostics compute them)."""
-        return energies(self.mech, self.backend.workspace, self.state.q, self.joint_velocities())
+        """(E_kin, E_pot, E_spring) [J] of the current state (as the step's diagnostics compute them; with
+        deformables their kinetic, gravitational and elastic energies are included)."""
+        ek, ep, es = energies(self.mech, self.backend.workspace, self.state.q, self.joint_velocities())
+        dm = self.deformables
+        if dm is not None:
+            ds = deform_state(dm, self.state)
+            dk, dg, de = dm.energies(ds.x, ds.v)
+            ek, ep, es = ek + dk, ep + dg, es + de
+        return ek, ep, es
 
     # -- commands
     def _joint_vector(self, name, value, allowed=None, what="joint"):
@@ -423,7 +432,40 @@ class Simulator:
             couplings=[Coupling(c.name, list(c.joints), c.ratios.tolist()) for c in self.spec.couplings],
             loops=list(m.loop_names), springs=list(m.spring_names), dt=self.dt,
             dof_positions=DofPositions.from_model(m.model),
+            deformables=self.deformables.describe() if self.deformables is not None else [],
         )
+
+    # -- deformables (docs/deformables.md)
+    @property
+    def deformables(self):
+        """The scene's deformable.system.Deformables (None without deformables)."""
+        return getattr(self.backend, "deformables", None)
+
+    def deformable_positions(self) -> dict:
+        """name -> (n,3) world vertex positions [m] of each deformable at the current state."""
+        dm = self.deformables
+        if dm is None:
+            return {}
+        x = deform_state(dm, self.state).x
+        return {n: dm.part(i, x).copy() for i, n in enumerate(dm.names)}
+
+    def deformable_surfaces(self) -> dict:
+        """name -> (F,3) vertex indices of each deformable's boundary triangles (FEM) or (S,2) segments (string),
+        indices into deformable_positions()[name] (for TRIANGLE_LIST / LINE_LIST markers)."""
+        dm = self.deformables
+        if dm is None:
+            return {}
+        return {n: (e.surface() if e.kind == "fem" else e.seg).copy() for n, e in zip(dm.names, dm.elements)}
+
+    def deformable_report(self) -> dict | None:
+        """{E_kin, E_grav, E_elastic [J], attachment_drift [m]} of the deformables at the current state (the
+        drift: what the last step left before the post-stabilization), None without deformables."""
+        dm = self.deformables
+        if dm is None:
+            return None
+        ds = deform_state(dm, self.state)
+        ek, eg, ee = dm.energies(ds.x, ds.v)
+        return {"E_kin": ek, "E_grav": eg, "E_elastic": ee, "attachment_drift": self.backend.timing["attachment_drift"]}
 
     def body_poses(self) -> dict:
         """Body frames in the world: name -> (position (3,) [m], quaternion xyzw (4,))."""

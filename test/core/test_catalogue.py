@@ -355,6 +355,7 @@ def test_energy_classes_cover_the_catalogue():
     inputs = {"gear", "timed_torque", "timed_wrench"}  # driven: test_energy_balance_with_input
     inputs |= {"trajectory"}  # driven by a trajectory prescription (test_trajectory_prescription.py)
     inputs |= {"body_twist"}  # driven by a body-twist prescription (test_body_prescription.py)
+    inputs |= {"string"}  # a deformable string: its energy tests are test/core/deformable/ (docs/deformables.md)
     assert set(SYMPLECTIC + DECAYING + GYROSCOPIC + DISSIPATIVE + ["free2d"]) | inputs == names
 
 

@@ -96,6 +96,7 @@ class Mechanism:
     limit_upper: np.ndarray | None = None  # (p,) upper[limited]
     extras: object = None  # catalogue_hooks.Extras (compiled; workspaces run copies): mapped joints, linear joint constraints, force elements (or None)
     friction: object = None  # contact.FrictionModel (ground contact, joint friction) or None
+    collision: object = None  # model/collision.CollisionModel (self-collision, obstacles; docs/collisions.md) or None
     joint_support: np.ndarray | None = None  # (njoints, nv) bool: DOFs moving each joint's body (row 0: world)
     scheme: str = "euler"  # integrator.scheme: euler | bdf2 (step/scheme.py)
     coriolis_implicit: bool = False  # integrator.coriolis: implicit (forces.coriolis_jacobian; docs/scenes.md)

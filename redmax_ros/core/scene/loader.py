@@ -16,8 +16,10 @@ import pinocchio as pin
 
 from redmax_ros.core.errors import SceneError, SceneNotFound
 from redmax_ros.core.geometry.inertia import shape_inertia, shape_volume
-from redmax_ros.core.scene import bodies, body_twist, catalogue_schema, contact_schema, files, timefunctions
-from redmax_ros.core.scene import builders, builders_friction, builders_large  # noqa: F401  (register the shipped builders)
+from redmax_ros.core.scene import (bodies, body_twist, catalogue_schema, collision_schema, contact_schema,
+                                   deformable_schema, files,
+                                   timefunctions)
+from redmax_ros.core.scene import builders, builders_friction, builders_hagfish, builders_large, builders_starfish  # noqa: F401  (register the shipped builders)
 from redmax_ros.core.scene.registry import BUILDERS
 from redmax_ros.core.scene.spec import (CORE_JOINT_TYPES, SCHEMES, SOLVERS, WORLD, BodySpec, CouplingSpec, JointSpec, LoopSpec, SceneSpec, SiteSpec,
                                         SpringSpec, WrenchSpec, numeric, numeric_deep)
@@ -376,7 +378,7 @@ class _Validator:
         top = {"name", "description", "units", "gravity", "dt", "duration", "bodies", "joints", "sites", "springs",
                "wrenches", "loops", "couplings", "prescribable", "prescribed", "urdf", "params", "solver",
                "integrator", "stabilization"}
-        top |= contact_schema.TOP_KEYS | catalogue_schema.TOP_KEYS
+        top |= contact_schema.TOP_KEYS | catalogue_schema.TOP_KEYS | collision_schema.TOP_KEYS | deformable_schema.TOP_KEYS
         self.keys("scene", raw, top)
         if raw.get("units", "SI") != "SI":
             self.err("units", f"only SI units are supported, got {raw.get('units')!r}")
@@ -410,6 +412,8 @@ class _Validator:
         self.prescriptions(spec, raw, site_names)
         spec.friction = contact_schema.parse(self, raw, spec, body_names)
         spec.catalogue = catalogue_schema.parse(self, raw, spec, body_names)
+        spec.collision = collision_schema.parse(self, raw, spec, body_names)  # self-collision (docs/collisions.md)
+        spec.deformables = deformable_schema.parse(self, raw, spec, body_names)  # docs/deformables.md
         self.integrator(spec, raw.get("integrator"))
         self.stabilization(spec, raw.get("stabilization"))
         return spec
@@ -443,6 +447,9 @@ class _Validator:
             if spec.friction is not None:
                 self.err("integrator.scheme", "'bdf2' is not supported with contact or joint friction (Staggered "
                          "Projections / BISP are derived for the BDF1 step); use scheme: euler")
+            if spec.collision is not None:
+                self.err("integrator.scheme", "'bdf2' is not supported with self-collision (the contact rows are "
+                         "linearised about the BDF1 step, Eq. 5); use scheme: euler")
         spec.scheme = scheme
         c = d.get("coriolis", "explicit")
         if c not in ("explicit", "implicit"):

@@ -133,6 +133,8 @@ class SceneSpec:
     raw: dict = field(default_factory=dict, repr=False)
     friction: object = None  # contact_schema.FrictionSpec: ground, contacts, joint/loop friction (or None)
     catalogue: object = None  # catalogue_schema.CatalogueSpec: linear joint constraints, force elements (or None)
+    collision: object = None  # collision_schema.CollisionSpec: self-collision shapes, margin, obstacles (or None)
+    deformables: list = field(default_factory=list)  # deformable_schema.DeformableSpec: strings, FEM meshes (docs/deformables.md)
 
 
 def numeric_deep(x):

@@ -33,6 +33,7 @@ class Solution:
     system: LinearSystem | None = None
     cons: Constraints | None = None
     violation: float = 0.0  # max |G qdot+ - g| of the bilateral rows [m/s, rad/s]
+    contacts: object = None  # dynamics/self_collision.ContactReport when the scene has a collision section
 
     @property
     def residual(self) -> float:

@@ -20,6 +20,8 @@ from redmax_ros.core.solvers.lockstep_pcg import DEFAULT_RTOL
 from redmax_ros.core.step.compiled.backend import CompiledBackend
 from redmax_ros.core.step.compiled.model import unsupported as compiled_unsupported
 from redmax_ros.core.step.data_free_stages import data_free_velocity
+from redmax_ros.core.step.deformable_stages import DeformableBackend
+from redmax_ros.core.step.deformable_stages import build as build_deformables
 from redmax_ros.core.step.pipeline import pinocchio_velocity, step
 from redmax_ros.core.step.workspace import Workspace
 
@@ -146,21 +148,35 @@ def make_backend(mech, solver: str, rtol: float = DEFAULT_RTOL, max_iter: int | 
       solver above;
     * 'compiled': the compiled step, or a SceneError naming what the scene uses that it does not take;
     * 'pcg', 'auto': the data-free PCG path and the rule choosing between it and 'direct'.
-    Scenes with contact or joint friction (Mechanism.friction, Staggered Projections / BISP) or catalogue
-    joints and force elements (Mechanism.extras) need the Pinocchio pipeline: 'direct', 'reference' and
-    'auto' use it at any size, 'pcg' is a SceneError."""
+    Scenes with deformables (SceneSpec.deformables) step on deformable_stages.DeformableBackend (the Pinocchio
+    pipeline with the coupled sparse solve) for 'direct', 'reference' and 'auto'; 'pcg' and 'compiled' are a
+    SceneError.
+    Scenes with contact or joint friction (Mechanism.friction, Staggered Projections / BISP), catalogue
+    joints and force elements (Mechanism.extras) or self-collision (Mechanism.collision) need the Pinocchio
+    pipeline: 'direct', 'reference' and 'auto' use it at any size, 'pcg' is a SceneError."""
     if mech.scheme == "bdf2" and mech.extras is not None:
         raise SceneError(mech.spec.source, "integrator.scheme",
                          "'bdf2' is not supported with catalogue joints or force elements (spline, exponential and "
                          "Euler-chart joints, timed loads, linear joint constraints: their hooks are BDF1); use scheme: euler")
+    if solver == "compiled" and mech.collision is not None:
+        raise SceneError(mech.spec.source, "solver", "solver 'compiled' does not support self-collision (collision "
+                         "section; the Pinocchio reference pipeline steps it: use direct or reference)")
+    deformables = build_deformables(mech)
+    if deformables is not None:  # deformables (docs/deformables.md): the Pinocchio pipeline + coupled sparse solve
+        if solver in ("direct", "reference", "auto"):
+            return DeformableBackend(mech, deformables)
+        raise SceneError(mech.spec.source, "solver",
+                         f"solver '{solver}' does not support deformables (the coupled sparse solve is on the "
+                         "Pinocchio reference pipeline: use direct, reference or auto)")
     if solver == "compiled":
         return CompiledBackend(mech)
     if solver == "direct":
-        if not compiled_unsupported(mech):
+        if not compiled_unsupported(mech) and mech.collision is None:
             return CompiledBackend(mech)
         solver = "reference"
     unsupported = [what for what, attr in (("contact or joint friction", "friction"),
-                                           ("catalogue joints/force elements", "extras"))
+                                           ("catalogue joints/force elements", "extras"),
+                                           ("self-collision", "collision"))
                    if getattr(mech, attr) is not None]
     if unsupported:
         if solver == "pcg":

@@ -7,7 +7,8 @@ steps that need the dynamics.
 3. couplings consistent at q0; qdot_R(0) from the scene's reduced velocities;
 4. loops closed at q0 (stabilization.assemble_loops, Newton to 1e-12 m) and their rows checked for
    redundancy; default spring rest lengths = the spring lengths at that q0;
-5. the friction model (friction/contact.compile_friction: contact primitives, BISP joint friction).
+5. the friction model (friction/contact.compile_friction: contact primitives, BISP joint friction);
+6. the collision model (model/collision.build_collision: Pinocchio GeometryModel, candidate pairs).
 
 Each step returns a new frozen Mechanism (dataclasses.replace); nothing is changed afterwards.
 """
@@ -21,6 +22,7 @@ from redmax_ros.core.dynamics.catalogue_hooks import attach
 from redmax_ros.core.dynamics.stabilization import assemble_loops
 from redmax_ros.core.dynamics.tree_kinematics import Context, spring_lengths
 from redmax_ros.core.friction.contact import compile_friction
+from redmax_ros.core.model.collision import build_collision
 from redmax_ros.core.model.mechanism import Mechanism, build_mechanism, check_couplings_q0, hyper_reduced_v0
 from redmax_ros.core.scene.spec import SceneSpec
 
@@ -40,4 +42,6 @@ def compile_scene(spec: SceneSpec) -> Mechanism:
     mech = dataclasses.replace(mech, q0=q0, spring_rest=rest.reshape(len(spec.springs)))
     if spec.friction is not None:  # 5
         mech = dataclasses.replace(mech, friction=compile_friction(mech, spec.friction))
+    if spec.collision is not None:  # 6: self-collision GeometryModel and candidate pairs (docs/collisions.md)
+        mech = dataclasses.replace(mech, collision=build_collision(mech, spec.collision))
     return mech

@@ -36,7 +36,7 @@ from dataclasses import dataclass
 import numpy as np
 import pinocchio as pin
 
-from redmax_ros.core.dynamics import constraints, forces, kinematics, stabilization
+from redmax_ros.core.dynamics import constraints, forces, kinematics, self_collision, stabilization
 from redmax_ros.core.dynamics.energy import energies
 from redmax_ros.core.errors import StepError
 from redmax_ros.core.friction import staggered
@@ -61,6 +61,7 @@ class VelocitySolve:
     friction: object = None  # staggered.FrictionReport
     friction_cache: np.ndarray | None = None  # warm start of the next step's friction impulses
     body_rows: dict | None = None  # prescribed body -> slice of lam (body_twist.py)
+    contacts: object = None  # self_collision.ContactReport (scenes with a collision section), also sol.contacts
 
 
 def step(mech, ws, state: State, cmd, h: float, velocity, budget=None) -> tuple:
@@ -150,11 +151,21 @@ def site_jacobian_rows(mech, ws, kin, sites) -> np.ndarray:
     return kin.J[[kin.row[mech.site_index[n]] for n in sites]]
 
 
-def pinocchio_velocity(mech, ws, state: State, cmd, tau, h) -> VelocitySolve:
-    """Stages 1-4 on pin.Data: kinematics.compute (CRBA, RNEA, Jacobians, site Jacobians), forces.assemble
-    (Eq. 2, projected by J_rR, Eq. 9-10), constraints.build (loops, Eq. 7 prescriptions, joint limits of
-    Eq. 5), then solve_direct (Cholesky / KKT / ProxSuite QP) or, with contact or joint friction, the
-    Staggered Projections / BISP iterations (Alg. 2/3)."""
+@dataclass
+class SkeletonStages:
+    """What stages 1-3 on pin.Data leave for a solve: the kinematics, Eq. (2)'s system and the rows."""
+    kin: kinematics.Kinematics
+    system: object  # solvers.problem.LinearSystem
+    cons: object  # solvers.problem.Constraints
+    v_r: np.ndarray  # (nv,) reduced velocity at the linearisation point
+    site_forces: dict | None  # site row -> explicit world force [N], or None
+
+
+def skeleton_stages(mech, ws, state: State, cmd, tau, h) -> SkeletonStages:
+    """Stages 1-3 on pin.Data: kinematics.compute (CRBA, RNEA, Jacobians, site Jacobians), forces.assemble
+    (Eq. 2, projected by J_rR, Eq. 9-10; applied inputs beyond the divergence limit rejected), constraints.build
+    (loops, Eq. 7 prescriptions, joint limits of Eq. 5). Used by :func:`pinocchio_velocity` and by the step
+    with deformables (deformable_stages.py), which adds its own DOFs and rows to these."""
     psites = cmd.site_velocities
     sf = {mech.site_index[n]: f for n, f in cmd.site_forces.items()} if cmd.site_forces else None
     extra = [mech.site_index[n] for n in psites] + (list(sf) if sf else [])
@@ -167,19 +178,37 @@ def pinocchio_velocity(mech, ws, state: State, cmd, tau, h) -> VelocitySolve:
     J_sites = site_jacobian_rows(mech, ws, kin, psites) if psites else None
     cons = constraints.build(mech, ws, G_loop, J_sites, state.q if ws.bdf2 is None else ws.bdf2.q_base,
                              cmd.joint_velocities, psites, h, cmd.site_axes)  # 3
+    return SkeletonStages(kin, system, cons, v_r, sf)
+
+
+def pinocchio_velocity(mech, ws, state: State, cmd, tau, h) -> VelocitySolve:
+    """Stages 1-4 on pin.Data: :func:`skeleton_stages` (1-3), self-collision rows (3'), then solve_direct
+    (Cholesky / KKT / ProxSuite QP) or, with contact or joint friction, the Staggered Projections / BISP
+    iterations (Alg. 2/3)."""
+    sk = skeleton_stages(mech, ws, state, cmd, tau, h)
+    kin, system, cons, v_r, sf = sk.kin, sk.system, sk.cons, sk.v_r, sk.site_forces
     body_rows = body_twist.append_rows(mech, ws, ws.data, cons, cmd.body_twists) if cmd.body_twists else None
+    contacts = self_collision.append_rows(mech, ws, cons, h, state.v) if mech.collision is not None else None  # 3'
     if cons.m:
         if not math.isfinite(cons.g @ cons.g):
             check_inputs(state, tau, cmd)
         check_rows(cons)  # prescribed velocities no step below the divergence limit can meet
     if mech.friction is None:
-        sol = solve_direct(system, cons, deadline=ws.deadline)  # 4
+        t_solve = time.perf_counter()
+        try:
+            sol = solve_direct(system, cons, deadline=ws.deadline)  # 4 (contact rows: the QP of Eq. 5)
+        except StepError:
+            if not (contacts is not None and self_collision.relax_rows(cons, contacts)):
+                raise
+            sol = solve_direct(system, cons, deadline=ws.deadline)  # without the contacts' position correction
         fric = fcache = None
         viol_vel = sol.violation
+        if contacts is not None:
+            sol.contacts = self_collision.finish_report(contacts, sol.mu, time.perf_counter() - t_solve)
     else:  # 4': Staggered Projections / BISP (Alg. 2/3) for ground contact and joint friction
         sol, fric, fcache = staggered.solve(mech, ws.friction, kin, system, cons, state.q, v_r, h,
                                             state.friction_cache, sf, ws.deadline)
         viol_vel = max_row_residual(cons.G, sol.v, cons.g)
     return VelocitySolve(sol, cons.joint_rows, cons.site_rows,
                          cons.G[cons.loop_rows] if len(mech.loop_ab) else None, viol_vel, sol.solver,
-                         sol.iterations, fric, fcache, body_rows)
+                         sol.iterations, fric, fcache, body_rows, contacts)

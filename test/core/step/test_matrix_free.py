@@ -36,7 +36,7 @@ def _compare(name, overrides, warm=15, prepare=None, want=None):
     """One step from the same state: data-free direct and PCG (rtol 1e-10) vs stepper.step.
     ``want``: keep stepping (up to 300 steps) until the direct solve of the compared step is ``want``."""
     sim = Simulator.load(name, overrides, solver="direct")
-    if getattr(sim.mech, "friction", None) is not None or getattr(sim.mech, "extras", None) is not None:
+    if any(getattr(sim.mech, k, None) is not None for k in ("friction", "extras", "collision")):
         with pytest.raises(SceneError, match="pcg"):
             Simulator.load(name, overrides, solver="pcg")
         return None

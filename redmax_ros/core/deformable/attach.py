@@ -1,0 +1,42 @@
+"""Attachment rows of the deformable coupling (Wang et al. 2019 §4, the equation after Eq. 5:
+G_m J_mr qdot_r + G_d qdot_d = 0): a vertex held at a body point p gives three rows
+[J_p, -S_i] (qdot_r; qdot_d) = 0 with J_p = J_lin - [p - c]_x J_ang the point Jacobian (Sueda's notes
+Eq. S2.4) and S_i the 3 x 3N selector of vertex i; a vertex held at a world point gives [0, S_i] = 0.
+"""
+from __future__ import annotations
+
+import numpy as np
+import scipy.sparse as sp
+
+
+def skew(a):
+    return np.array([[0.0, -a[2], a[1]], [a[2], 0.0, -a[0]], [-a[1], a[0], 0.0]])
+
+
+def body_point(c, R, local):
+    """World point of a body-frame offset ``local`` (frame origin c, rotation R)."""
+    return c + R @ local
+
+
+def point_jacobian(p, c, J_lin, J_ang):
+    """(3,n) Jacobian of the world point p rigidly attached to a frame at c with linear/angular
+    Jacobians J_lin, J_ang (LOCAL_WORLD_ALIGNED)."""
+    return J_lin - skew(p - c) @ J_ang
+
+
+def rows(n_r, n_vertices, vertex, J_points):
+    """(G_r (3a,n_r) dense, G_d (3a,3N) sparse) of the attachments: J_points (a,3,n_r) (zeros for world
+    points) and the vertex selectors with sign -1 for body points, +1 for world points (where
+    J_points[i] is None)."""
+    a = len(vertex)
+    G_r = np.zeros((3 * a, n_r))
+    sign = np.empty(3 * a)
+    for k, J in enumerate(J_points):
+        if J is None:
+            sign[3 * k:3 * k + 3] = 1.0
+        else:
+            G_r[3 * k:3 * k + 3] = J
+            sign[3 * k:3 * k + 3] = -1.0
+    cols = (3 * np.asarray(vertex, dtype=np.int64)[:, None] + np.arange(3)).ravel()
+    G_d = sp.csr_matrix((sign, (np.arange(3 * a), cols)), shape=(3 * a, 3 * n_vertices))
+    return G_r, G_d

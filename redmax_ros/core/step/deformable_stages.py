@@ -1,0 +1,275 @@
+"""The step with deformables (issue 15; Wang et al. 2019 §4, the equation after Eq. 5): the Pinocchio
+pipeline's skeleton stages (kinematics.compute, forces.assemble, constraints.build, as
+pipeline.pinocchio_velocity) with the deformable DOFs joined to the velocity solve.
+
+    A_r, b_r, G_r, C_r            = skeleton stages 1-3 (Eq. 2, Eq. 5-7)
+    A_d, b_d                      = deformable.system.Deformables.assemble (M_d + h D_d + h^2 K_d, M_d v_d + h f_d)
+    [J_p, -S_i] z = 0             = attachments (deformable/attach.py), after the skeleton's rows
+    z_floor >= (floor - z_i) / h  = unilateral row per vertex near the floor (frictionless, no penalty)
+    z = (qdot_R+, v_d+)           = deformable.coupled_solve.solve (sparse KKT LU, active set)
+    q+ = q (+) h qdot_r+          = pipeline.update_configuration (manifold, loops)
+    x+ = x + h v_d+, then attached vertices projected onto their points at q+ (post-stabilization)
+
+The deformable state (deformable.system.DeformState) is State.deform; a state without it starts from the
+mesh's rest positions at rest. A failed step raises StepError and leaves the state as it
+was (State is immutable).
+"""
+from __future__ import annotations
+
+import math
+import time
+
+import numpy as np
+import pinocchio as pin
+import scipy.sparse as sp
+
+from redmax_ros.core.deformable import attach, coupled_solve
+from redmax_ros.core.deformable.fem import TetFEM
+from redmax_ros.core.deformable.string import String
+from redmax_ros.core.deformable.system import Attachments, Deformables, DeformState
+from redmax_ros.core.dynamics.energy import energies
+from redmax_ros.core.errors import SceneError, StepError
+from redmax_ros.core.solvers.direct import Solution
+from redmax_ros.core.step import trajectory
+from redmax_ros.core.step.pipeline import VelocitySolve, required_forces, skeleton_stages, update_configuration
+from redmax_ros.core.step.state import Diagnostics, StepResult, applied_torques, check_rows, check_speed
+from redmax_ros.core.step.workspace import Workspace
+
+LWA = pin.ReferenceFrame.LOCAL_WORLD_ALIGNED
+FLOOR_MARGIN = 0.01  # [m] vertices this close to the floor (or closer than their step's travel) get a row
+
+
+def inside_shape(shape: dict, p_local: np.ndarray, tol: float = 1e-9) -> np.ndarray:
+    """Which body-frame points (k,3) lie inside a body's marker shape (box, sphere, cylinder, capsule)."""
+    t = shape.get("type")
+    if t == "box":
+        return np.all(np.abs(p_local) <= 0.5 * np.asarray(shape["size"], float) + tol, axis=1)
+    if t == "sphere":
+        return np.linalg.norm(p_local, axis=1) <= float(shape["radius"]) + tol
+    if t in ("cylinder", "capsule"):
+        r, L = float(shape["radius"]), float(shape["length"])
+        rad = np.linalg.norm(p_local[:, :2], axis=1)
+        if t == "cylinder":
+            return (rad <= r + tol) & (np.abs(p_local[:, 2]) <= 0.5 * L + tol)
+        zc = np.clip(p_local[:, 2], -0.5 * L, 0.5 * L)
+        return np.linalg.norm(p_local - np.stack([np.zeros_like(zc), np.zeros_like(zc), zc], 1), axis=1) <= r + tol
+    raise ValueError(f"shape type {t!r} has no inside test (box, sphere, cylinder, capsule)")
+
+
+def build(mech) -> Deformables | None:
+    """The scene's deformables (SceneSpec.deformables) as a Deformables, attachments resolved at q0: a
+    listed vertex or one inside the body's shape is held at the body point it occupies at q0."""
+    specs = getattr(mech.spec, "deformables", None)
+    if not specs:
+        return None
+    src = mech.spec.source
+    data = mech.model.createData()
+    pin.forwardKinematics(mech.model, data, mech.q0)
+    names, elements, offsets = [], [], [0]
+    av, ab, al, labels = [], [], [], []
+    floors = []
+    bodies = {n: i for i, n in enumerate(mech.bodies)}
+    shapes = {b.name: b.shape for b in mech.spec.bodies}
+    for d in specs:
+        entry = f"deformables.{d.name}"
+        try:
+            e = (String(d.vertices, d.mass, d.stiffness, d.alpha, d.beta) if d.kind == "string" else
+                 TetFEM(d.vertices, d.tets, d.young, d.poisson, d.density, d.alpha, d.beta))
+        except ValueError as err:
+            raise SceneError(src, entry, str(err)) from None
+        off = offsets[-1]
+        seen = set()
+        for a in d.attachments:
+            if a.body == "world":
+                bi, jid = -1, 0
+            elif a.body in bodies:
+                bi = bodies[a.body]
+                jid = int(mech.body_jid[bi])
+            else:
+                raise SceneError(src, f"{entry}.attachments", f"unknown body '{a.body}'")
+            M = data.oMi[jid]
+            if a.inside:
+                shape = shapes.get(a.body)
+                if not shape:
+                    raise SceneError(src, f"{entry}.attachments", f"body '{a.body}' has no shape to find vertices inside")
+                Mb = M * mech.body_placement[bi]
+                loc = (e.x0 - Mb.translation) @ Mb.rotation
+                try:
+                    verts = np.nonzero(inside_shape(shape, loc))[0]
+                except ValueError as err:
+                    raise SceneError(src, f"{entry}.attachments", str(err)) from None
+                if not len(verts):
+                    raise SceneError(src, f"{entry}.attachments", f"no vertex lies inside body '{a.body}'")
+            else:
+                verts = np.asarray(a.vertices, dtype=np.int64) % e.n
+            for v in verts:
+                if int(v) in seen:
+                    raise SceneError(src, f"{entry}.attachments", f"vertex {int(v)} is attached twice")
+                seen.add(int(v))
+                x = e.x0[v]
+                av.append(off + int(v))
+                ab.append(jid if bi >= 0 else -1)
+                al.append(x if bi < 0 else M.rotation.T @ (x - M.translation))
+                labels.append(f"{d.name}/vertex {int(v)} -> {a.body}")
+        if d.floor is not None:
+            floors.append((d.floor, np.arange(off, off + e.n)))
+        names.append(d.name)
+        elements.append(e)
+        offsets.append(off + e.n)
+    att = Attachments(np.asarray(av, dtype=np.int64), np.asarray(ab, dtype=np.int64),
+                      np.asarray(al, dtype=float).reshape(-1, 3), labels)
+    fl = fv = None
+    if floors:  # attached vertices move with their body: a floor row on them could conflict with the attachment
+        fl = floors[0][0]
+        fv = np.setdiff1d(np.concatenate([f[1] for f in floors]), np.asarray(av, dtype=np.int64))
+    return Deformables(names, elements, np.asarray(offsets), att, np.asarray(mech.spec.gravity, float), fl, fv)
+
+
+def deform_state(dm: Deformables, state) -> DeformState:
+    """The deformable part of a State (State.deform), or the rest state of the scene's deformables."""
+    d = state.deform
+    return d if isinstance(d, DeformState) else dm.initial()
+
+
+def attachment_points(mech, data, dm: Deformables, jacobians: bool = True):
+    """(world points (a,3), point Jacobians: list of (3,nv), None for world points; or None without
+    ``jacobians``) at data's kinematics (forward kinematics; joint Jacobians for ``jacobians``)."""
+    att = dm.attach
+    P = np.empty((len(att.vertex), 3))
+    Js = [None] * len(att.vertex) if jacobians else None
+    world = att.body < 0
+    P[world] = att.local[world]
+    for jid in np.unique(att.body[~world]):  # vectorised per joint
+        k = np.nonzero(att.body == jid)[0]
+        M = data.oMi[int(jid)]
+        o = M.translation
+        P[k] = o + att.local[k] @ M.rotation.T
+        if jacobians:
+            J6 = np.asarray(pin.getJointJacobian(mech.model, data, int(jid), LWA)).reshape(6, mech.nv)
+            r = P[k] - o  # J_p = J_lin - [r]x J_ang = J_lin + [J_ang]x-columns x r
+            Jp = J6[None, :3, :] - np.cross(r[:, None, :], J6[3:].T[None, :, :]).transpose(0, 2, 1)
+            for kk, Jk in zip(k, Jp):
+                Js[kk] = Jk
+    return P, Js
+
+
+def coupled_velocity(mech, ws, dm, state, ds, cmd, tau, h, timing=None):
+    """Stages 1-4 with the deformables: (VelocitySolve of the skeleton, vertex velocities (N,3), attachment
+    rows' count)."""
+    t0 = time.perf_counter()
+    sk = skeleton_stages(mech, ws, state, cmd, tau, h)  # 1-3, as the Pinocchio pipeline
+    system, cons = sk.system, sk.cons
+    if cons.m:
+        check_rows(cons)
+    t1 = time.perf_counter()
+    A_d, b_d = dm.assemble(ds.x, ds.v, h)  # 2 of the deformables
+    t2 = time.perf_counter()
+    n_r, N = len(system.b), dm.n_vertices
+    _, Js = attachment_points(mech, ws.data, dm)
+    if ws.T is not None:
+        Js = [None if J is None else J @ ws.T for J in Js]
+    Ga_r, Ga_d = attach.rows(n_r, N, dm.attach.vertex, Js)
+    G = sp.vstack([sp.hstack([sp.csr_matrix(cons.G), sp.csr_matrix((cons.m, 3 * N))]),
+                   sp.hstack([sp.csr_matrix(Ga_r), Ga_d])], format="csr")
+    g = np.concatenate([cons.g, np.zeros(len(Ga_r))])
+    C, lo, hi, row_vertex = _unilateral(cons, dm, ds, n_r, N, h)
+    warm_v = ws.cache.get("deformable_floor_active", ())  # last step's active floor vertices (scratch)
+    warm = [i for i, vtx in enumerate(row_vertex) if vtx in warm_v]
+    sol = coupled_solve.solve(system.A, system.b, A_d, b_d, G, g, cons.labels + dm.attach.labels, C, lo, hi, warm=warm)
+    ws.cache["deformable_floor_active"] = {row_vertex[i] for i in sol.active if row_vertex[i] >= 0}
+    t3 = time.perf_counter()
+    if timing is not None:
+        timing["skeleton"] += t1 - t0
+        timing["mesh_assembly"] += t2 - t1
+        timing["coupled_solve"] += t3 - t2
+    s = Solution(sol.v_r, sol.lam, sol.mu, sol.iterations, "coupled", None, None, sol.violation)
+    vs = VelocitySolve(s, cons.joint_rows, cons.site_rows,
+                       cons.G[cons.loop_rows] if len(mech.loop_ab) else None, sol.violation, "coupled",
+                       sol.iterations)
+    return vs, sol.v_d.reshape(-1, 3)
+
+
+def _unilateral(cons, dm, ds, n_r, N, h):
+    """(C sparse, lo, hi, vertex of each row or -1) of the skeleton's joint-limit rows and the floor rows of
+    the vertices near it."""
+    parts, lo, hi, rv = [], [], [], []
+    if cons.C is not None and len(cons.lo):
+        parts.append(sp.hstack([sp.csr_matrix(cons.C), sp.csr_matrix((len(cons.lo), 3 * N))]))
+        lo.append(cons.lo)
+        hi.append(cons.hi)
+        rv += [-1] * len(cons.lo)
+    if dm.floor is not None:
+        idx = dm.floor_vertices
+        gap = ds.x[idx, 2] - dm.floor
+        near = idx[gap < FLOOR_MARGIN + h * np.abs(ds.v[idx, 2]) + h * h * abs(dm.gravity[2])]
+        if len(near):
+            k = len(near)
+            parts.append(sp.csr_matrix((np.ones(k), (np.arange(k), n_r + 3 * near + 2)), shape=(k, n_r + 3 * N)))
+            lo.append((dm.floor - ds.x[near, 2]) / h)
+            hi.append(np.full(k, np.inf))
+            rv += [int(i) for i in near]
+    if not parts:
+        return None, None, None, []
+    return sp.vstack(parts, format="csr"), np.concatenate(lo), np.concatenate(hi), rv
+
+
+def step(mech, ws, dm, state, cmd, h, timing=None):
+    """One step with the deformables. Returns (State, StepResult); StepResult.diagnostics energies include
+    the deformables' (kinetic, gravitational, elastic in E_spring); ``violation_pos`` is the largest
+    attachment (and loop) residual after the projection; the attachment drift the velocity step left before it
+    (O(h^2)) is ``timing["attachment_drift"]``."""
+    t0 = time.perf_counter()
+    ds = deform_state(dm, state)
+    cmd = trajectory.resolve(mech, state, cmd, h, state.q)  # joint trajectories -> this step's prescribed velocities
+    if cmd.body_twists:
+        raise StepError("body-twist prescriptions are not supported with deformables")
+    tau = applied_torques(mech, state, cmd, h)
+    vs, v_d = coupled_velocity(mech, ws, dm, state, ds, cmd, tau, h, timing)
+    check_speed(vs.sol.v)
+    check_speed(v_d.ravel())
+    q_new, v_hyper, v_new, viol_loop = update_configuration(mech, ws, state.q, vs, cmd, h)
+    effort, site_forces = required_forces(mech, tau, vs, cmd, h)
+    x_new = ds.x + h * v_d
+    drift = resid = 0.0
+    if len(dm.attach.vertex):  # post-stabilization: attached vertices onto their points at q+
+        pin.forwardKinematics(mech.model, ws.data, q_new)
+        P, _ = attachment_points(mech, ws.data, dm, jacobians=False)
+        drift = float(np.abs(x_new[dm.attach.vertex] - P).max())
+        x_new[dm.attach.vertex] = P
+        resid = float(np.abs(x_new[dm.attach.vertex] - attachment_points(mech, ws.data, dm, jacobians=False)[0]).max())
+    if timing is not None:
+        timing["attachment_drift"] = drift  # what the velocity step left before the projection [m]
+    if not math.isfinite(float(x_new.ravel() @ x_new.ravel())):
+        raise StepError("non-finite deformable positions after the step")
+    ek, ep, es = energies(mech, ws, q_new, v_new)
+    dk, dg, de = dm.energies(x_new, v_d)
+    ek, ep, es = ek + dk, ep + dg, es + de
+    if not math.isfinite(ek + ep + es):
+        raise StepError("non-finite energy after the step")
+    diag = Diagnostics(ek, ep, es, ek + ep + es, max(viol_loop or 0.0, resid), vs.violation_vel, vs.iterations,
+                       vs.solver, time.perf_counter() - t0, vs.sol, None)
+    new = state.advanced(h, q_new, v_hyper, None, deform=DeformState.of(x_new, v_d))
+    return new, StepResult(new.t, q_new, v_new, effort, site_forces, diag)
+
+
+class DeformableBackend:
+    """The Pinocchio reference pipeline with the deformables joined to the velocity solve (this module)."""
+
+    name = "reference+deformable"
+
+    def __init__(self, mech, dm: Deformables):
+        if (mech.extras is not None or mech.friction is not None or mech.scheme != "euler"
+                or getattr(mech, "collision", None) is not None):
+            raise SceneError(mech.spec.source, "deformables",
+                             "deformables are not supported with catalogue joints/force elements, contact or joint "
+                             "friction, self-collision, or integrator.scheme bdf2 (use the deformables' floor rows "
+                             "and scheme euler)")
+        self.mech, self.deformables = mech, dm
+        self.workspace = Workspace(mech, pin_data=True)
+        self.timing = {"skeleton": 0.0, "mesh_assembly": 0.0, "coupled_solve": 0.0, "attachment_drift": 0.0}
+
+    def step(self, state, cmd, h, budget=None):
+        return step(self.mech, self.workspace, self.deformables, state, cmd, h, self.timing)
+
+    def at_state(self, q, t):
+        self.workspace.at_state(q, t)
