@@ -13,7 +13,7 @@ from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import Point, Pose, Quaternion, Twist, Vector3, Wrench
 from rosgraph_msgs.msg import Clock
-from sensor_msgs.msg import JointState
+from sensor_msgs.msg import JointState, PointCloud2, PointField
 from std_msgs.msg import ColorRGBA, Header
 from trajectory_msgs.msg import JointTrajectory
 from visualization_msgs.msg import Marker, MarkerArray
@@ -467,10 +467,21 @@ def body_prescriptions_msg(t, bodies: dict, frame_id="world") -> BodyTwists:
 
 _BODY_COLOR = ColorRGBA(r=0.55, g=0.6, b=0.7, a=1.0)
 _SPRING_COLOR = ColorRGBA(r=0.9, g=0.5, b=0.1, a=1.0)
+_DEFORMABLE_COLOR = ColorRGBA(r=0.85, g=0.45, b=0.55, a=0.8)
+_CONTACT_COLOR = ColorRGBA(r=0.9, g=0.1, b=0.1, a=1.0)
+_VERTEX_DTYPE = np.dtype([("xyz", "<f8", 3), ("deformable", "<u4"), ("pad", "<u4")])  # 32 bytes per point
+_VERTEX_FIELDS = [PointField(name="x", offset=0, datatype=PointField.FLOAT64, count=1),
+                  PointField(name="y", offset=8, datatype=PointField.FLOAT64, count=1),
+                  PointField(name="z", offset=16, datatype=PointField.FLOAT64, count=1),
+                  PointField(name="deformable", offset=24, datatype=PointField.UINT32, count=1)]
 
 
-def markers_msg(t, poses: dict, springs: list, frame_id="world", scale=0.02) -> MarkerArray:
-    """Bodies as small axes-aligned cubes at their frames, springs as line segments."""
+def markers_msg(t, poses: dict, springs: list, frame_id="world", scale=0.02, meshes=None, contacts=None) -> MarkerArray:
+    """Bodies as small axes-aligned cubes at their frames, springs as line segments; with ``meshes``
+    ({name: (positions (n,3) [m], faces (F,3) or segments (S,2))}) each deformable's surface as a
+    TRIANGLE_LIST (FEM) or LINE_LIST (string), namespace ``deformable/<name>``; with ``contacts`` (the
+    step's self_collision.ContactReport) the witness points of its active rows (SPHERE_LIST, namespace
+    ``contacts``) and their normals (LINE_LIST, ``contact_normals``, 2 scale long)."""
     stamp = time_msg(t)
     out = MarkerArray()
     clear = Marker()
@@ -497,7 +508,56 @@ def markers_msg(t, poses: dict, springs: list, frame_id="world", scale=0.02) -> 
             m.points.append(Point(x=float(a[0]), y=float(a[1]), z=float(a[2])))
             m.points.append(Point(x=float(b[0]), y=float(b[1]), z=float(b[2])))
         out.markers.append(m)
+    for k, (name, (X, elems)) in enumerate((meshes or {}).items()):
+        m = Marker()
+        m.header = Header(stamp=stamp, frame_id=frame_id)
+        tri = elems.shape[1] == 3
+        m.ns, m.id, m.action = f"deformable/{name}", k, Marker.ADD
+        m.type = Marker.TRIANGLE_LIST if tri else Marker.LINE_LIST
+        m.pose.orientation.w = 1.0
+        m.scale = Vector3(x=1.0, y=1.0, z=1.0) if tri else Vector3(x=scale / 4, y=0.0, z=0.0)
+        m.color = _DEFORMABLE_COLOR
+        m.points = [Point(x=float(x), y=float(y), z=float(z)) for x, y, z in np.asarray(X)[np.asarray(elems).ravel()]]
+        out.markers.append(m)
+    if contacts is not None and contacts.rows:
+        act = np.flatnonzero(np.asarray(contacts.impulse) > 0) if len(contacts.impulse) else np.arange(contacts.rows)
+        pts = Marker()
+        pts.header = Header(stamp=stamp, frame_id=frame_id)
+        pts.ns, pts.id, pts.type, pts.action = "contacts", 0, Marker.SPHERE_LIST, Marker.ADD
+        pts.pose.orientation.w = 1.0
+        pts.scale = Vector3(x=scale / 2, y=scale / 2, z=scale / 2)
+        pts.color = _CONTACT_COLOR
+        nrm = Marker()
+        nrm.header = Header(stamp=stamp, frame_id=frame_id)
+        nrm.ns, nrm.id, nrm.type, nrm.action = "contact_normals", 0, Marker.LINE_LIST, Marker.ADD
+        nrm.pose.orientation.w = 1.0
+        nrm.scale.x = scale / 8
+        nrm.color = _CONTACT_COLOR
+        for i in act:
+            a, n = contacts.point_a[i], contacts.normal[i]
+            pts.points.append(Point(x=float(a[0]), y=float(a[1]), z=float(a[2])))
+            b = a + 2 * scale * n
+            nrm.points += [Point(x=float(a[0]), y=float(a[1]), z=float(a[2])),
+                           Point(x=float(b[0]), y=float(b[1]), z=float(b[2]))]
+        out.markers += [pts, nrm]
     return out
+
+
+def vertices_msg(t, positions: dict, frame_id="world") -> PointCloud2:
+    """Every deformable's vertex positions as one sensor_msgs/PointCloud2 (topic deformable_vertices): one
+    point per vertex, fields x, y, z (FLOAT64, world frame [m]) and deformable (UINT32: the index of its
+    deformable in describe_scene's order), point_step 32 bytes, little-endian, height 1."""
+    names = list(positions)
+    X = [np.asarray(positions[n], float).reshape(-1, 3) for n in names]
+    n = sum(len(x) for x in X)
+    rec = np.zeros(n, dtype=_VERTEX_DTYPE)
+    if n:
+        rec["xyz"] = np.concatenate(X)
+        rec["deformable"] = np.concatenate([np.full(len(x), i, np.uint32) for i, x in enumerate(X)])
+    msg = PointCloud2(header=Header(stamp=time_msg(t), frame_id=frame_id), height=1, width=n,
+                      fields=_VERTEX_FIELDS, is_bigendian=False, point_step=32, row_step=32 * n, is_dense=True)
+    msg.data = array.array("B", rec.tobytes())
+    return msg
 
 
 def diagnostics_msg(wall_stamp: Time, node_name: str, scene: str, values: dict, level=DiagnosticStatus.OK,

@@ -68,7 +68,8 @@ class NullSink:
 
     def scene_loaded(self, info: SceneInfo): ...
     def state(self, t, q, v, effort, site_forces, diag, step_index, body_wrenches): ...
-    def markers(self, t, poses, springs): ...
+    def markers(self, t, poses, springs, meshes=None, contacts=None): ...
+    def vertices(self, t, positions): ...
     def frames(self, t, sim): ...
     def robot_model(self, sim): ...
     def status(self, text: str): ...
@@ -287,9 +288,21 @@ class Engine:
         self.sink.state(s.time, s.joint_positions(), s.joint_velocities(), effort, {}, None, self.step_index, {})
         self._publish_prescriptions()
         if self.marker_every:
-            self.sink.markers(s.time, s.body_poses(), s.spring_segments())
+            self._markers(s.time, None)
         if self.tf_every:
             self.sink.frames(s.time, s)
+
+    def _markers(self, t, contacts):
+        """Markers (bodies, springs, deformable surfaces, the step's active contacts) and, with deformables,
+        their vertex positions (sink.vertices), at marker_rate."""
+        sim = self.sim
+        positions = sim.deformable_positions()
+        meshes = None
+        if positions:
+            surfaces = sim.deformable_surfaces()
+            meshes = {n: (positions[n], surfaces[n]) for n in positions}
+            self.sink.vertices(t, positions)
+        self.sink.markers(t, sim.body_poses(), sim.spring_segments(), meshes, contacts)
 
     def _publish_prescriptions(self):
         self.sink.prescriptions(self.sim.time, self.sim.prescribed_joints(), self.sim.prescribed_sites(),
@@ -351,7 +364,7 @@ class Engine:
             if k % self.publish_every == 0 or (lockstep and i == n - 1):
                 sink.state(res.t, res.q, res.v, res.effort, res.site_forces, d, k, self._body_wrenches(res))
             if self.marker_every and k % self.marker_every == 0:
-                sink.markers(res.t, sim.body_poses(), sim.spring_segments())
+                self._markers(res.t, getattr(d.solution, "contacts", None))
             if self.tf_every and (k % self.tf_every == 0 or (lockstep and i == n - 1)):
                 sink.frames(res.t, sim)
             if feedback is not None:
@@ -395,6 +408,10 @@ class Engine:
                          "violation_pos": d.violation_pos, "violation_vel": d.violation_vel,
                          "energy_total": d.E_total, "energy_kinetic": d.E_kin,
                          "energy_potential": d.E_pot, "energy_spring": d.E_spring})
+            contacts = getattr(d.solution, "contacts", None)
+            if contacts is not None:  # self-collision (docs/collisions.md): the last step's pairs and rows
+                vals.update({"contact_candidates": contacts.candidates, "contact_rows": contacts.rows,
+                             "contacts_active": contacts.active})
         self.sink.diagnostics(vals, self.failures == 0, STATE_NAMES.get(self.state, "?"))
 
     # ------------------------------------------------------------------ requests (any thread)

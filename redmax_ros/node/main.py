@@ -35,7 +35,7 @@ from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy_i
 from rclpy.signals import SignalHandlerOptions
 from rclpy.serialization import deserialize_message
 from rosgraph_msgs.msg import Clock
-from sensor_msgs.msg import JointState
+from sensor_msgs.msg import JointState, PointCloud2
 from std_msgs.msg import String
 from tf2_msgs.msg import TFMessage
 from trajectory_msgs.msg import JointTrajectory
@@ -63,7 +63,7 @@ from .cdr import (JointStateEncoder, SolverStatsEncoder, StepRecords, TFMessageE
                   serialize_message)
 from .convert import (StateMessages, body_prescriptions_msg, description_msg, diagnostics_msg, markers_msg,
                       point_prescriptions_msg)
-from .convert import prescriptions_msg, time_msg
+from .convert import prescriptions_msg, time_msg, vertices_msg
 from .robot_model import BodyPoses, BodyTwists, Frames, urdf_text
 from .sender import Sender
 from .sim_interfaces import StandardInterfaces
@@ -299,6 +299,7 @@ class RedmaxNode(Node):
         self.pub_stats = self._pub(SolverStats, "solver_stats", QOS_STATE)
         self.pub_clock = self._pub(Clock, "/clock", QOS_CLOCK)
         self.pub_markers = self._pub(MarkerArray, "markers", QOS_MARKERS)
+        self.pub_vertices = self._pub(PointCloud2, "deformable_vertices", QOS_MARKERS)
         self.pub_diag = self._pub(DiagnosticArray, "/diagnostics", QOS_DIAGNOSTICS)
         self.pub_state = self._pub(SimulationState, "simulation_state", QOS_LATCHED)
         self.pub_pj = self._pub(JointState, "prescribed_joints", QOS_LATCHED)
@@ -649,8 +650,11 @@ class RedmaxNode(Node):
     def status(self, text):
         self.get_logger().info(text)
 
-    def markers(self, t, poses, springs):
-        self._send(self.pub_markers, markers_msg(t, poses, springs, self.frame_id))
+    def markers(self, t, poses, springs, meshes=None, contacts=None):
+        self._send(self.pub_markers, markers_msg(t, poses, springs, self.frame_id, meshes=meshes, contacts=contacts))
+
+    def vertices(self, t, positions):
+        self._send(self.pub_vertices, vertices_msg(t, positions, self.frame_id))
 
     def diagnostics(self, values, ok, message):
         level = DiagnosticStatus.OK if ok else DiagnosticStatus.WARN

@@ -51,6 +51,7 @@ TOPICS = {
     f"{NS}/solver_stats": "redmax_msgs/msg/SolverStats",
     "/clock": "rosgraph_msgs/msg/Clock",
     f"{NS}/markers": "visualization_msgs/msg/MarkerArray",
+    f"{NS}/deformable_vertices": "sensor_msgs/msg/PointCloud2",
     "/diagnostics": "diagnostic_msgs/msg/DiagnosticArray",
     f"{NS}/simulation_state": "redmax_msgs/msg/SimulationState",
     f"{NS}/prescribed_joints": "sensor_msgs/msg/JointState",
@@ -67,7 +68,7 @@ TOPICS = {
 }
 # channels without records in this run: the hand has no floating base (odom: test/node/test_node_frames.py
 # logs and decodes it for one)
-NO_RECORDS = {f"{NS}/odom", f"{NS}/joint_trajectory"}  # joint_trajectory: test/node/test_node_trajectory.py
+NO_RECORDS = {f"{NS}/odom", f"{NS}/joint_trajectory", f"{NS}/deformable_vertices"}  # deformable_vertices: below  # joint_trajectory: test/node/test_node_trajectory.py
 INPUTS = {f"{NS}/joint_commands", f"{NS}/point_commands", f"{NS}/body_commands", f"{NS}/joint_trajectory"}  # logged as received (the client's bytes)
 
 

@@ -70,3 +70,29 @@ def test_body_command_translation_and_prescribed_bodies_message():
     assert (tw.angular.z, tw.linear.x) == (1.0, -2.0)
     assert all(math.isnan(x) for x in (tw.angular.x, tw.angular.y, tw.linear.y, tw.linear.z))
     assert msg.header.stamp.sec == 1 and msg.header.stamp.nanosec == 500_000_000
+
+
+def test_markers_draw_deformable_surfaces_and_active_contacts():
+    """markers_msg: a FEM surface as a TRIANGLE_LIST of its faces' vertices, a string as a LINE_LIST of its
+    segments, and only the contact rows with an impulse as points with their normals."""
+    from visualization_msgs.msg import Marker
+
+    from redmax_ros.core.dynamics.self_collision import ContactReport
+    from redmax_ros.node.convert import markers_msg
+
+    X = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]])
+    faces = np.array([[0, 1, 2], [0, 1, 3]])
+    segs = np.array([[0, 1], [1, 2]])
+    rep = ContactReport(candidates=3, rows=2, labels=["a/b", "c/d"], distance=np.array([0.01, -0.001]),
+                        point_a=np.array([[0.0, 0, 0], [1.0, 2.0, 3.0]]), point_b=np.zeros((2, 3)),
+                        normal=np.array([[0.0, 0, 1], [1.0, 0, 0]]), t_detect=0.0, active=1,
+                        impulse=np.array([0.0, 0.5]))
+    out = markers_msg(0.1, {}, [], meshes={"block": (X, faces), "rope": (X, segs)}, contacts=rep, scale=0.02)
+    by_ns = {m.ns: m for m in out.markers}
+    tri, line = by_ns["deformable/block"], by_ns["deformable/rope"]
+    assert tri.type == Marker.TRIANGLE_LIST and line.type == Marker.LINE_LIST
+    assert np.array_equal([[p.x, p.y, p.z] for p in tri.points], X[faces.ravel()])
+    assert np.array_equal([[p.x, p.y, p.z] for p in line.points], X[segs.ravel()])
+    pts, nrm = by_ns["contacts"], by_ns["contact_normals"]
+    assert [[p.x, p.y, p.z] for p in pts.points] == [[1.0, 2.0, 3.0]]  # the row with an impulse only
+    assert np.allclose([[p.x, p.y, p.z] for p in nrm.points], [[1.0, 2.0, 3.0], [1.04, 2.0, 3.0]])

@@ -33,6 +33,7 @@ class CoupledSolution:
     iterations: int
     violation: float  # max |G z - g|
     active: list = field(default_factory=list)  # unilateral rows active at the solution
+    residual: float = 0.0  # |A z + G^T lam + C^T mu - b| / |b| of the coupled KKT system (stationarity)
 
     @property
     def v(self):
@@ -73,7 +74,8 @@ def solve(A_r, b_r, A_d, b_d, G, g, labels=(), C=None, lo=None, hi=None, tol=1e-
         z = lu.solve(rhs)
         v, lam, muW = z[:n], z[n:n + m], z[n + m:]
         if p == 0:
-            return CoupledSolution(v[:n_r], v[n_r:], lam, mu, it, _violation(G, v, g))
+            return CoupledSolution(v[:n_r], v[n_r:], lam, mu, it, _violation(G, v, g),
+                                   residual=_residual(A, b, v, G, lam, C, mu))
         mu = np.zeros(p)
         mu[idx] = muW
         Cv = C @ v
@@ -89,9 +91,19 @@ def solve(A_r, b_r, A_d, b_d, G, g, labels=(), C=None, lo=None, hi=None, tol=1e-
                 active[int(i)] = lo[i] if Cv[i] < lo[i] else hi[i]
                 changed = True
         if not changed:
-            return CoupledSolution(v[:n_r], v[n_r:], lam, mu, it, _violation(G, v, g), sorted(active))
+            return CoupledSolution(v[:n_r], v[n_r:], lam, mu, it, _violation(G, v, g), sorted(active),
+                                   _residual(A, b, v, G, lam, C, mu))
     raise StepError(f"the unilateral rows of the coupled solve did not settle in {4 * p + 5} active-set iterations")
 
 
 def _violation(G, v, g):
     return float(np.abs(G @ v - g).max()) if len(g) else 0.0
+
+
+def _residual(A, b, v, G, lam, C, mu):
+    r = A @ v - b
+    if len(lam):
+        r += G.T @ lam
+    if C is not None and len(mu):
+        r += C.T @ mu
+    return float(np.linalg.norm(r) / max(np.linalg.norm(b), 1e-300))

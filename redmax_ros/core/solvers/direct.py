@@ -34,11 +34,14 @@ class Solution:
     cons: Constraints | None = None
     violation: float = 0.0  # max |G qdot+ - g| of the bilateral rows [m/s, rad/s]
     contacts: object = None  # dynamics/self_collision.ContactReport when the scene has a collision section
+    given_residual: float | None = None  # the residual, given by a solver that keeps no system/cons (the coupled solve)
 
     @property
     def residual(self) -> float:
         """Relative residual |A v - b + G^T lam + C^T mu| / |b| of the KKT stationarity equation
         (computed on demand: the direct solve makes it round-off by construction)."""
+        if self.system is None:
+            return float("nan") if self.given_residual is None else self.given_residual
         c = self.cons
         C = c.C if len(self.mu) else _NO_ROWS
         return kkt_residual(self.system.A, self.system.b, self.v, c.G, self.lam, C, self.mu)

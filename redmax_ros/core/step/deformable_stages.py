@@ -182,7 +182,8 @@ def coupled_velocity(mech, ws, dm, state, ds, cmd, tau, h, timing=None):
         timing["skeleton"] += t1 - t0
         timing["mesh_assembly"] += t2 - t1
         timing["coupled_solve"] += t3 - t2
-    s = Solution(sol.v_r, sol.lam, sol.mu, sol.iterations, "coupled", None, None, sol.violation)
+    s = Solution(sol.v_r, sol.lam, sol.mu, sol.iterations, "coupled", None, None, sol.violation,
+                 given_residual=sol.residual)
     vs = VelocitySolve(s, cons.joint_rows, cons.site_rows,
                        cons.G[cons.loop_rows] if len(mech.loop_ab) else None, sol.violation, "coupled",
                        sol.iterations)

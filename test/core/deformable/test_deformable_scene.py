@@ -105,3 +105,12 @@ def test_starfish_scene():
         assert r.diagnostics.violation_pos <= 1e-8
     assert max(np.abs(q_arm)) > 0.1  # the gait moves the arms
     assert len(sim.deformable_surfaces()["body"]) > 0
+
+
+def test_coupled_solve_reports_its_kkt_residual():
+    """The coupled KKT solve's stationarity residual |A z + G^T lam + C^T mu - b| / |b| is round-off
+    (Diagnostics.residual, what /diagnostics and solver_stats report)."""
+    sim = Simulator.load("catalogue/string")
+    for _ in range(20):
+        res = sim.step(1)
+        assert res.diagnostics.residual < 1e-10
