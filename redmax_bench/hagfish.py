@@ -80,9 +80,12 @@ def knot_measures(X: np.ndarray) -> dict:
     return {"crossings": len(cr), "alternating": bool(alternating)}
 
 
-def run(steps: int, drive: bool = True, sim=None) -> dict:
-    """Step the hagfish ``steps`` times at its dt with the tail drive; the cost split and measures."""
+def run(steps: int, drive: bool = True, sim=None, qp: str = "active-set") -> dict:
+    """Step the hagfish ``steps`` times at its dt with the tail drive; the cost split and measures. ``qp``:
+    how the contact QP is solved (Workspace.contact_qp: 'active-set' or 'proxsuite')."""
     sim = sim or Simulator.load("hagfish", budget=None)  # no step budget: a knot step's QP can take > 50 ms
+    sim.workspace.contact_qp = qp
+    solvers = {}
     mech = sim.mech
     h = sim.spec.dt
     tip = mech.site_index["tail_tip"]
@@ -115,12 +118,13 @@ def run(steps: int, drive: bool = True, sim=None) -> dict:
         act += c.active
         max_active = max(max_active, c.active)
         iters += res.diagnostics.iterations
+        solvers[res.diagnostics.solver] = solvers.get(res.diagnostics.solver, 0) + 1
         worst = min(worst, c.min_distance)
         qr = sim.joint_positions() if hasattr(sim, "joint_positions") else None
         if qr is not None and len(qr) == mech.nv:
             worst_lim = max(worst_lim, float(np.max(np.maximum(qr - hi, lo - qr))))
     X = centre_line(sim)
-    out = {"steps": steps, "h": h, "nv": mech.nv, "steps_per_s": steps / tot,
+    out = {"steps": steps, "h": h, "nv": mech.nv, "contact_qp": qp, "solvers": solvers, "steps_per_s": steps / tot,
            "ms_per_step": 1e3 * tot / steps, "ms_detect": 1e3 * det / steps, "ms_qp": 1e3 * qp / steps,
            "ms_rest": 1e3 * (tot - det - qp) / steps, "rows_per_step": rows / steps,
            "active_per_step": act / steps, "max_active": max_active, "qp_iterations_per_step": iters / steps,
@@ -133,10 +137,15 @@ def run(steps: int, drive: bool = True, sim=None) -> dict:
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog="redmax_bench hagfish", description=__doc__.split("\n")[0])
     ap.add_argument("--steps", type=int, default=3000)
+    ap.add_argument("--qp", nargs="+", default=["active-set", "proxsuite"], choices=["active-set", "proxsuite"],
+                    help="contact QP solvers to run, side by side (the first is the headline)")
     add_out_argument(ap)
     a = ap.parse_args(argv)
-    r = run(a.steps)
-    for k, v in r.items():
-        print(f"{k:26s} {v}")
+    runs = {qp: run(a.steps, qp=qp) for qp in a.qp}  # the same drive, one after the other in this process
+    for k in next(iter(runs.values())):
+        print(f"{k:26s} " + "  |  ".join(f"{r[k]}" for r in runs.values()))
+    r = dict(runs[a.qp[0]])
+    if len(runs) > 1:
+        r["by_qp"] = runs
     write_json(a.out, "hagfish", r)
     return 0

@@ -18,6 +18,7 @@ from redmax_ros.core.solvers.budget import qp_solve
 from redmax_ros.core.solvers.problem import Constraints
 from redmax_ros.core.errors import StepError
 from redmax_ros.core.solvers.problem import LinearSystem
+from redmax_ros.core.solvers import active_set
 from redmax_ros.core.solvers.kkt import SMALL_N, kkt_residual, kkt_solve, kkt_solve_lu, max_row_residual
 
 _SUCCESS = eigenpy.ComputationInfo.Success
@@ -54,11 +55,13 @@ def _cholesky(A, what):
     return llt
 
 
-def solve_direct(sys: LinearSystem, cons: Constraints, qp_eps: float = 1e-10, deadline=None) -> Solution:
+def solve_direct(sys: LinearSystem, cons: Constraints, qp_eps: float = 1e-10, deadline=None, warm=None) -> Solution:
     """Eq. (2) with the bilateral rows of Eq. (6)/(7) (Schur complement) and, when the unconstrained
     solution crosses a joint limit, the QP of Eq. (5). Small systems (n <= kkt.SMALL_N) in one
     compiled call (kkt.py), larger ones with Eigen's LLT. ``deadline``: the step's budget.Deadline (the
-    QP's iteration caps and time), None for no budget."""
+    QP's iteration caps and time), None for no budget. ``warm``: None, or the unilateral rows active at the
+    previous step, to solve the QP by the dense active set (solvers/active_set.py; many rows, few active:
+    self-collision) before falling back on ProxSuite."""
     if not sys.symmetric:
         return _solve_direct_lu(sys, cons, qp_eps, deadline)
     A, b = sys.A, sys.b
@@ -83,6 +86,10 @@ def solve_direct(sys: LinearSystem, cons: Constraints, qp_eps: float = 1e-10, de
         viol, limits_ok = _violation_and_limits(cons, v)
     if limits_ok:
         return Solution(v, lam, _EMPTY if cons.C is None else np.zeros(len(cons.lo)), 1, "direct", sys, cons, viol)
+    if warm is not None:
+        r = active_set.solve(A, b, cons.G, cons.g, cons.C, cons.lo, cons.hi, warm)
+        if r is not None:
+            return Solution(r.v, r.lam, r.mu, r.iterations, "active-set", sys, cons, _violation_and_limits(cons, r.v)[0])
     v, lam, mu, iters = _solve_qp(A, b, cons, qp_eps, deadline)
     return Solution(v, lam, mu, iters, "qp", sys, cons, _violation_and_limits(cons, v)[0])
 

@@ -181,6 +181,31 @@ def skeleton_stages(mech, ws, state: State, cmd, tau, h) -> SkeletonStages:
     return SkeletonStages(kin, system, cons, v_r, sf)
 
 
+_ACTIVE_KEY = "active unilateral rows"  # ws.cache: (the step count they are for, labels of the active rows)
+
+
+def _warm_rows(ws, state, cons) -> list:
+    """Unilateral rows (by label and occurrence) that were active at the step that produced ``state``, with
+    whether at their upper bound (mu > 0): the active set's start
+    (solvers/active_set.py). Empty after a reset, a set_state or a load (the step count does not follow on), so
+    such a run solves as a fresh one does."""
+    k, keys = ws.cache.get(_ACTIVE_KEY, (-1, {}))
+    if k != state.k or cons.C is None:
+        return []
+    return [(i, keys[key]) for i, key in enumerate(_row_keys(cons.C_labels)) if key in keys]
+
+
+def _row_keys(labels) -> list:
+    """(label, its occurrence) per row: a pair's witness row and its capsule-end rows share a label."""
+    seen = {}
+    out = []
+    for lab in labels:
+        j = seen.get(lab, 0)
+        seen[lab] = j + 1
+        out.append((lab, j))
+    return out
+
+
 def pinocchio_velocity(mech, ws, state: State, cmd, tau, h) -> VelocitySolve:
     """Stages 1-4 on pin.Data: :func:`skeleton_stages` (1-3), self-collision rows (3'), then solve_direct
     (Cholesky / KKT / ProxSuite QP) or, with contact or joint friction, the Staggered Projections / BISP
@@ -195,12 +220,16 @@ def pinocchio_velocity(mech, ws, state: State, cmd, tau, h) -> VelocitySolve:
         check_rows(cons)  # prescribed velocities no step below the divergence limit can meet
     if mech.friction is None:
         t_solve = time.perf_counter()
+        warm = None if contacts is None or ws.contact_qp != "active-set" else _warm_rows(ws, state, cons)
         try:
-            sol = solve_direct(system, cons, deadline=ws.deadline)  # 4 (contact rows: the QP of Eq. 5)
+            sol = solve_direct(system, cons, deadline=ws.deadline, warm=warm)  # 4 (contact rows: the QP of Eq. 5)
         except StepError:
             if not (contacts is not None and self_collision.relax_rows(cons, contacts)):
                 raise
-            sol = solve_direct(system, cons, deadline=ws.deadline)  # without the contacts' position correction
+            sol = solve_direct(system, cons, deadline=ws.deadline, warm=warm)  # without the contacts' position correction
+        if contacts is not None and cons.C is not None:
+            keys = _row_keys(cons.C_labels)
+            ws.cache[_ACTIVE_KEY] = (state.k + 1, {keys[i]: bool(sol.mu[i] > 0) for i in np.flatnonzero(sol.mu)})
         fric = fcache = None
         viol_vel = sol.violation
         if contacts is not None:
