@@ -16,6 +16,7 @@ import numpy as np
 from redmax_ros.core.dynamics.energy import energies
 from redmax_ros.core.dynamics.tree_kinematics import Context, all_site_positions, body_poses
 from redmax_ros.core.errors import CommandError, SceneError, StepError
+from redmax_ros.core.model.collision import shape_poses
 from redmax_ros.core.model.dof_positions import DofPositions
 from redmax_ros.core.model.mechanism import Mechanism
 from redmax_ros.core.scene.loader import load_scene, parse_joint_trajectory
@@ -89,6 +90,7 @@ class Simulator:
         # solver: the scene's 'solver' key (direct | pcg | auto) unless overridden; see docs/solvers.md
         self.backend = make_backend(self.mech, solver or spec.solver)
         self._query = Context(self.mech)  # kinematics for body poses, spring ends, energies between steps
+        self._shape_data = None  # pin.Data for collision_shapes (made on first use)
         self.dt = float(spec.dt)
         for name, traj in spec.prescribed_trajectories.items():
             entry = f"prescribed.joints.{name}"
@@ -470,6 +472,15 @@ class Simulator:
     def body_poses(self) -> dict:
         """Body frames in the world: name -> (position (3,) [m], quaternion xyzw (4,))."""
         return body_poses(self._query, self.state.q)
+
+    def collision_shapes(self) -> list:
+        """model.collision.ShapePose of every primitive collision shape (spheres, boxes, cylinders, capsules) at
+        the current state; [] without a collision section (docs/collisions.md)."""
+        if self.mech.collision is None:
+            return []
+        if self._shape_data is None:
+            self._shape_data = self.mech.model.createData()
+        return shape_poses(self.mech, self._shape_data, self.state.q)
 
     def site_positions(self) -> np.ndarray:
         """World positions (S,3) [m] of every site (mech.site_names order) at the current state."""

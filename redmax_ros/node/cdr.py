@@ -225,10 +225,12 @@ class SolverStatsEncoder:
             off_d = len(w.b) - 8
             for _ in range(7):  # residual .. step_wall_time: 8 doubles in all
                 w.f64(0.0)
+            w.u32(0)  # contact_rows
+            w.u32(0)  # contacts_active
             b = bytes(w.b)
             # encapsulation, sec, nanosec, [frame_id + padding], step, [solver + padding], iterations,
-            # [padding], 8 doubles
-            fmt = f"<4siI{off_step - 12}sQ{off_it - off_step - 8}sI{off_d - off_it - 4}s8d"
+            # [padding], 8 doubles, 2 uint32
+            fmt = f"<4siI{off_step - 12}sQ{off_it - off_step - 8}sI{off_d - off_it - 4}s8dII"
             tpl = (b, off_step, off_it, off_d, struct.Struct(fmt),
                    (b[12:off_step], b[off_step + 8:off_it], b[off_it + 4:off_d]))
             assert tpl[4].size == len(b)
@@ -239,7 +241,8 @@ class SolverStatsEncoder:
     def layout(self, solver):
         """(Struct, (frame_id piece, solver piece, padding piece)) of the message for ``solver``:
         ``Struct.pack(ENCAPSULATION, sec, nanosec, piece0, step, piece1, iterations, piece2, residual,
-        violation_pos, violation_vel, E_kin, E_pot, E_spring, E_total, wall_time)``."""
+        violation_pos, violation_vel, E_kin, E_pot, E_spring, E_total, wall_time, contact_rows,
+        contacts_active)``."""
         tpl = self._template(solver)
         return tpl[4], tpl[5]
 
@@ -249,10 +252,17 @@ class SolverStatsEncoder:
             tpl = self._template(str(diag.solver))
         st, (p0, p1, p2) = tpl[4], tpl[5]
         ns = int(round(t * 1e9))
+        rows, active = contact_counts(diag)
         return st.pack(ENCAPSULATION, ns // 1_000_000_000, ns % 1_000_000_000, p0, int(step), p1,
                        int(diag.iterations), p2, float(diag.residual), float(diag.violation_pos),
                        float(diag.violation_vel), float(diag.E_kin), float(diag.E_pot), float(diag.E_spring),
-                       float(diag.E_total), float(diag.wall_time))
+                       float(diag.E_total), float(diag.wall_time), rows, active)
+
+
+def contact_counts(diag) -> tuple:
+    """(contact_rows, contacts_active) of a step's Diagnostics: its self-collision report's, (0, 0) without."""
+    c = getattr(getattr(diag, "solution", None), "contacts", None)
+    return (0, 0) if c is None else (int(c.rows), int(c.active))
 
 
 class StepRecords:
@@ -304,11 +314,12 @@ class StepRecords:
         ns = int(round(t * 1e9))
         sec, nsec = ns // 1_000_000_000, ns % 1_000_000_000
         op = self._op
+        rows, active = contact_counts(diag)
         rest = st.pack(op, 34, hc.index + 1, sc, log_ns, log_ns, ENCAPSULATION, sec, nsec,
                        op, 22 + n, hs.index + 1, ss, log_ns, log_ns, ENCAPSULATION, sec, nsec, p0, int(step), p1,
                        int(diag.iterations), p2, float(diag.residual), float(diag.violation_pos),
                        float(diag.violation_vel), float(diag.E_kin), float(diag.E_pot), float(diag.E_spring),
-                       float(diag.E_total), float(diag.wall_time))
+                       float(diag.E_total), float(diag.wall_time), rows, active)
         return b"".join((self._head.pack(op, 22 + len(js), hj.index + 1, sj, log_ns, log_ns), js, rest))
 
 

@@ -469,6 +469,7 @@ _BODY_COLOR = ColorRGBA(r=0.55, g=0.6, b=0.7, a=1.0)
 _SPRING_COLOR = ColorRGBA(r=0.9, g=0.5, b=0.1, a=1.0)
 _DEFORMABLE_COLOR = ColorRGBA(r=0.85, g=0.45, b=0.55, a=0.8)
 _CONTACT_COLOR = ColorRGBA(r=0.9, g=0.1, b=0.1, a=1.0)
+_COLLISION_COLOR = ColorRGBA(r=0.3, g=0.7, b=0.4, a=0.5)
 _VERTEX_DTYPE = np.dtype([("xyz", "<f8", 3), ("deformable", "<u4"), ("pad", "<u4")])  # 32 bytes per point
 _VERTEX_FIELDS = [PointField(name="x", offset=0, datatype=PointField.FLOAT64, count=1),
                   PointField(name="y", offset=8, datatype=PointField.FLOAT64, count=1),
@@ -476,12 +477,15 @@ _VERTEX_FIELDS = [PointField(name="x", offset=0, datatype=PointField.FLOAT64, co
                   PointField(name="deformable", offset=24, datatype=PointField.UINT32, count=1)]
 
 
-def markers_msg(t, poses: dict, springs: list, frame_id="world", scale=0.02, meshes=None, contacts=None) -> MarkerArray:
+def markers_msg(t, poses: dict, springs: list, frame_id="world", scale=0.02, meshes=None, contacts=None,
+                shapes=None) -> MarkerArray:
     """Bodies as small axes-aligned cubes at their frames, springs as line segments; with ``meshes``
     ({name: (positions (n,3) [m], faces (F,3) or segments (S,2))}) each deformable's surface as a
     TRIANGLE_LIST (FEM) or LINE_LIST (string), namespace ``deformable/<name>``; with ``contacts`` (the
     step's self_collision.ContactReport) the witness points of its active rows (SPHERE_LIST, namespace
-    ``contacts``) and their normals (LINE_LIST, ``contact_normals``, 2 scale long)."""
+    ``contacts``) and their normals (LINE_LIST, ``contact_normals``, 2 scale long); with ``shapes``
+    (Simulator.collision_shapes) each collision shape (SPHERE, CUBE, CYLINDER; a capsule as a CYLINDER and
+    two SPHEREs), namespace ``collision/<owner>``."""
     stamp = time_msg(t)
     out = MarkerArray()
     clear = Marker()
@@ -508,6 +512,8 @@ def markers_msg(t, poses: dict, springs: list, frame_id="world", scale=0.02, mes
             m.points.append(Point(x=float(a[0]), y=float(a[1]), z=float(a[2])))
             m.points.append(Point(x=float(b[0]), y=float(b[1]), z=float(b[2])))
         out.markers.append(m)
+    for k, sp in enumerate(shapes or ()):
+        out.markers += _shape_markers(stamp, frame_id, 3 * k, sp)
     for k, (name, (X, elems)) in enumerate((meshes or {}).items()):
         m = Marker()
         m.header = Header(stamp=stamp, frame_id=frame_id)
@@ -541,6 +547,38 @@ def markers_msg(t, poses: dict, springs: list, frame_id="world", scale=0.02, mes
                            Point(x=float(b[0]), y=float(b[1]), z=float(b[2]))]
         out.markers += [pts, nrm]
     return out
+
+
+def _shape_markers(stamp, frame_id, mid, sp) -> list:
+    """Markers of one model.collision.ShapePose (ids mid, mid + 1, mid + 2)."""
+    def marker(kind, i, pos, size):
+        m = Marker()
+        m.header = Header(stamp=stamp, frame_id=frame_id)
+        m.ns, m.id, m.type, m.action = f"collision/{sp.owner}", mid + i, kind, Marker.ADD
+        q = sp.quaternion
+        m.pose = Pose(position=Point(x=float(pos[0]), y=float(pos[1]), z=float(pos[2])),
+                      orientation=Quaternion(x=float(q[0]), y=float(q[1]), z=float(q[2]), w=float(q[3])))
+        m.scale = Vector3(x=float(size[0]), y=float(size[1]), z=float(size[2]))
+        m.color = _COLLISION_COLOR
+        return m
+
+    p, s = sp.position, sp.size
+    if sp.kind == "sphere":
+        return [marker(Marker.SPHERE, 0, p, s)]
+    if sp.kind == "box":
+        return [marker(Marker.CUBE, 0, p, s)]
+    if sp.kind == "cylinder":
+        return [marker(Marker.CYLINDER, 0, p, s)]
+    axis = quaternion_z_axis(sp.quaternion) * (0.5 * s[2])  # capsule: the end centres +- length/2 along local z
+    ball = (s[0], s[0], s[0])
+    return [marker(Marker.CYLINDER, 0, p, s), marker(Marker.SPHERE, 1, p + axis, ball),
+            marker(Marker.SPHERE, 2, p - axis, ball)]
+
+
+def quaternion_z_axis(q) -> np.ndarray:
+    """Third column of the rotation of a unit quaternion (x, y, z, w): the local z axis in the world."""
+    x, y, z, w = (float(c) for c in q)
+    return np.array([2 * (x * z + w * y), 2 * (y * z - w * x), 1 - 2 * (x * x + y * y)])
 
 
 def vertices_msg(t, positions: dict, frame_id="world") -> PointCloud2:

@@ -68,7 +68,7 @@ class NullSink:
 
     def scene_loaded(self, info: SceneInfo): ...
     def state(self, t, q, v, effort, site_forces, diag, step_index, body_wrenches): ...
-    def markers(self, t, poses, springs, meshes=None, contacts=None): ...
+    def markers(self, t, poses, springs, meshes=None, contacts=None, shapes=None): ...
     def vertices(self, t, positions): ...
     def frames(self, t, sim): ...
     def robot_model(self, sim): ...
@@ -293,7 +293,7 @@ class Engine:
             self.sink.frames(s.time, s)
 
     def _markers(self, t, contacts):
-        """Markers (bodies, springs, deformable surfaces, the step's active contacts) and, with deformables,
+        """Markers (bodies, springs, deformable surfaces, collision shapes, the step's active contacts) and, with deformables,
         their vertex positions (sink.vertices), at marker_rate."""
         sim = self.sim
         positions = sim.deformable_positions()
@@ -302,7 +302,7 @@ class Engine:
             surfaces = sim.deformable_surfaces()
             meshes = {n: (positions[n], surfaces[n]) for n in positions}
             self.sink.vertices(t, positions)
-        self.sink.markers(t, sim.body_poses(), sim.spring_segments(), meshes, contacts)
+        self.sink.markers(t, sim.body_poses(), sim.spring_segments(), meshes, contacts, sim.collision_shapes())
 
     def _publish_prescriptions(self):
         self.sink.prescriptions(self.sim.time, self.sim.prescribed_joints(), self.sim.prescribed_sites(),

@@ -650,8 +650,9 @@ class RedmaxNode(Node):
     def status(self, text):
         self.get_logger().info(text)
 
-    def markers(self, t, poses, springs, meshes=None, contacts=None):
-        self._send(self.pub_markers, markers_msg(t, poses, springs, self.frame_id, meshes=meshes, contacts=contacts))
+    def markers(self, t, poses, springs, meshes=None, contacts=None, shapes=None):
+        self._send(self.pub_markers, markers_msg(t, poses, springs, self.frame_id, meshes=meshes, contacts=contacts,
+                                                 shapes=shapes))
 
     def vertices(self, t, positions):
         self._send(self.pub_vertices, vertices_msg(t, positions, self.frame_id))

@@ -91,12 +91,14 @@ def test_clock_bytes(store):
 
 @pytest.mark.parametrize("solver", ["direct", "pcg", "", "a-much-longer-solver-name"])
 def test_solver_stats_bytes(solver, store):
+    rows, active = (17, 3) if solver == "direct" else (0, 0)  # a step with self-collision rows (docs/collisions.md)
     d = SimpleNamespace(E_kin=1.5, E_pot=-2.25, E_spring=0.125, E_total=-0.625, violation_pos=1e-12,
-                        violation_vel=3e-15, residual=2e-16, iterations=7, solver=solver, wall_time=2.5e-4)
+                        violation_vel=3e-15, residual=2e-16, iterations=7, solver=solver, wall_time=2.5e-4,
+                        solution=SimpleNamespace(contacts=SimpleNamespace(rows=rows, active=active) if rows else None))
     enc = SolverStatsEncoder("world")
     ref = SolverStats(step=123456789012, solver=solver, iterations=7, residual=2e-16, violation_pos=1e-12,
                       violation_vel=3e-15, energy_kinetic=1.5, energy_potential=-2.25, energy_spring=0.125,
-                      energy_total=-0.625, step_wall_time=2.5e-4)
+                      energy_total=-0.625, step_wall_time=2.5e-4, contact_rows=rows, contacts_active=active)
     ref.header.stamp = time_msg(0.042)
     ref.header.frame_id = "world"
     got = enc.encode(0.042, 123456789012, d)

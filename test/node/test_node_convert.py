@@ -96,3 +96,22 @@ def test_markers_draw_deformable_surfaces_and_active_contacts():
     pts, nrm = by_ns["contacts"], by_ns["contact_normals"]
     assert [[p.x, p.y, p.z] for p in pts.points] == [[1.0, 2.0, 3.0]]  # the row with an impulse only
     assert np.allclose([[p.x, p.y, p.z] for p in nrm.points], [[1.0, 2.0, 3.0], [1.04, 2.0, 3.0]])
+
+
+def test_markers_draw_a_capsule_as_a_cylinder_and_two_end_spheres():
+    from visualization_msgs.msg import Marker
+
+    from redmax_ros.core.model.collision import ShapePose
+    from redmax_ros.node.convert import markers_msg
+
+    s = 0.5 ** 0.5  # a quarter turn about y: local z along world x
+    cap = ShapePose("left", "capsule", (0.1, 0.1, 0.2), np.array([1.0, 2.0, 3.0]), np.array([0.0, s, 0.0, s]))
+    box = ShapePose("right", "box", (0.1, 0.2, 0.3), np.zeros(3), np.array([0.0, 0.0, 0.0, 1.0]))
+    out = markers_msg(0.0, {}, [], shapes=[cap, box])
+    ms = [m for m in out.markers if m.ns.startswith("collision/")]
+    assert [(m.ns, m.type) for m in ms] == [("collision/left", Marker.CYLINDER), ("collision/left", Marker.SPHERE),
+                                            ("collision/left", Marker.SPHERE), ("collision/right", Marker.CUBE)]
+    assert len({m.id for m in ms}) == 4
+    ends = sorted([m.pose.position.x, m.pose.position.y, m.pose.position.z] for m in ms[1:3])
+    assert np.allclose(ends, [[0.9, 2.0, 3.0], [1.1, 2.0, 3.0]])
+    assert (ms[0].scale.x, ms[0].scale.z, ms[1].scale.x) == (0.1, 0.2, 0.1)

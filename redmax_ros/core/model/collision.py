@@ -13,6 +13,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import coal
 import numpy as np
 import pinocchio as pin
 
@@ -83,3 +84,40 @@ def build_collision(mech, cspec) -> CollisionModel:
     pa, pb = np.array(pa, dtype=int), np.array(pb, dtype=int)
     return CollisionModel(geom, owner, jid, radius, pa, pb, radius[pa] + radius[pb] + cspec.margin if len(pa) else
                           np.zeros(0), cspec.margin, cspec.offset, cspec.restitution, labels)
+
+
+@dataclass(frozen=True)
+class ShapePose:
+    """One collision object in the world at a configuration (for display: the node's markers)."""
+    owner: str  # body or obstacle name
+    kind: str  # 'sphere' | 'box' | 'cylinder' | 'capsule' (others, meshes and planes, are not listed)
+    size: tuple  # m: sphere (d, d, d); box full extents; cylinder and capsule (d, d, length between the end centres)
+    position: np.ndarray  # (3,) world frame [m]
+    quaternion: np.ndarray  # (4,) xyzw, world frame (axis of cylinders and capsules: local z)
+
+
+def shape_poses(mech, data, q) -> list:
+    """ShapePose of every primitive collision object at configuration ``q`` (``data``: a pin.Data of
+    mech.model, used for the forward kinematics)."""
+    cm = mech.collision
+    if cm is None:
+        return []
+    pin.forwardKinematics(mech.model, data, q)
+    out = []
+    for k, obj in enumerate(cm.geom.geometryObjects):
+        g = obj.geometry
+        if isinstance(g, coal.Sphere):
+            kind, size = "sphere", (2 * g.radius,) * 3
+        elif isinstance(g, coal.Box):
+            kind, size = "box", tuple(2 * np.asarray(g.halfSide, float))
+        elif isinstance(g, coal.Capsule):
+            kind, size = "capsule", (2 * g.radius, 2 * g.radius, 2 * g.halfLength)
+        elif isinstance(g, coal.Cylinder):
+            kind, size = "cylinder", (2 * g.radius, 2 * g.radius, 2 * g.halfLength)
+        else:
+            continue
+        M = data.oMi[int(cm.jid[k])] * obj.placement
+        quat = pin.Quaternion(M.rotation).coeffs()  # x, y, z, w
+        out.append(ShapePose(cm.owner[k], kind, tuple(float(s) for s in size), M.translation.copy(),
+                             np.asarray(quat, float).copy()))
+    return out

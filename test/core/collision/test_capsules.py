@@ -103,3 +103,22 @@ def test_floor_plane_and_sphere_rest_without_penetration():
     z = sim.state.q[2]
     assert abs(z - 0.05) < 0.01 * 0.05
     assert res.diagnostics.solution.contacts.active == 1
+
+
+def test_collision_shapes_for_display_follow_the_bodies():
+    """Simulator.collision_shapes: one capsule per body at the body frame (zero shape offset), its axis (local
+    z) along world x as the scene's pitch of pi/2 puts it, sizes from the scene; they move with the bodies."""
+    sim = Simulator.load("capsules")
+    for _ in range(2):
+        shapes = sim.collision_shapes()
+        poses = sim.body_poses()
+        assert [(s.owner, s.kind) for s in shapes] == [("left", "capsule"), ("right", "capsule")]
+        for s in shapes:
+            p, quat = poses[s.owner]
+            assert np.allclose(s.position, p, atol=1e-12) and np.allclose(np.abs(s.quaternion), np.abs(quat), atol=1e-12)
+            assert s.size == pytest.approx((0.1, 0.1, 0.2))
+            x, y, z, w = s.quaternion
+            assert np.allclose([2 * (x * z + w * y), 2 * (y * z - w * x), 1 - 2 * (x * x + y * y)], [1, 0, 0], atol=1e-9)
+        for _ in range(20):
+            sim.step()
+    assert shapes[0].position[0] > -0.225 + 0.019  # moved 20 mm toward the other in 20 ms
