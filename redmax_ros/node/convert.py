@@ -502,12 +502,7 @@ def markers_msg(t, poses: dict, springs: list, frame_id="world", scale=0.02, mes
         m.text = name
         out.markers.append(m)
     if springs:
-        m = Marker()
-        m.header = Header(stamp=stamp, frame_id=frame_id)
-        m.ns, m.id, m.type, m.action = "springs", 0, Marker.LINE_LIST, Marker.ADD
-        m.pose.orientation.w = 1.0
-        m.scale.x = scale / 4
-        m.color = _SPRING_COLOR
+        m = _world_marker(stamp, frame_id, "springs", 0, Marker.LINE_LIST, Vector3(x=scale / 4), _SPRING_COLOR)
         for _, a, b in springs:
             m.points.append(Point(x=float(a[0]), y=float(a[1]), z=float(a[2])))
             m.points.append(Point(x=float(b[0]), y=float(b[1]), z=float(b[2])))
@@ -515,30 +510,17 @@ def markers_msg(t, poses: dict, springs: list, frame_id="world", scale=0.02, mes
     for k, sp in enumerate(shapes or ()):
         out.markers += _shape_markers(stamp, frame_id, 3 * k, sp)
     for k, (name, (X, elems)) in enumerate((meshes or {}).items()):
-        m = Marker()
-        m.header = Header(stamp=stamp, frame_id=frame_id)
         tri = elems.shape[1] == 3
-        m.ns, m.id, m.action = f"deformable/{name}", k, Marker.ADD
-        m.type = Marker.TRIANGLE_LIST if tri else Marker.LINE_LIST
-        m.pose.orientation.w = 1.0
-        m.scale = Vector3(x=1.0, y=1.0, z=1.0) if tri else Vector3(x=scale / 4, y=0.0, z=0.0)
-        m.color = _DEFORMABLE_COLOR
+        m = _world_marker(stamp, frame_id, f"deformable/{name}", k, Marker.TRIANGLE_LIST if tri else Marker.LINE_LIST,
+                          Vector3(x=1.0, y=1.0, z=1.0) if tri else Vector3(x=scale / 4), _DEFORMABLE_COLOR)
         m.points = [Point(x=float(x), y=float(y), z=float(z)) for x, y, z in np.asarray(X)[np.asarray(elems).ravel()]]
         out.markers.append(m)
     if contacts is not None and contacts.rows:
         act = np.flatnonzero(np.asarray(contacts.impulse) > 0) if len(contacts.impulse) else np.arange(contacts.rows)
-        pts = Marker()
-        pts.header = Header(stamp=stamp, frame_id=frame_id)
-        pts.ns, pts.id, pts.type, pts.action = "contacts", 0, Marker.SPHERE_LIST, Marker.ADD
-        pts.pose.orientation.w = 1.0
-        pts.scale = Vector3(x=scale / 2, y=scale / 2, z=scale / 2)
-        pts.color = _CONTACT_COLOR
-        nrm = Marker()
-        nrm.header = Header(stamp=stamp, frame_id=frame_id)
-        nrm.ns, nrm.id, nrm.type, nrm.action = "contact_normals", 0, Marker.LINE_LIST, Marker.ADD
-        nrm.pose.orientation.w = 1.0
-        nrm.scale.x = scale / 8
-        nrm.color = _CONTACT_COLOR
+        pts = _world_marker(stamp, frame_id, "contacts", 0, Marker.SPHERE_LIST,
+                            Vector3(x=scale / 2, y=scale / 2, z=scale / 2), _CONTACT_COLOR)
+        nrm = _world_marker(stamp, frame_id, "contact_normals", 0, Marker.LINE_LIST, Vector3(x=scale / 8),
+                            _CONTACT_COLOR)
         for i in act:
             a, n = contacts.point_a[i], contacts.normal[i]
             pts.points.append(Point(x=float(a[0]), y=float(a[1]), z=float(a[2])))
@@ -547,6 +529,17 @@ def markers_msg(t, poses: dict, springs: list, frame_id="world", scale=0.02, mes
                            Point(x=float(b[0]), y=float(b[1]), z=float(b[2]))]
         out.markers += [pts, nrm]
     return out
+
+
+def _world_marker(stamp, frame_id, ns, mid, kind, scale, color) -> Marker:
+    """An empty list-type marker (points in ``frame_id``, identity pose)."""
+    m = Marker()
+    m.header = Header(stamp=stamp, frame_id=frame_id)
+    m.ns, m.id, m.type, m.action = ns, mid, kind, Marker.ADD
+    m.pose.orientation.w = 1.0
+    m.scale = scale
+    m.color = color
+    return m
 
 
 def _shape_markers(stamp, frame_id, mid, sp) -> list:
