@@ -80,12 +80,13 @@ def knot_measures(X: np.ndarray) -> dict:
     return {"crossings": len(cr), "alternating": bool(alternating)}
 
 
-def run(steps: int, drive: bool = True, sim=None, qp: str = "active-set") -> dict:
+def run(steps: int, drive: bool = True, sim=None, qp_solver: str = "active-set") -> dict:
     """Step the hagfish ``steps`` times at its dt with the tail drive; the cost split and measures. ``qp``:
-    how the contact QP is solved (Workspace.contact_qp: 'active-set' or 'proxsuite')."""
+    how the contact QP is solved (``qp_solver``: Workspace.contact_qp, 'active-set' or 'proxsuite')."""
     sim = sim or Simulator.load("hagfish", budget=None)  # no step budget: a knot step's QP can take > 50 ms
-    sim.workspace.contact_qp = qp
+    sim.workspace.contact_qp = qp_solver
     solvers = {}
+    per_step = []  # CPU-wall seconds of each step
     mech = sim.mech
     h = sim.spec.dt
     tip = mech.site_index["tail_tip"]
@@ -110,7 +111,9 @@ def run(steps: int, drive: bool = True, sim=None, qp: str = "active-set") -> dic
             sim.set_site_forces(f)
         t0 = time.perf_counter()
         res = sim.step()
-        tot += time.perf_counter() - t0
+        dt_step = time.perf_counter() - t0
+        tot += dt_step
+        per_step.append(dt_step)
         c = res.diagnostics.solution.contacts
         det += c.t_detect + c.t_rows
         qp += c.t_solve
@@ -124,7 +127,8 @@ def run(steps: int, drive: bool = True, sim=None, qp: str = "active-set") -> dic
         if qr is not None and len(qr) == mech.nv:
             worst_lim = max(worst_lim, float(np.max(np.maximum(qr - hi, lo - qr))))
     X = centre_line(sim)
-    out = {"steps": steps, "h": h, "nv": mech.nv, "contact_qp": qp, "solvers": solvers, "steps_per_s": steps / tot,
+    out = {"steps": steps, "h": h, "nv": mech.nv, "contact_qp": qp_solver, "solvers": solvers, "steps_per_s": steps / tot,
+           "steps_per_s_by_500": [round(len(w) / sum(w), 1) for w in (per_step[i:i + 500] for i in range(0, steps, 500))],
            "ms_per_step": 1e3 * tot / steps, "ms_detect": 1e3 * det / steps, "ms_qp": 1e3 * qp / steps,
            "ms_rest": 1e3 * (tot - det - qp) / steps, "rows_per_step": rows / steps,
            "active_per_step": act / steps, "max_active": max_active, "qp_iterations_per_step": iters / steps,
@@ -141,7 +145,7 @@ def main(argv=None) -> int:
                     help="contact QP solvers to run, side by side (the first is the headline)")
     add_out_argument(ap)
     a = ap.parse_args(argv)
-    runs = {qp: run(a.steps, qp=qp) for qp in a.qp}  # the same drive, one after the other in this process
+    runs = {qp: run(a.steps, qp_solver=qp) for qp in a.qp}  # the same drive, one after the other in this process
     for k in next(iter(runs.values())):
         print(f"{k:26s} " + "  |  ".join(f"{r[k]}" for r in runs.values()))
     r = dict(runs[a.qp[0]])
