@@ -80,6 +80,42 @@ def knot_measures(X: np.ndarray) -> dict:
     return {"crossings": len(cr), "alternating": bool(alternating)}
 
 
+class KnotDrive:
+    """The knotting drive: PD forces [N] on the anchor sites (held at :data:`ANCHORS`) and on the tail tip
+    (towards :func:`target`), velocities by finite differences of the positions of the previous call (0 at
+    the first), for a step of ``h`` [s]."""
+
+    def __init__(self, mech, h: float):
+        self.h = h
+        self.tip = mech.site_index["tail_tip"]
+        self.anchors = {n: mech.site_index[n] for n in ANCHORS}
+        self.prev = None  # site positions of the previous call
+
+    def forces(self, t: float, X: np.ndarray) -> dict:
+        """{site: world force [N]} at time t [s] for the site positions X (S,3) [m]."""
+        prev = X if self.prev is None else self.prev
+        self.prev = X
+        x = X[self.tip]
+        f = {"tail_tip": KP * (target(t) - x) - KD * (x - prev[self.tip]) / self.h}
+        for n, i in self.anchors.items():
+            f[n] = KP_ANCHOR * (np.asarray(ANCHORS[n]) - X[i]) - KD_ANCHOR * (X[i] - prev[i]) / self.h
+        return f
+
+
+_CONTROLLER = {}
+
+
+def knot_drive(t, state):
+    """The drive as a redmax_run controller: ``redmax_run hagfish --controller redmax_bench.hagfish:knot_drive``
+    (site positions from a kinematics-only copy of the scene at ``state``; one drive per process)."""
+    if "drive" not in _CONTROLLER:
+        kin = Simulator.load("hagfish", budget=None)
+        _CONTROLLER.update(kin=kin, drive=KnotDrive(kin.mech, kin.spec.dt))
+    kin = _CONTROLLER["kin"]
+    kin.set_state(state)
+    return {"site_forces": _CONTROLLER["drive"].forces(t, kin.site_positions())}
+
+
 def run(steps: int, drive: bool = True, sim=None, qp_solver: str = "active-set") -> dict:
     """Step the hagfish ``steps`` times at its dt with the tail drive; the cost split and measures. ``qp``:
     how the contact QP is solved (``qp_solver``: Workspace.contact_qp, 'active-set' or 'proxsuite')."""
@@ -90,25 +126,15 @@ def run(steps: int, drive: bool = True, sim=None, qp_solver: str = "active-set")
     mech = sim.mech
     h = sim.spec.dt
     tip = mech.site_index["tail_tip"]
-    anchors = {n: mech.site_index[n] for n in ANCHORS}
-    X0 = sim.site_positions()
-    x_prev, a_prev = X0[tip], {n: X0[i] for n, i in anchors.items()}
+    knot = KnotDrive(mech, h)
     lo, hi = mech.lower, mech.upper
     det = qp = tot = 0.0
     rows = act = iters = 0
     worst, worst_lim = np.inf, 0.0
     max_active = 0
     for k in range(steps):
-        Xs = sim.site_positions()
-        x = Xs[tip]
-        vtip = (x - x_prev) / h
-        x_prev = x
         if drive:
-            f = {"tail_tip": KP * (target(sim.time) - x) - KD * vtip}
-            for n, i in anchors.items():
-                f[n] = KP_ANCHOR * (np.asarray(ANCHORS[n]) - Xs[i]) - KD_ANCHOR * (Xs[i] - a_prev[n]) / h
-                a_prev[n] = Xs[i]
-            sim.set_site_forces(f)
+            sim.set_site_forces(knot.forces(sim.time, sim.site_positions()))
         t0 = time.perf_counter()
         res = sim.step()
         dt_step = time.perf_counter() - t0
