@@ -91,6 +91,7 @@ class Simulator:
         self.backend = make_backend(self.mech, solver or spec.solver)
         self._query = Context(self.mech)  # kinematics for body poses, spring ends, energies between steps
         self._shape_data = None  # pin.Data for collision_shapes (made on first use)
+        self._surfaces = None  # deformable_surfaces, found on first use
         self.dt = float(spec.dt)
         for name, traj in spec.prescribed_trajectories.items():
             entry = f"prescribed.joints.{name}"
@@ -457,7 +458,9 @@ class Simulator:
         dm = self.deformables
         if dm is None:
             return {}
-        return {n: (e.surface() if e.kind == "fem" else e.seg).copy() for n, e in zip(dm.names, dm.elements)}
+        if self._surfaces is None:  # constant per scene: the boundary faces are found once (np.unique over all faces)
+            self._surfaces = {n: (e.surface() if e.kind == "fem" else e.seg) for n, e in zip(dm.names, dm.elements)}
+        return {n: f.copy() for n, f in self._surfaces.items()}
 
     def deformable_report(self) -> dict | None:
         """{E_kin, E_grav, E_elastic [J], attachment_drift [m]} of the deformables at the current state (the
