@@ -41,7 +41,7 @@ import pinocchio as pin
 
 from redmax_ros.core.errors import SceneError
 from redmax_ros.core.geometry.joints import q_index
-from redmax_ros.core.dynamics.forces import coriolis_jacobian
+from redmax_ros.core.dynamics.forces import add_geometric_stiffness, coriolis_jacobian
 from redmax_ros.core.dynamics.kinematics import frame_jacobian, site_positions
 from redmax_ros.core.dynamics.stabilization import TOL as LOOP_TOL
 from redmax_ros.core.dynamics.stabilization import loop_residual
@@ -200,6 +200,7 @@ class Extras:
             _, Jc, Jw, _ = frame_jacobian(mech, ws.data, fid)
             f += Jc.T @ F + Jw.T @ Tq
         if len(self.ds_ab):
+            ends = []  # (x_a, x_b, f_a) of the implicit ones: the lever-arm blocks of their full K_m
             for (a, b), d, k, c, L0, imp in zip(self.ds_ab, self.ds_dir, self.ds_k, self.ds_c, self.ds_rest,
                                                 self.ds_implicit):
                 xa, Ja = _site(mech, ws.data, a)
@@ -209,8 +210,14 @@ class Extras:
                 if imp:  # K = k d d^T, D = c d d^T through the site Jacobians (Eq. 2)
                     A += (h * c + h * h * k) * np.outer(Jd, Jd)
                     f += Jd * (-k * (s - L0))
+                    ends.append((xa, xb, -k * (s - L0) * d))
                 else:  # implicit: false: the whole force at step k, nothing on the LHS (notes §1.9)
                     f += Jd * (-k * (s - L0) - c * float(Jd @ v_r))
+            if ends and mech.spring_geometric:
+                imp = self.ds_implicit
+                add_geometric_stiffness(ws, A, mech.site_jid[self.ds_ab[imp, 0]], [e[0] for e in ends],
+                                        mech.site_jid[self.ds_ab[imp, 1]], [e[1] for e in ends],
+                                        [e[2] for e in ends], None, h * h)
 
     def rows(self, ws):
         """Bilateral rows of the linear constraints in hyper-reduced coordinates (rhs 0)."""

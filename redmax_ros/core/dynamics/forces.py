@@ -8,7 +8,10 @@ with stiffness written positive here (K = -df/dx). Terms and where they come fro
   * J^T (f_m^{coriolis, gravity} - M_m Jdot qdot): -nle (RNEA at zero acceleration).
   * reduced implicit joint springs/dampers K_r, D_r (Sueda's notes §2.6, joint stiffness/damping).
   * maximal implicit point-to-point springs/dampers between sites, projected through the point
-    Jacobians (Eq. S2.4), with the full 3x3 spring stiffness including the change of spring direction.
+    Jacobians (Eq. S2.4), with the full 3x3 spring stiffness including the change of spring direction,
+    plus (integrator.spring_stiffness: full, the default) the lever-arm blocks of K_m, the rotation of each
+    end's torque about its body's centre of mass at fixed force (notes Eq. 1.32, 1.44, symmetrised;
+    springs.geometric_blocks_kernel), as per-body 6x6 blocks J_j^T B_j J_j (:func:`add_geometric_stiffness`).
   * body damping per body (maximal, implicit; notes §1.9.1, f = -D phi): D_m = c diag(m I3, I_com)
     (form 'mass') or D_m = c I6 on the body twist at the COM (form 'twist', the reference's), both as
     c diag(m_d I3, I_d) with mech.body_damping_mass/inertia.
@@ -25,7 +28,9 @@ import pinocchio as pin
 from redmax_ros.core.dynamics.kinematics import Kinematics, frame_jacobian
 from redmax_ros.core.jit import njit
 from redmax_ros.core.solvers.problem import LinearSystem
-from redmax_ros.core.dynamics.springs import joint_displacement, spring_terms
+from redmax_ros.core.dynamics.springs import (clamp_lever_blocks, geometric_blocks_kernel, joint_displacement,
+                                              spring_terms)
+from redmax_ros.core.dynamics.tree_forces import dense_crba_kernel
 
 
 def coriolis_jacobian(mech, ws, q: np.ndarray, v: np.ndarray) -> np.ndarray:
@@ -65,6 +70,29 @@ def quadratic_jacobian(fn, v: np.ndarray) -> np.ndarray:
     return K
 
 
+def add_geometric_stiffness(ws, A, ja, pa, jb, pb, f, explicit, scale) -> None:
+    """A += scale * sum_j J_j^T B_j J_j: the lever-arm blocks B_j of the springs' full maximal stiffness
+    (springs.geometric_blocks_kernel: ends of force f (P,3) at world points pa, pb on joints ja, jb; explicit
+    springs skipped) through each body's world spatial Jacobian (Pinocchio's WORLD joint Jacobian in ws.data,
+    from computeAllTerms), by the composite pass of tree_forces.dense_crba_kernel; each body's block kept above
+    minus half its spatial inertia (springs.clamp_lever_blocks). Pinocchio pipeline."""
+    topo = ws.tree.topo
+    blocks = np.zeros((topo.njoints, 6, 6))
+    ja = np.ascontiguousarray(ja, dtype=np.int64)
+    jb = np.ascontiguousarray(jb, dtype=np.int64)
+    ex = np.zeros(len(ja), dtype=np.int64) if explicit is None else np.asarray(explicit, dtype=np.int64)
+    inertia = np.zeros_like(blocks)  # world spatial inertias (v_o, w) of the bodies with a spring end
+    model, data = ws.mech.model, ws.data
+    for j in set(ja.tolist()) | set(jb.tolist()):
+        if j > 0:
+            inertia[j] = data.oMi[j].act(model.inertias[j]).matrix()
+    geometric_blocks_kernel(ja, np.ascontiguousarray(pa, dtype=float), jb, np.ascontiguousarray(pb, dtype=float),
+                            np.ascontiguousarray(f, dtype=float).reshape(-1, 3), ex, float(scale), inertia, blocks)
+    clamp_lever_blocks(inertia, blocks)
+    St = np.ascontiguousarray(ws.data.J.reshape(6, -1).T)
+    dense_crba_kernel(topo.parents, topo.idx_v, topo.nv_j, St, blocks, A)
+
+
 def assemble(mech, ws, kin: Kinematics, q, v_r, tau, h, site_forces=None) -> LinearSystem:
     """Eq. (2): returns (A, b) in hyper-reduced coordinates (projected by the workspace's J_rR, ws.T).
     With a BDF2 step (ws.bdf2, step/scheme.py): (q, v_r) are (q*, v*), h is hat h, the joint and maximal
@@ -89,6 +117,10 @@ def assemble(mech, ws, kin: Kinematics, q, v_r, tau, h, site_forces=None) -> Lin
         Jf = Jd.reshape(3 * P, nv)
         A = Jf.T @ W.reshape(3 * P, nv)
         f += Jf.T @ fs.reshape(3 * P)
+        if mech.spring_geometric:
+            rows = mech.spring_rows
+            add_geometric_stiffness(ws, A, ws.tree.spring_ja, kin.X[rows[:, 0]], ws.tree.spring_jb,
+                                    kin.X[rows[:, 1]], fs, mech.spring_explicit, h * h)
     if len(mech.damped_bodies) or mech.extras is not None:
         A = np.zeros_like(M) if A is None else A
     for bi in mech.damped_bodies:  # body damping D_m = c diag(m_d I3, I_d) at the COM, implicit

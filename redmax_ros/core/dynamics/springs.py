@@ -78,6 +78,126 @@ def spring_kernel(X, a, b, k, c, L0, explicit, V, f, K, D, l):
                 D[s, r, q] = c[s] * uu
 
 
+@njit
+def geometric_blocks_kernel(ja, pa, jb, pb, f, explicit, scale, I, blocks):
+    """The lever-arm (geometric) part of the full maximal spring stiffness K_m, added as per-body 6x6 blocks:
+    blocks[j] += scale * B_j for each end of each implicit spring (end a: force f[s] at pa[s] on joint ja[s];
+    end b: -f[s] at pb[s] on jb[s]; joint 0, the world, and massless joint bodies get nothing).
+
+    A spring end is a world force f at a point x of a body; its wrench on the body depends on the body's
+    rotation even at fixed f, through the lever arm r = x - c from the body's centre of mass c: the torque
+    r x f turns with the body. Notes Eq. (1.32) and (1.44) give that derivative, the block [x][R^T f] of the
+    rotational DOFs (Eq. 1.33, 1.43), non-symmetric; symmetrised (K = (K + K^T)/2, Baraff and Witkin 1998, as
+    the notes do) it is the Hessian of the end's energy -f . x in the body's rotation about its centre of mass,
+    -d^2(-f . x)/d theta^2 = sym([r][f]) = 1/2 (f r^T + r f^T) - (r . f) I. The rest of K_m, the change of the
+    force with the end's position, is the Gauss-Newton part J_a^T K J_a of :func:`spring_kernel`'s 3x3 K.
+
+    The maximal coordinates are the body's centre-of-mass velocity and angular velocity, both in world axes
+    (notes §1.9: body-centred frames): in them the translational block of the lever term is zero. (With the
+    translation in the rotating body frame, Eq. 1.44's literal reading, the symmetrised matrix would also couple
+    translation to rotation by 1/2 [R^T f], a term of the frame, not of the spring, which is as large as the
+    spring force: with stiff springs it makes the LHS indefinite at any practical step, docs/scenes.md.)
+    Written at the world origin, twists (v_o, w), linear first, the coordinates of every 6x6 block of the
+    pipelines (solvers/pcg.py), the block keeps that form (the centre-of-mass velocity is v_o + w x c and the
+    translational rows are zero). In the positive-stiffness convention of Eq. (2)'s LHS (B = -d f_m / d q_m):
+
+        B_j = sum over the ends on j of [[0, 0], [0, (r . f) I - 1/2 (f r^T + r f^T)]],   r = x - c_j
+
+    ``I`` (njoints, 6, 6): the bodies' spatial inertias in the same coordinates (c_j = (I_53, I_32, I_40) / I_00);
+    ``scale``: h^2 (Eq. 2) or 1 (K itself). Explicit springs (``explicit[s]``) add nothing, their K being 0."""
+    for s in range(ja.shape[0]):
+        if explicit[s]:
+            continue
+        for end in range(2):
+            j = ja[s] if end == 0 else jb[s]
+            if j == 0:
+                continue
+            m = I[j, 0, 0]
+            if not m > 0.0:
+                continue
+            sg = scale if end == 0 else -scale
+            x = pa[s] if end == 0 else pb[s]
+            r0 = x[0] - I[j, 5, 1] / m
+            r1 = x[1] - I[j, 3, 2] / m
+            r2 = x[2] - I[j, 4, 0] / m
+            f0, f1, f2 = sg * f[s, 0], sg * f[s, 1], sg * f[s, 2]
+            rf = r0 * f0 + r1 * f1 + r2 * f2
+            rs = (r0, r1, r2)
+            fs = (f0, f1, f2)
+            for a in range(3):
+                for b in range(3):
+                    blocks[j, 3 + a, 3 + b] += (rf if a == b else 0.0) - 0.5 * (fs[a] * rs[b] + rs[a] * fs[b])
+
+
+LEVER_FLOOR = 0.5  # clamp_lever_blocks: each body's lever-arm block B_j >= -LEVER_FLOOR * (its spatial inertia)
+
+
+@njit
+def clamp_lever_blocks(I, B):
+    """Keep the LHS of Eq. (2) positive definite under the lever-arm blocks: per joint j with a nonzero block,
+    B_j (h^2-scaled, world frame, :func:`geometric_blocks_kernel`) is replaced by the nearest matrix with
+    B_j >= -LEVER_FLOOR I_j in the metric of the body's spatial inertia I_j (world frame, same coordinates):
+    with I_j = L L^T and L^-1 B_j L^-T = V diag(w) V^T, B_j <- L V diag(max(w, -LEVER_FLOOR)) V^T L^T.
+
+    The lever-arm terms are the Hessian of a spring end's energy in its body's rotation, (r . f) I - sym(f r^T)
+    (r from the body's centre of mass to the end): a force that pulls a lever arm inwards (r . f < 0) is a
+    physical instability with negative stiffness, and once h^2 times that stiffness reaches the body's own
+    inertia the linearly implicit step would divide by a vanishing or negative "mass" (an indefinite LHS, the
+    step's velocity flipping sign). This clamp, like spring_kernel's clamp of the transverse term of compressed
+    springs, leaves such a mode with at least half of its inertia: since every other term of the LHS is positive
+    semi-definite, A >= J^T (I + B) J >= 1/2 M. It is idle (B_j unchanged, checked by one 6x6 Cholesky of
+    I_j + B_j / LEVER_FLOOR) whenever the step resolves the lever instabilities, which covers every shipped scene
+    (docs/scenes.md, "Full maximal spring stiffness"). Returns the number of blocks changed."""
+    nj = I.shape[0]
+    T = np.empty((6, 6))
+    changed = 0
+    for j in range(1, nj):
+        nz = False
+        for a in range(6):
+            for b in range(6):
+                if B[j, a, b] != 0.0:
+                    nz = True
+        if not nz:
+            continue
+        for a in range(6):
+            for b in range(6):
+                T[a, b] = I[j, a, b] + B[j, a, b] / LEVER_FLOOR
+        ok = True
+        for c in range(6):  # Cholesky of T in place (lower), just to test positive definiteness
+            s = T[c, c]
+            for k in range(c):
+                s -= T[c, k] * T[c, k]
+            if not s > 0.0:
+                ok = False
+                break
+            T[c, c] = np.sqrt(s)
+            for r in range(c + 1, 6):
+                t = T[r, c]
+                for k in range(c):
+                    t -= T[r, k] * T[c, k]
+                T[r, c] = t / T[c, c]
+        if ok:
+            continue
+        Ij = np.ascontiguousarray(I[j])
+        w0 = np.linalg.eigvalsh(Ij)
+        if not w0[0] > 0.0:  # a massless joint body: no metric to clamp in; drop its lever block
+            B[j] = 0.0
+            changed += 1
+            continue
+        L = np.linalg.cholesky(Ij)
+        Li = np.linalg.inv(L)
+        C = Li @ np.ascontiguousarray(B[j]) @ Li.T
+        C = 0.5 * (C + C.T)
+        w, V = np.linalg.eigh(C)
+        for k in range(6):
+            if w[k] < -LEVER_FLOOR:
+                w[k] = -LEVER_FLOOR
+        LV = L @ V
+        B[j] = (LV * w) @ LV.T
+        changed += 1
+    return changed
+
+
 def needs_velocities(mech) -> bool:
     """True when some spring is explicit (implicit: false) and has damping (spring_forces needs V)."""
     ex = getattr(mech, "spring_explicit", None)  # None: all implicit (also for stand-ins)

@@ -4,7 +4,8 @@ data-free direct solver):
 * the RHS in O(n + m) (:func:`rhs`): M qdot + h (tau - nle - K_r (q - q_rest) + J^T f_m), nle from
   Newton-Euler wrenches of the world-frame body twists and the bias accelerations, all projected by
   one J^T pass;
-* the body-damping 6x6 blocks h D_m (:func:`body_damping_blocks`) for solvers.pcg.MatrixFreeSystem;
+* the maximal 6x6 blocks (:func:`maximal_blocks`: body damping h D_m and the springs' lever-arm stiffness)
+  for solvers.pcg.MatrixFreeSystem;
 * a dense LHS (:func:`dense_lhs`) for the data-free direct solver: a CRBA-style pass over composite
   inertias (M_m plus the 6x6 diagonal blocks of the maximal stiffness/damping) plus the cross-body
   spring terms, O(n d + sum_s d_a d_b) for tree depth d.
@@ -16,7 +17,7 @@ from __future__ import annotations
 import numpy as np
 import pinocchio as pin
 
-from redmax_ros.core.dynamics.springs import joint_displacement
+from redmax_ros.core.dynamics.springs import clamp_lever_blocks, geometric_blocks_kernel, joint_displacement
 from redmax_ros.core.dynamics.tree_kinematics import Context
 from redmax_ros.core.jit import njit
 from redmax_ros.core.solvers import recursive as rc
@@ -152,6 +153,26 @@ def body_damping_blocks(ctx: Context, h: float) -> np.ndarray | None:
         blk[3:, 3:] += Iw
         B[j] += (h * c) * blk
     return B
+
+
+def maximal_blocks(ctx: Context, h: float, springs=None) -> np.ndarray | None:
+    """The maximal 6x6 blocks per joint (world twists) of the LHS: body damping h D_m
+    (:func:`body_damping_blocks`) plus, with integrator.spring_stiffness: full, the springs' lever-arm
+    stiffness h^2 B (springs.geometric_blocks_kernel, kept above minus half of each body's spatial inertia by
+    springs.clamp_lever_blocks) from ``springs`` = (f_a (P,3), positions of mech.jac_sites); None when there is
+    neither. The same terms as forces.assemble."""
+    D = body_damping_blocks(ctx, h)
+    mech = ctx.mech
+    if springs is None or not len(mech.spring_ab) or not mech.spring_geometric:
+        return D
+    fs, X = springs
+    B = np.zeros((ctx.topo.njoints, 6, 6))
+    rows = mech.spring_rows
+    ex = np.zeros(len(fs), np.int64) if mech.spring_explicit is None else mech.spring_explicit.astype(np.int64)
+    geometric_blocks_kernel(ctx.spring_ja, np.ascontiguousarray(X[rows[:, 0]]), ctx.spring_jb,
+                            np.ascontiguousarray(X[rows[:, 1]]), np.ascontiguousarray(fs), ex, h * h, ctx.ws.I, B)
+    clamp_lever_blocks(ctx.ws.I, B)
+    return B if D is None else B + D
 
 
 def rhs(ctx: Context, q, v_r, tau, h, site_forces=None, springs=None) -> np.ndarray:

@@ -100,6 +100,9 @@ class Mechanism:
     joint_support: np.ndarray | None = None  # (njoints, nv) bool: DOFs moving each joint's body (row 0: world)
     scheme: str = "euler"  # integrator.scheme: euler | bdf2 (step/scheme.py)
     coriolis_implicit: bool = False  # integrator.coriolis: implicit (forces.coriolis_jacobian; docs/scenes.md)
+    # integrator.spring_stiffness: full (True, default): the springs' K_m includes the lever-arm blocks of
+    # springs.geometric_blocks_kernel; gauss_newton (False): J^T K J of the 3x3 point stiffness only
+    spring_geometric: bool = True
     loop_baumgarte: float = 0.0  # [1/s] b of Baumgarte loop stabilization (G qdot+ = -b phi); 0: post-stabilization
     maps: object = None  # joint_maps.Maps (spline/exp/Euler-chart joints) as built, or None (compile only)
     # body damping D_m = c diag(m_d I3, I_d) at each body's COM (joint frame; scene/bodies.body_damping):
@@ -350,6 +353,7 @@ def build_mechanism(spec: SceneSpec) -> Mechanism:
         spring_rows=np.array([[jac_row[a], jac_row[b]] for a, b in spring_ab], dtype=int).reshape(-1, 2),
         loop_rows_ab=np.array([[jac_row[a], jac_row[b]] for a, b in loop_ab], dtype=int).reshape(-1, 2),
         coriolis_implicit=spec.coriolis == "implicit", maps=maps, scheme=spec.scheme,
+        spring_geometric=spec.spring_stiffness == "full",
         loop_baumgarte=float(spec.baumgarte_b) if spec.stabilization == "baumgarte" else 0.0, **limit,
     )
 

@@ -21,7 +21,7 @@ from redmax_ros.core.scene import (bodies, body_twist, catalogue_schema, collisi
                                    timefunctions)
 from redmax_ros.core.scene import builders, builders_friction, builders_hagfish, builders_large, builders_starfish  # noqa: F401  (register the shipped builders)
 from redmax_ros.core.scene.registry import BUILDERS
-from redmax_ros.core.scene.spec import (CORE_JOINT_TYPES, SCHEMES, SOLVERS, WORLD, BodySpec, CouplingSpec, JointSpec, LoopSpec, SceneSpec, SiteSpec,
+from redmax_ros.core.scene.spec import (CORE_JOINT_TYPES, SCHEMES, SOLVERS, SPRING_STIFFNESS, WORLD, BodySpec, CouplingSpec, JointSpec, LoopSpec, SceneSpec, SiteSpec,
                                         SpringSpec, WrenchSpec, numeric, numeric_deep)
 
 JOINT_TYPES = {**CORE_JOINT_TYPES, **catalogue_schema.TYPES}  # notes §2.5 catalogue (joints.py, joint_maps.py; composite: per joint)
@@ -434,12 +434,13 @@ class _Validator:
         spec.baumgarte_b = self.number("stabilization.b", "b", d.get("b", 5.0), positive=True)
 
     def integrator(self, spec, d):
-        """``integrator: {scheme: euler | bdf2, coriolis: explicit | implicit}`` (docs/scenes.md, "Integrator")."""
+        """``integrator: {scheme: euler | bdf2, coriolis: explicit | implicit, spring_stiffness: full | gauss_newton}``
+        (docs/scenes.md, "Integrator")."""
         if d is None:
             return
         if not isinstance(d, dict):
             self.err("integrator", f"must be a mapping such as {{scheme: bdf2}}, got {d!r}")
-        self.keys("integrator", d, {"coriolis", "scheme"})
+        self.keys("integrator", d, {"coriolis", "scheme", "spring_stiffness"})
         scheme = d.get("scheme", "euler")
         if scheme not in SCHEMES:
             self.err("integrator.scheme", f"unknown value {scheme!r} ({', '.join(SCHEMES)})")
@@ -462,6 +463,10 @@ class _Validator:
                 self.err("integrator.coriolis", "'implicit' is not supported with contact or joint friction "
                          "(the staggered solve needs a symmetric LHS); use coriolis: explicit")
         spec.coriolis = c
+        ks = d.get("spring_stiffness", "full")
+        if ks not in SPRING_STIFFNESS:
+            self.err("integrator.spring_stiffness", f"unknown value {ks!r} ({', '.join(SPRING_STIFFNESS)})")
+        spec.spring_stiffness = ks
 
     def urdf(self, spec, d):
         if isinstance(d, str):

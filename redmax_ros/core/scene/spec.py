@@ -9,6 +9,7 @@ import numpy as np
 # Pinocchio pipeline), compiled (the compiled step or an error naming why not), pcg, auto; docs/solvers.md
 SOLVERS = ("direct", "reference", "compiled", "pcg", "auto")
 SCHEMES = ("euler", "bdf2")  # integrator.scheme (docs/scenes.md, "Integrator"; step/scheme.py)
+SPRING_STIFFNESS = ("full", "gauss_newton")  # integrator.spring_stiffness (dynamics/springs.geometric_blocks_kernel)
 
 WORLD = "world"
 CORE_JOINT_TYPES = {  # catalogue joints (catalogue_schema.TYPES) carry their nv in JointSpec.extra
@@ -127,6 +128,7 @@ class SceneSpec:
     solver: str = "direct"  # one of SOLVERS
     scheme: str = "euler"  # integrator.scheme: euler (BDF1, Eq. 2 as in the paper) | bdf2 (step/scheme.py)
     coriolis: str = "explicit"  # integrator.coriolis: explicit (Eq. 2 as in the paper) | implicit (linearised)
+    spring_stiffness: str = "full"  # integrator.spring_stiffness: full (K_m with the lever-arm terms) | gauss_newton
     stabilization: str = "post"  # loops: post (projection after the step) | baumgarte (velocity-level feedback)
     baumgarte_b: float = 5.0  # [1/s] stabilization.b: G qdot+ = -b phi(q_k) for the loop rows (method baumgarte)
     description: str = ""

@@ -208,7 +208,7 @@ def data_free_velocity(mech, ws, state, cmd, tau, h, solver="pcg", rtol=DEFAULT_
     if not math.isfinite(float(b.sum())):
         raise StepError("non-finite right-hand side of Eq. (2) (state or forces out of range)")
     ps = PointSprings(ctx.spring_ja, ctx.spring_oa, ctx.spring_jb, ctx.spring_ob, K, D) if K is not None else None
-    system = MatrixFreeSystem(ctx.topo, rws, h, ctx.reduced_diag(h), ps, tf.body_damping_blocks(ctx, h))
+    system = MatrixFreeSystem(ctx.topo, rws, h, ctx.reduced_diag(h), ps, tf.maximal_blocks(ctx, h, springs))
     # 3: constraint rows (reduced coordinates for PCG)
     cons = build_rows(mech, ws, cmd, q_base, h, hyper=solver != "pcg")
     if cons.m:

@@ -8,13 +8,14 @@ gyroscopic terms), spring forces, constant wrenches; the LHS by the composite-ri
 inertias plus the maximal 6x6 blocks (body damping, the springs' own blocks), minus the springs' cross-body
 terms, plus armature + h D_r + h^2 K_r; then hyper-reduced by T = J_rR (Eq. 9-10): A_R = T^T A T,
 b_R = T^T b. Maximal springs: f_a = -k (l - L0) u, K = k [u u^T + max(0, 1 - L0/l)(I - u u^T)], D = c u u^T
-(notes §1.9.5, §1.9.9; springs.spring_forces), explicit (implicit: false) springs with K = D = 0 and their
+(notes §1.9.5, §1.9.9; springs.spring_forces) and their lever-arm blocks (springs.geometric_blocks_kernel, unless
+integrator.spring_stiffness: gauss_newton), explicit (implicit: false) springs with K = D = 0 and their
 damping force at step k. Joint springs: f = -K_r (q - q_rest) on the manifold (pin.difference)."""
 from __future__ import annotations
 
 import numpy as np
 
-from redmax_ros.core.dynamics.springs import spring_kernel
+from redmax_ros.core.dynamics.springs import clamp_lever_blocks, geometric_blocks_kernel, spring_kernel
 from redmax_ros.core.dynamics.tree_forces import dense_crba_kernel, nle_wrench_kernel, spring_cross_kernel
 from redmax_ros.core.jit import njit, njit_inline
 from redmax_ros.core.solvers.pcg import add_point_block, spring_blocks_kernel
@@ -129,6 +130,10 @@ def lhs(m, d, h):
     springs' cross-body terms, plus armature + h D_r + h^2 K_r. Needs kinematics and spring_terms."""
     nj = m.parents.shape[0]
     d.blocks[:, :, :] = 0.0
+    if m.spring_a.shape[0] and m.scalars[4] != 0.0:  # integrator.spring_stiffness: full: the lever-arm blocks of K_m
+        geometric_blocks_kernel(m.spring_ja, d.pa, m.spring_jb, d.pb, d.spring_f, m.spring_explicit, h * h, d.I,
+                                d.blocks)
+        clamp_lever_blocks(d.I, d.blocks)
     C3 = d.C33
     C3[:, :] = 0.0
     x = d.x3

@@ -45,7 +45,8 @@ MODEL_SPEC = (
     ("wrench_jid", "i", 1), ("wrench_com", "f", 2), ("wrench_fw", "f", 2),
     # joint limits (Eq. 5): rows of J_rR of the limited DOFs, their configuration index and bounds
     ("limit_rows", "f", 2), ("limited_q", "i", 1), ("limit_lower", "f", 1), ("limit_upper", "f", 1),
-    # scalars: [loop Baumgarte b (0: post-stabilization), has_stiffness, has_armature, explicit spring dampers]
+    # scalars: [loop Baumgarte b (0: post-stabilization), has_stiffness, has_armature, explicit spring dampers,
+    #           springs' lever-arm stiffness (integrator.spring_stiffness: full)]
     ("scalars", "f", 1),
     # joints carrying each spring end
     ("spring_ja", "i", 1), ("spring_jb", "i", 1),
@@ -155,7 +156,7 @@ def build_model(mech):
         T_col=np.zeros(0, np.int64) if mech.T is None else np.argmax(np.abs(T), axis=1),
         T_ratio=np.zeros(0) if mech.T is None else T[np.arange(nv), np.argmax(np.abs(T), axis=1)],
         scalars=np.array([float(mech.loop_baumgarte), float(mech.has_stiffness), float(mech.has_armature),
-                          float(needs_velocities(mech))]),
+                          float(needs_velocities(mech)), float(mech.spring_geometric)]),
     )
     assert nv == mech.nv
     return pack(MODEL_SPEC, values)
