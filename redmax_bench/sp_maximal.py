@@ -11,12 +11,16 @@ multipliers) is distributed over the same implicit contact points by the same Eq
 mu sum|alpha|, the same staggered iteration, convergence test, inner solver and acceleration as the
 reduced solver (staggered.py; with ``compiled`` the same compiled loop, the joint multipliers as an
 affine map of beta), so the measured ratio is that of the coordinates only.
+The scene's constant joint torques (``torque``) act on the child (+tau k) and the parent (-tau k), and a
+prescribed joint velocity (``prescribed.joints``) is one more bilateral row k . (w_child - w_parent) = v
+(no Baumgarte term) whose required torque -lambda/h (Eq. 7) is ``effort[name]`` after a step.
 """
 from __future__ import annotations
 
 import numpy as np
 import pinocchio as pin
 
+from redmax_ros.core.friction.condense import fixed_row_weights
 from redmax_ros.core.friction.staggered import Anderson, box_qp, loop_kernel
 
 
@@ -51,6 +55,13 @@ class MaximalSP:
             js = next(s for s in mech.spec.joints if s.name == j.name)
             assert j.type == "revolute", "the maximal baseline supports revolute joints only"
             self.axis.append(np.asarray(js.axes[0], float))
+        names = [j.name for j in mech.joints]
+        self.tau = np.array([float(np.asarray(s.torque).reshape(-1)[0]) for s in
+                             sorted(mech.spec.joints, key=lambda s: names.index(s.name))])
+        self.prescribed = {names.index(k): float(np.asarray(v).reshape(-1)[0])
+                           for k, v in mech.spec.prescribed_joints.items()}
+        self.names = names
+        self.effort = {}
         self.g = np.asarray(mech.model.gravity.linear)
         self.beta = None
         self.iterations = []
@@ -71,6 +82,11 @@ class MaximalSP:
             w = self.v[6 * b + 3:6 * b + 6]
             f[6 * b:6 * b + 3] = self.m[b] * self.g
             f[6 * b + 3:6 * b + 6] = -np.cross(w, Iw @ w)
+        for b in range(nb):  # constant joint torques: +tau k on the child, -tau k on the parent
+            kc = self.tau[b] * (self.R[b] @ self.axis[b])
+            f[6 * b + 3:6 * b + 6] += kc
+            if self.parent[b] >= 0:
+                f[6 * self.parent[b] + 3:6 * self.parent[b] + 6] -= kc
         rows, rhs, jrows, frows = [], [], [], []
         k = 0
         for b in range(nb):  # revolute joint of body b
@@ -116,6 +132,17 @@ class MaximalSP:
             rhs.append(-(self.erp / h) * P @ (self.x[ba] + la - self.x[bb] - lb))
             lrows.append((k, len(P), P, ba, bb))
             k += len(P)
+        prows = []
+        for b, vel in self.prescribed.items():  # Eq. 7: k . (w_child - w_parent) = v
+            G = np.zeros((1, n))
+            kc = self.R[b] @ self.axis[b]
+            G[0, 6 * b + 3:6 * b + 6] = kc
+            if self.parent[b] >= 0:
+                G[0, 6 * self.parent[b] + 3:6 * self.parent[b] + 6] = -kc
+            rows.append(G)
+            rhs.append(np.array([vel]))
+            prows.append((k, b))
+            k += 1
         G = np.vstack(rows)
         g = np.concatenate(rhs)
         # friction rows: tree joints (fm order), loop pins
@@ -148,6 +175,7 @@ class MaximalSP:
         PT = P_ @ Tr.T
         W = Tr @ PT
         wT = np.maximum(np.diag(W), 0)
+        fixed_row_weights(wT, Tr, Ainv)  # rows whose slip the prescriptions fix (condense.py)
         nf = len(Tr)
         beta = np.zeros(nf) if self.beta is None else self.beta
         kmax = fm.L.shape[1]
@@ -174,6 +202,7 @@ class MaximalSP:
                 np.zeros((0, 0)), e2_, np.zeros((nf, 0)), e0, e0, W, Tr @ v0, e0, a0, Mx, fm.bound_mu, kmax,
                 True, e0, wT, st.tol, st.max_iter, st.anderson, e0, np.ascontiguousarray(beta))
             self.iterations.append(it)
+            self._efforts(prows, lam0 + Lam @ beta, h)
             self._finish(beta, v0, PT, h)
             return
         acc = Anderson(st.anderson)
@@ -202,7 +231,13 @@ class MaximalSP:
             if st.anderson:
                 beta = acc.update(b_in, beta, bound)
         self.iterations.append(it)
+        self._efforts(prows, Sinv @ (Y.T @ (b_ - Tr.T @ beta) - g), h)
         self._finish(beta, v0, PT, h)
+
+    def _efforts(self, prows, lam, h):
+        """Required torques of the prescribed joints: A qdot = b - G^T lambda, so the row's torque about
+        the joint axis on the child is -lambda / h (Eq. 7)."""
+        self.effort = {self.names[b]: float(-lam[k] / h) for k, b in prows}
 
     def _finish(self, beta, v0, PT, h):
         nb = self.nb

@@ -43,6 +43,32 @@ def spd_inverse(A):
     return np.ascontiguousarray(Li.T) @ Li, True
 
 
+FIXED_ROW = 1e-9  # W_kk <= FIXED_ROW * (T A^-1 T^T)_kk: the bilateral rows fix the row's slip
+
+
+@njit(cache=True, nogil=True)
+def fixed_row_weights(wT, T, Ainv):
+    """Convergence weights of friction rows whose slip the bilateral rows fix (in place).
+
+    The staggered loop's convergence test (Alg. 2 line 12) weighs the change of a friction bound by the
+    Delassus diagonal W_kk = (T P T^T)_kk, the velocity change a unit impulse makes. When prescriptions
+    fix the slip of a row (a crank driven at a prescribed rate fixes every pin of a 1-DOF linkage),
+    W_kk is zero up to round-off: the friction impulse no longer moves the velocity but still loads the
+    drive (its required torque, Eq. 7), and a zero weight would declare the loop converged before the
+    friction QP has run. Such rows (W_kk <= FIXED_ROW (T A^-1 T^T)_kk) are weighed by their
+    unconstrained mobility (T A^-1 T^T)_kk instead; every other row keeps W_kk."""
+    for i in range(T.shape[0]):
+        u = 0.0
+        for a in range(T.shape[1]):
+            ta = T[i, a]
+            if ta != 0.0:
+                for c in range(T.shape[1]):
+                    if T[i, c] != 0.0:
+                        u += ta * Ainv[a, c] * T[i, c]
+        if wT[i] <= FIXED_ROW * u:
+            wT[i] = u
+
+
 @njit(cache=True, nogil=True)
 def _pattern(R):
     """Row-wise nonzero pattern of a dense matrix (CSR pointers and column indices)."""
@@ -134,4 +160,6 @@ def condense(A, b, G, g, RX, nu):
         wU[i] = max(W_U[i, i], 0.0)
     for i in range(nf):
         wT[i] = max(W_T[i, i], 0.0)
+    if nf and status == 0:
+        fixed_row_weights(wT, RX[nu:], Ainv)
     return status, v0, PX, W_U, X_UT, X_TU, W_T, Xv0[:nu].copy(), -Xv0[nu:], wU, wT, lam0, LamX
