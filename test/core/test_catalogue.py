@@ -290,7 +290,8 @@ CONSERVATIVE = ["revolute", "fixed", "planar_translation", "translational", "sph
                 "spherical_euler_switch", "spherical_exp", "universal", "composite", "free2d", "free3d", "spline_curve", "spline_surface",
                 "mesh_cube", "mesh_wedge", "composite_body", "gear_loop", "explicit_spring",
                 "spline_loop"]
-DISSIPATIVE = ["prismatic", "direction_spring", "spring_damper", "body_damping"]  # implicit springs/dampers: energy decays
+DISSIPATIVE = ["prismatic", "direction_spring", "spring_damper", "body_damping",
+               "prismatic_box_friction"]  # implicit springs/dampers, joint friction: energy decays
 
 
 def test_catalogue_scenes_listed():

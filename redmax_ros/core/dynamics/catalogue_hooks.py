@@ -54,6 +54,7 @@ class Extras:
     def __init__(self, mech, maps, cat):
         self.maps = maps
         self.t = 0.0
+        self.jdot_qdot = None  # Jdot_rR qdot_R (Pinocchio velocity space) of the current step's forces, or None
         model, nv = mech.model, mech.nv
         src = mech.spec.source
         # -- linear constraints: rows over Pinocchio velocity DOFs, their configuration indices
@@ -124,6 +125,7 @@ class Extras:
         rt.maps = copy.deepcopy(self.maps)
         rt._mdata = mech.model.createData() if self.momentum_roots else None
         rt.t = 0.0
+        rt.jdot_qdot = None
         return rt
 
     def prepare(self, mech):
@@ -189,7 +191,8 @@ class Extras:
     def forces(self, mech, ws, kin, q, v_r, h, A, f):
         """Add to the (Pinocchio-space, before the J_rR projection) LHS A and force f of Eq. (2)."""
         if self.maps is not None:  # quadratic velocity term of the configuration-dependent J_rR (Eq. 2.89)
-            f -= kin.M @ self.maps.bias(q, v_r, mech.nv)
+            self.jdot_qdot = self.maps.bias(q, v_r, mech.nv)  # kept for the BISP joint reactions (friction)
+            f -= kin.M @ self.jdot_qdot
         t = self.t
         for i0, fns in self.torques:
             for k, fn in enumerate(fns):

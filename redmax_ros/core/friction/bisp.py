@@ -281,7 +281,7 @@ def static_external_world(mech, kin, ws, site_forces=None):
 
 
 def linear_wrenches(mech, fm, work: FrictionWork, kin, ws, Z, h, v0, PX, v_prev_r, lam0, LamX, cs, nu, nf, cons,
-                    site_forces=None):
+                    site_forces=None, jdot_qdot=None):
     """The joint wrenches of Eq. (15)-(17) as an affine function of the staggered unknowns
     x = [alpha_U; beta]: W = W0 + Wx x, W0 (J+Lf, 6), Wx (J+Lf, 6, nx); the multipliers of Eq. (16) are
     then alpha_j = h L_j W_j (L_j the constant local least-squares operator, contact.ls_operator).
@@ -292,7 +292,11 @@ def linear_wrenches(mech, fm, work: FrictionWork, kin, ws, Z, h, v0, PX, v_prev_
     LamX x (§5.3: loop closures and prescribed sites act as external forces), the ground impulses
     (Eq. 11-12) and the loop-pin friction moments. One compiled Newton-Euler pass over the tree
     (_map_kernel) gives both parts; the loop pins' rows are the loop forces F = Sel^T lambda / h (world).
-    Same numbers as Pinocchio's RNEA with the external forces (bisp.joint_alphas, the test reference)."""
+    Same numbers as Pinocchio's RNEA with the external forces (bisp.joint_alphas, the test reference).
+    With a configuration-dependent J_rR (catalogue joint maps) the reduced acceleration of the step is
+    (J_rR qdot_R^con - qdot_r^prev)/h + Jdot_rR qdot_R (Eq. 2.89, the term forces.assemble puts in the RHS):
+    ``jdot_qdot`` (nv,) is added by passing qdot_r^prev - h jdot_qdot as the previous velocity (without it
+    a spherical_exp joint's reaction misses M Sdot gdot, an O(1) error in its normal forces)."""
     topo = fm.topo
     nx = nu + nf
     E0 = static_external_world(mech, kin, ws, site_forces)
@@ -311,7 +315,8 @@ def linear_wrenches(mech, fm, work: FrictionWork, kin, ws, Z, h, v0, PX, v_prev_
     else:
         c_jid, c_X, c_n, c_t = cs.jid, cs.X, cs.n, cs.t
     nloops = len(mech.loop_ab) if cons.loop_rows.stop else 0
-    _map_kernel(nu, h, v0, PX, v_prev_r, *coupling_csr(fm, work), lam0, LamX, fm.sel_r, fm.sel_c, fm.sel_v,
+    v_prev = v_prev_r if jdot_qdot is None else v_prev_r - h * jdot_qdot
+    _map_kernel(nu, h, v0, PX, v_prev, *coupling_csr(fm, work), lam0, LamX, fm.sel_r, fm.sel_c, fm.sel_v,
                 nloops, kin.X, fm.loop_xa, fm.loop_xb, fm.loop_index, fm.n_tree, c_jid, c_X, c_n, c_t, fm.pin_ja,
                 fm.pin_jb, fm.pin_moment, fm.loop_ja, fm.loop_jb, topo.parents, topo.idx_v, topo.nv_j, ws.St, ws.I,
                 ws.ov, Z, fm.gravity, ws.R, ws.p, fm.fj_jid, E0, E, W0, Wx)

@@ -19,7 +19,16 @@ frame (the pin turns with the child body), on the joint geometry given in the sc
     span the 5 constraint directions: forces in 3D and the two moments normal to the axis);
   * prismatic: the same two circles around the sliding axis, with a radial and a circumferential
     normal at each point (forces normal to the axis, all three moments);
-  * spherical: six points on a ball of radius r (+-x, +-y, +-z), radial normals (the 3 forces).
+  * prismatic with a box cross-section (``shape: box``, full widths w1, w2 along u1, u2 of
+    box_section_axes): the 8 corners (+-w1/2 u1 +-w2/2 u2 at +-length/2 along the axis), each with the
+    two face normals meeting there, u1 and u2 (the same 5 directions). The minimum-norm split of a
+    force F = F1 u1 + F2 u2 through the joint origin puts F1/8 on every u1 normal and F2/8 on every u2
+    normal, so sum_k |alpha_k| = h (|F1| + |F2|): a load along one face normal is carried once, a
+    diagonal one on both faces;
+  * spherical: six points on a ball of radius r (+-x, +-y, +-z), radial normals (the 3 forces);
+    ``spherical_exp`` (a coordinate map on a quaternion Spherical carrier, model/joint_maps.py): the same
+    ball on the carrier joint, whose angular velocity the friction rows act on; in hyper-reduced
+    coordinates a row is r (u x t)^T J_rR(q) (Eq. 9-10), refreshed every step with the live J_rR.
 The local least squares of Eq. (16), alpha_i = h (N_i M_i^-1 N_i^T + eps I)^-1 N_i M_i^-1 f_ai, uses
 the child body's spatial inertia M_i in the joint frame, so its operator L_i is a constant of the
 mechanism (precomputed here, with the projection that removes the joint's motion-subspace part of
@@ -40,6 +49,7 @@ import pinocchio as pin
 from numba import njit
 
 from redmax_ros.core.errors import SceneError
+from redmax_ros.core.model.joint_maps import ROTATION_TYPES, carrier_name, is_mapped
 from redmax_ros.core.solvers import recursive as rc
 from redmax_ros.core.spatial import rpy_matrix
 
@@ -91,6 +101,8 @@ class FrictionModel:
     sel_r: np.ndarray | None = None  # loop selection matrix Sel as (row, column, value) triplets
     sel_c: np.ndarray | None = None
     sel_v: np.ndarray | None = None
+    rows_nv: np.ndarray | None = None  # (F1, nv) the tree joint rows before J_rR, when a mapped joint
+    # (spherical_exp) has friction: the rows are then rows_nv J_rR(q), every step (joint_rows)
 
     @property
     def joint_slot0(self) -> int:
@@ -108,11 +120,33 @@ def _perp(a):
     return e1, np.cross(a, e1)
 
 
+def box_section_axes(axis):
+    """(u1, u2) of a prismatic joint's box cross-section, in the joint frame: u1 is the joint-frame axis
+    following the sliding axis' largest component in the cycle x -> y -> z -> x, made normal to the axis
+    (x axis: u1 = y, u2 = z; y: z, x; z: x, y), and u2 = axis x u1."""
+    a = np.asarray(axis, float)
+    u = np.eye(3)[(int(np.argmax(np.abs(a))) + 1) % 3]
+    u1 = u - (u @ a) * a
+    u1 /= np.linalg.norm(u1)
+    return u1, np.cross(a, u1)
+
+
 def implicit_points(jtype: str, axis, spec):
     """(points (k,3), normals (k,3), groups) of the implicit contacts of a joint, in its frame.
     ``groups``: list of (row vector in the joint's DOFs (nv,), normal indices bounding it)."""
     r, L, n = spec.radius, spec.length, spec.points
     P, Nn = [], []
+    if jtype == "prismatic" and spec.shape == "box":
+        a = np.asarray(axis, float)
+        u1, u2 = box_section_axes(a)
+        w1, w2 = 0.5 * np.asarray(spec.size, float)
+        for s in (-0.5 * L, 0.5 * L):
+            for c1 in (-1.0, 1.0):
+                for c2 in (-1.0, 1.0):
+                    p = s * a + c1 * w1 * u1 + c2 * w2 * u2
+                    P += [p, p]
+                    Nn += [c1 * u1, c2 * u2]  # the two faces meeting at the corner
+        return np.array(P), np.array(Nn), [(np.array([1.0]), list(range(len(P))))]
     if jtype in ("revolute", "prismatic"):
         a = np.asarray(axis, float)
         e1, e2 = _perp(a)
@@ -185,7 +219,8 @@ def compile_friction(mech, fspec) -> FrictionModel | None:
             lab.append(f"contact '{c.name}'" + (f"[{k}]" if len(cs) > 1 else ""))
     sph_support = mech.joint_support[np.array(jid, dtype=int)].reshape(-1, nv)
     # frictional tree joints
-    names, jids, Ls, rows, groups = [], [], [], [], []
+    names, jids, Ls, rows, rows_nv, groups = [], [], [], [], [], []
+    mapped = False
     jmu = st.joint_mu
     for name, js in fspec.joints.items():
         if (js.mu if jmu is None else jmu) == 0.0:
@@ -194,13 +229,19 @@ def compile_friction(mech, fspec) -> FrictionModel | None:
             raise SceneError(src, f"joints '{name}'", "friction on a joint that is not in the model")
         ji = mech.joint_index[name]
         jspec = next(j for j in mech.spec.joints if j.name == name)
+        jtype = ji.type
+        if is_mapped(jspec):
+            if jspec.type not in ROTATION_TYPES:
+                raise SceneError(src, f"joints '{name}'", f"joint friction is not supported on {jspec.type} joints")
+            ji = mech.joint_index[carrier_name(name)]  # the ball on the carrier (its angular velocity)
+            jtype, mapped = "spherical", True
         axis = jspec.axes[0] if len(jspec.axes) else None
-        P, Nn, rws = implicit_points(ji.type, axis, js)
+        P, Nn, rws = implicit_points(jtype, axis, js)
         Minert = model.inertias[ji.jid].matrix()
         S = np.zeros((6, ji.nv))
-        if ji.type == "revolute":
+        if jtype == "revolute":
             S[3:, 0] = axis
-        elif ji.type == "prismatic":
+        elif jtype == "prismatic":
             S[:3, 0] = axis
         else:
             S[3:] = np.eye(3)
@@ -211,6 +252,7 @@ def compile_friction(mech, fspec) -> FrictionModel | None:
         for vec, grp in rws:
             row = np.zeros(nv)
             row[ji.idx_v:ji.idx_v + ji.nv] = vec
+            rows_nv.append(row)
             rows.append(row if T is None else row @ T)
             groups.append((len(names) - 1, grp, js.mu if jmu is None else jmu))
     n_tree = len(names)
@@ -248,6 +290,7 @@ def compile_friction(mech, fspec) -> FrictionModel | None:
         sph_mu=np.array(mu), sph_support=sph_support, sph_label=lab,
         fj_names=names, fj_jid=np.array(jids, dtype=int), n_tree=n_tree, L=Lpad,
         rows_fixed=np.array(rows).reshape(-1, mech.ndof), bound_B=B,
+        rows_nv=np.array(rows_nv).reshape(-1, nv) if mapped else None,
         loop_index=np.array(lidx, dtype=int), loop_axis=np.array(laxis).reshape(-1, 3), loop_radius=np.array(lrad),
         loop_rowslices=lslices, loop_sites=np.array(lsites, dtype=int).reshape(-1, 2),
         bound_mu=(np.array([mu_ for _, _, mu_ in groups]) if all(j == r and len(grp) == len(Ls[j])
@@ -503,7 +546,7 @@ def staggered_rows(mech, fm: FrictionModel, work: FrictionWork, h, cons):
     out = _rows_kernel(ws.R, ws.p, ws.St, fm.sph_jid if contacts else _NO_SPHERES, fm.sph_local, fm.sph_radius,
                        fm.sph_support_f, fm.sph_mu, fm.plane_n, fm.plane_off, fm.plane_t, fm.plane_mu, st.margin, st.erp,
                        h, _EMPTY if work.T is None else work.T, *coupling_csr(fm, work), mech.ndof,
-                       fm.rows_fixed, fm.pin_moment, fm.loop_sdiff, CU, lo_CU)
+                       joint_rows(fm, work), fm.pin_moment, fm.loop_sdiff, CU, lo_CU)
     ks, ps, X, n, t, d, mu, jid, N, Tv, lo, RX, lo_U, nu = out
     cs = ContactSet(ks, ps, X, n, t, d, mu, jid, N, Tv, lo) if len(ks) else None
     return cs, RX, lo_U, nu
@@ -518,6 +561,14 @@ class _EmptyRows(dict):
 _NO_ROWS = _EmptyRows()
 _NO_VALUES = np.zeros(0)
 _NO_SPHERES = np.zeros(0, dtype=np.int64)
+
+
+def joint_rows(fm: FrictionModel, work: FrictionWork) -> np.ndarray:
+    """(F1, ndof) friction rows of the frictional tree joints: the constant ones, or with a frictional mapped
+    joint (spherical_exp) its carrier rows through the workspace's current J_rR (Eq. 9-10), rows_nv J_rR(q)."""
+    if fm.rows_nv is None or work.T is None:
+        return fm.rows_fixed
+    return fm.rows_nv @ work.T
 
 
 def loop_friction_rows(mech, fm: FrictionModel, work: FrictionWork):

@@ -350,14 +350,16 @@ def _qp(H, c, lo, hi, x0, eps, deadline=None):
     return np.clip(x, lo, hi)
 
 
-def solve(mech, work, kin, system: LinearSystem, cons, q, v_prev_r, h, cache, site_forces=None, deadline=None):
+def solve(mech, work, kin, system: LinearSystem, cons, q, v_prev_r, h, cache, site_forces=None, deadline=None,
+          jdot_qdot=None):
     """Frictional contact step. Returns (Solution, FrictionReport, new cache). ``cache``: the previous
     step's friction impulses (ndarray of FrictionModel.n_slots, or None); ``work``: the step workspace's
     contact.FrictionWork (the set-up runs on its own kinematics workspace, bisp.body_frames).
     ``deadline``: the step's budget.Deadline (None: no budget), checked between the iterations of the
     Python loop and in its ProxSuite solves, and between the pieces of the compiled loop (_compiled_loop;
     without the checks a diverging walker step ran its friction.max_iter iterations of two 500-sweep PGS
-    solves for ~50 ms of CPU time)."""
+    solves for ~50 ms of CPU time). ``jdot_qdot``: Jdot_rR qdot_R of a configuration-dependent J_rR (catalogue
+    joint maps, Eq. 2.89; None without), part of the acceleration of the joint reactions (bisp.linear_wrenches)."""
     fm = mech.friction
     st = fm.settings
     A, b = system.A, system.b
@@ -385,7 +387,7 @@ def solve(mech, work, kin, system: LinearSystem, cons, q, v_prev_r, h, cache, si
     joint_fric = fm.has_joint_friction
     if joint_fric:  # Eq. (15)-(17) as an affine map of x = [alpha_U; beta] (bisp.linear_wrenches)
         W0, Wx = bisp.linear_wrenches(mech, fm, work, kin, ws, Z, h, v0, PX, v_prev_r, lam0, LamX, cs, nu, nf, cons,
-                                      site_forces)
+                                      site_forces, jdot_qdot)
         kmax = fm.L.shape[1]
     alpha = np.zeros(nu)
     it, converged, resid = 0, False, np.inf

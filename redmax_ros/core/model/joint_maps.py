@@ -57,6 +57,11 @@ def is_mapped(j) -> bool:
     return j.type in jt.MAPPED_TYPES or (j.type == "spherical_euler" and bool(j.extra.get("switch_charts")))
 
 
+def carrier_name(name: str) -> str:
+    """The Pinocchio name of the carrier joint of mapped joint ``name``."""
+    return f"{name}/carrier"
+
+
 def coordinate_count(jtype: str) -> int:
     return {"spherical_exp": 3, "spherical_euler": 3, "spline_curve": 1, "spline_surface": 2}[jtype]
 
@@ -99,7 +104,7 @@ def carrier_spec(j, nv):
     """Placeholder JointSpec of the carrier of mapped joint j (no forces, limits or initial velocity of
     its own: everything is set on the coordinate joint, which carries the scene joint's name)."""
     z = np.zeros(nv)
-    return JointSpec(f"{j.name}/carrier", "carrier", j.parent, j.child, j.placement, j.body_placement,
+    return JointSpec(carrier_name(j.name), "carrier", j.parent, j.child, j.placement, j.body_placement,
                      np.zeros((0, 3)), np.zeros(0), z, np.full(nv, -np.inf), np.full(nv, np.inf), z, np.zeros(0),
                      z, z, z, {"nv": nv, "nq0": 0})
 
@@ -115,7 +120,7 @@ def add_to_model(model, parent_jid, j, jM):
     k = coordinate_count(j.type)
     g0, grest = np.asarray(j.q0, float), np.asarray(j.rest, float)
     cm = carrier_model(j.type)
-    cid = model.addJoint(parent_jid, cm, jM, f"{j.name}/carrier")
+    cid = model.addJoint(parent_jid, cm, jM, carrier_name(j.name))
     Q0 = joint_kinematics(j, g0, np.zeros(k))[0]
     Qr = joint_kinematics(j, grest, np.zeros(k))[0]
     carrier = carrier_spec(j, cm.nv)
@@ -181,7 +186,7 @@ class Maps:
         self.items = []
         info = {ji.name: ji for ji in joint_infos}
         for name, spec in specs_by_name.items():
-            c, g = info[f"{name}/carrier"], info[name]
+            c, g = info[carrier_name(name)], info[name]
             self.items.append(MappedJoint(spec, g.nv, slice(c.idx_q, c.idx_q + c.nq), slice(c.idx_v, c.idx_v + c.nv),
                                           slice(g.idx_q, g.idx_q + g.nq), slice(g.idx_v, g.idx_v + g.nv)))
         self.carrier_dofs = sorted(d for m in self.items for d in range(m.cv.start, m.cv.stop))

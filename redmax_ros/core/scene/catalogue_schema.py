@@ -40,7 +40,7 @@ SUB_TYPES = {"revolute": (1, 1), "prismatic": (1, 1), "universal": (2, 2), "sphe
 COMMON_KEYS = {"name", "type", "parent", "child", "placement", "body_placement", "q0", "v0", "limits", "stiffness",
                "rest", "damping", "armature", "torque"}
 SPECIFIC_KEYS = {"planar_translation": {"axes"}, "translational": set(), "spherical_euler": {"chart", "switch_charts"},
-                 "spherical_exp": {"reparam_threshold"}, "free2d": set(), "free3d": {"conserve_momentum"}, "composite": {"joints"},
+                 "spherical_exp": {"reparam_threshold", "friction"}, "free2d": set(), "free3d": {"conserve_momentum"}, "composite": {"joints"},
                  "spline_curve": {"control_frames", "cyclic"}, "spline_surface": {"control_grid"}}
 
 

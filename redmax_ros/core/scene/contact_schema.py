@@ -2,7 +2,8 @@
 
     ground:    planes n . x >= offset (world frame) with a friction coefficient mu
     contacts:  contact primitives on bodies (point, sphere, capsule, box) that collide with the planes
-    joints[i].friction: {mu, radius, length, points}   implicit joint contact geometry (BISP, paper §5.2)
+    joints[i].friction: {mu, radius, length, points}   implicit joint contact geometry (BISP, paper §5.2);
+                        prismatic joints also {mu, shape: box, size: [w1, w2], length} (box cross-section)
     loops[i].friction, loops[i].axis                   friction in a loop-closing pin joint (paper §5.3)
     friction:  settings of the staggered loop (max_iter, tol, erp, margin, epsilon)
 
@@ -16,7 +17,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 CONTACT_TYPES = ("point", "sphere", "capsule", "box")
-FRICTION_JOINT_TYPES = ("revolute", "prismatic", "spherical")
+FRICTION_JOINT_TYPES = ("revolute", "prismatic", "spherical", "spherical_exp")
+JOINT_SECTIONS = ("cylinder", "box")  # cross-sections of a prismatic joint's bearing
 
 
 @dataclass
@@ -43,9 +45,11 @@ class ContactSpec:
 @dataclass
 class JointFrictionSpec:
     mu: float
-    radius: float  # m: cylinder (revolute, prismatic) or ball (spherical) radius
-    length: float  # m: cylinder length (distance between the two end circles)
-    points: int  # implicit contact points per end circle (revolute, prismatic)
+    radius: float  # m: cylinder (revolute, prismatic) or ball (spherical, spherical_exp) radius; 0 for a box
+    length: float  # m: cylinder/box length (distance between the two end circles or corner squares)
+    points: int  # implicit contact points per end circle (revolute, prismatic cylinder)
+    shape: str = "cylinder"  # cross-section of a prismatic joint: cylinder | box
+    size: np.ndarray | None = None  # (2,) full widths [m] of a box cross-section along u1, u2 (contact.box_section_axes)
 
 
 @dataclass
@@ -174,14 +178,35 @@ def parse(v, raw: dict, spec, bodies: set):
 
 
 def _joint_friction(v, entry, d, jt) -> JointFrictionSpec:
-    v.keys(entry, d, {"mu", "radius", "length", "points"}, required=("mu", "radius"))
+    ball = jt in ("spherical", "spherical_exp")
+    if not isinstance(d, dict):
+        v.keys(entry, d, set())  # names the entry: "must be a mapping"
+    shape = d.get("shape", "cylinder")
+    if shape not in JOINT_SECTIONS:
+        v.err(entry, f"'shape' must be one of {', '.join(JOINT_SECTIONS)}, got {shape!r}")
+    if shape == "box":
+        return _box_friction(v, entry, d, jt)
+    v.keys(entry, d, {"mu", "radius", "length", "points", "shape"}, required=("mu", "radius"))
     v.number(entry, "radius", d["radius"], positive=True)
     pts = d.get("points", 8)
     if isinstance(pts, bool) or not isinstance(pts, int) or pts < 3:
         v.err(entry, f"'points' must be an integer >= 3, got {pts!r}")
-    length = v.number(entry, "length", d.get("length", 0.0 if jt == "spherical" else 2 * float(d["radius"])),
+    length = v.number(entry, "length", d.get("length", 0.0 if ball else 2 * float(d["radius"])),
                       nonneg=True)
-    if jt != "spherical" and length <= 0:
+    if not ball and length <= 0:
         v.err(entry, "'length' of a revolute/prismatic joint cylinder must be positive")
     return JointFrictionSpec(v.number(entry, "mu", d["mu"], nonneg=True), v.number(entry, "radius", d["radius"],
                                                                                    positive=True), length, pts)
+
+
+def _box_friction(v, entry, d, jt) -> JointFrictionSpec:
+    """A prismatic joint's box cross-section: ``size`` [w1, w2] full widths [m], ``length`` [m] (default the
+    larger width) between the two squares of corners (docs/friction.md)."""
+    if jt != "prismatic":
+        v.err(entry, f"a box cross-section ('shape: box') is for prismatic joints, not {jt}")
+    v.keys(entry, d, {"mu", "shape", "size", "length"}, required=("mu", "size"))
+    size = v.vector(entry, "size", d["size"], 2)
+    if np.any(size <= 0):
+        v.err(entry, f"'size' (full widths [w1, w2] of the box cross-section) must be positive, got {size.tolist()}")
+    length = v.number(entry, "length", d.get("length", float(size.max())), positive=True)
+    return JointFrictionSpec(v.number(entry, "mu", d["mu"], nonneg=True), 0.0, length, 0, "box", size)

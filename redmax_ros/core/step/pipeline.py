@@ -236,7 +236,8 @@ def pinocchio_velocity(mech, ws, state: State, cmd, tau, h) -> VelocitySolve:
             sol.contacts = self_collision.finish_report(contacts, sol.mu, time.perf_counter() - t_solve)
     else:  # 4': Staggered Projections / BISP (Alg. 2/3) for ground contact and joint friction
         sol, fric, fcache = staggered.solve(mech, ws.friction, kin, system, cons, state.q, v_r, h,
-                                            state.friction_cache, sf, ws.deadline)
+                                            state.friction_cache, sf, ws.deadline,
+                                            None if ws.extras is None else ws.extras.jdot_qdot)
         viol_vel = max_row_residual(cons.G, sol.v, cons.g)
     return VelocitySolve(sol, cons.joint_rows, cons.site_rows,
                          cons.G[cons.loop_rows] if len(mech.loop_ab) else None, viol_vel, sol.solver,
