@@ -19,7 +19,7 @@ from redmax_ros.core.errors import CommandError, SceneError, StepError
 from redmax_ros.core.model.collision import shape_poses
 from redmax_ros.core.model.dof_positions import DofPositions
 from redmax_ros.core.model.mechanism import Mechanism
-from redmax_ros.core.scene.loader import load_scene, parse_joint_trajectory
+from redmax_ros.core.scene.loader import load_scene, parse_joint_trajectory, parse_time_function
 from redmax_ros.core.scene.spec import SceneSpec
 from redmax_ros.core.solvers.budget import StepBudget
 from redmax_ros.core.step.backends import make_backend
@@ -294,16 +294,22 @@ class Simulator:
         """Prescribe components of body twists (maximal hybrid dynamics, Eq. 7, *G_m = the body's 6 x nv
         twist Jacobian): ``{body: {"angular": [wx, wy, wz], "linear": [vx, vy, vz], "frame": "body" | "world"}}``
         with 'angular' [rad/s] and/or 'linear' [m/s, velocity of the body origin]; frame 'body' (default)
-        or 'world' (world-aligned axes at the body origin). Constant, held until released; replaces the
-        body's previous prescription; all-or-nothing (CommandError). The required wrench is
+        or 'world' (world-aligned axes at the body origin). A component is a number (constant), None (free)
+        or a time function of the scene grammar (``{"type": "sine", ...}``, scene/timefunctions.py)
+        evaluated at the end time t_k+1 of every step. Held until released; replaces the body's previous
+        prescription; all-or-nothing (CommandError naming the body and component). The required wrench is
         ``StepResult.body_wrenches[body]`` (6,) [torque N m; force N] in the prescription's frame.
         Pinocchio pipeline only (CommandError on the data-free path)."""
         new = {}
         for n, d in twists.items():
+            entry = f"body '{n}'"
             try:
-                new[n] = body_twist.parse(n, d, self.mech.bodies)
+                new[n] = body_twist.parse(n, d, self.mech.bodies,
+                                          lambda key, x, entry=entry: parse_time_function(entry, key, x))
             except ValueError as e:
                 raise CommandError(f"prescribed twist: {e}") from None
+            except SceneError as e:
+                raise CommandError(f"prescribed twist: {e.entry}: {e.problem}") from None
         self._check_body_path(list(new), CommandError)
         self.commands.body_twists.update(new)
 
@@ -316,10 +322,12 @@ class Simulator:
             self.commands.body_twists.pop(n, None)
 
     def prescribed_bodies(self) -> dict:
-        """Prescribed body -> {components: [...], values (k,), frame}."""
+        """Prescribed body -> {components: [...], values (k,), frame}; timed components at the end time of
+        the next step, t_k+1 (what its rows impose)."""
         names = ("wx", "wy", "wz", "vx", "vy", "vz")
-        return {n: {"components": [names[int(np.argmax(r))] for r in bt.P], "values": bt.g.copy(), "frame": bt.frame}
-                for n, bt in self.commands.body_twists.items()}
+        t1 = self.state.time_after(self.dt)
+        return {n: {"components": [names[int(np.argmax(r))] for r in bt.P], "values": bt.at(t1).g.copy(),
+                    "frame": bt.frame} for n, bt in self.commands.body_twists.items()}
 
     def set_joint_torques(self, torques: dict) -> None:
         """Explicit applied joint torques [N m or N], held until changed."""

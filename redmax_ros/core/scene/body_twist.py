@@ -1,5 +1,9 @@
 """Body-twist prescriptions as the scene and the commands give them (issue 13 item 4): the selected
 components of a body's twist [omega; v] and their frame. The rows and wrenches are step/body_twist.py.
+
+A component is a number (constant), null (free) or a time function of the scene grammar
+(scene/timefunctions.py: sine, ramp, quintic, cubic, ...), evaluated at the end time t_k+1 of each step
+(like the right-hand side of a joint trajectory's row: hybrid dynamics, paper Eq. 7, *G_m qdot = g(t_k+1)).
 """
 from __future__ import annotations
 
@@ -13,13 +17,25 @@ FRAMES = ("body", "world")
 @dataclass
 class BodyTwist:
     P: np.ndarray  # (k,6) selected rows of I6 ([angular; linear] order)
-    g: np.ndarray  # (k,) prescribed components [rad/s, m/s]
+    g: np.ndarray  # (k,) prescribed components [rad/s, m/s] (the constant ones; timed rows: value at t = 0)
     frame: str  # 'body' | 'world'
+    timed: tuple = ()  # (row, TimeFunction) of the components given as time functions
+
+    def at(self, t: float) -> "BodyTwist":
+        """The prescription with its timed components evaluated at t [s] (itself when none is timed)."""
+        if not self.timed:
+            return self
+        g = self.g.copy()
+        for r, f in self.timed:
+            g[r] = f(t)
+        return BodyTwist(self.P, g, self.frame)
 
 
-def parse(name: str, d, bodies) -> BodyTwist:
+def parse(name: str, d, bodies, time_function=None) -> BodyTwist:
     """A BodyTwist from {angular: [3], linear: [3], frame: body|world}; a null component is left free
-    (e.g. angular: [null, 2, null] prescribes omega_y only). ValueError naming the problem."""
+    (e.g. angular: [null, 2, null] prescribes omega_y only). ValueError naming the problem.
+    ``time_function(key, value)``: parses a mapping component (e.g. key "angular[1]") into a
+    scene.timefunctions.TimeFunction, raising for a bad one; None: mappings are refused."""
     if name not in bodies:
         raise ValueError(f"unknown body '{name}' (known: {', '.join(bodies)})")
     if not isinstance(d, dict):
@@ -30,7 +46,7 @@ def parse(name: str, d, bodies) -> BodyTwist:
     frame = d.get("frame", "body")
     if frame not in FRAMES:
         raise ValueError(f"body '{name}': unknown frame {frame!r} (body, world)")
-    rows, vals = [], []
+    rows, vals, timed = [], [], []
     for off, key in ((0, "angular"), (3, "linear")):
         if key not in d:
             continue
@@ -41,14 +57,20 @@ def parse(name: str, d, bodies) -> BodyTwist:
         for c, x in enumerate(val):
             if x is None:  # this component is not prescribed
                 continue
+            if isinstance(x, dict) and time_function is not None:  # a time function of t_k+1
+                f = time_function(f"{key}[{c}]", x)
+                timed.append((len(rows), f))
+                rows.append(off + c)
+                vals.append(f(0.0))
+                continue
             try:
                 x = float(x)
             except (TypeError, ValueError):
-                raise ValueError(f"body '{name}': '{key}'[{c}] is not a number: {x!r}") from None
+                raise ValueError(f"body '{name}': '{key}'[{c}] is not a number (or null, or a time function): {x!r}") from None
             if not np.isfinite(x):
                 raise ValueError(f"body '{name}': non-finite '{key}'[{c}] = {x}")
             rows.append(off + c)
             vals.append(x)
     if not rows:
         raise ValueError(f"body '{name}': give 'angular' and/or 'linear' (at least one non-null component)")
-    return BodyTwist(np.eye(6)[rows], np.array(vals, float), frame)
+    return BodyTwist(np.eye(6)[rows], np.array(vals, float), frame, tuple(timed))

@@ -158,6 +158,12 @@ def parse_joint_trajectory(entry: str, d, nv: int, source: str = "command"):
     return timefunctions.parse_trajectory(_Validator(source, None), entry, d, nv)
 
 
+def parse_time_function(entry: str, key: str, d, source: str = "command"):
+    """One time function (a number or ``{type: ..., ...}``, timefunctions.parse) for commands, e.g. a timed
+    component of a body twist; SceneError naming ``entry`` and ``key``."""
+    return timefunctions.parse(_Validator(source, None), entry, key, d)
+
+
 def scene_from_dict(raw: dict, source: str = "<dict>", overrides=(), base_dir: Path | None = None, *,
                     confine_files: bool = False) -> SceneSpec:
     """Validate a scene given as a dict (the parsed YAML). Files it names (meshes, URDF) are relative
@@ -760,7 +766,9 @@ class _Validator:
             spec.prescribed_sites[name] = self.vector(entry, "velocity", val, 3)
         body_names = [b.name for b in spec.bodies]
         for name, val in (pr.get("bodies") or {}).items():  # {angular: [3], linear: [3], frame: body|world}
-            try:
-                spec.prescribed_bodies[name] = body_twist.parse(name, val, body_names)
+            entry = f"prescribed.bodies.{name}"
+            try:  # components: numbers, null, or time functions evaluated at t_k+1 (scene/body_twist.py)
+                spec.prescribed_bodies[name] = body_twist.parse(
+                    name, val, body_names, lambda key, x, entry=entry: timefunctions.parse(self, entry, key, x))
             except ValueError as e:
-                self.err(f"prescribed.bodies.{name}", str(e))
+                self.err(entry, str(e))

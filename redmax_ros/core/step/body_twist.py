@@ -5,9 +5,12 @@ the linear velocity of the body origin), in the body frame ('body') or with worl
 ('world', Pinocchio's LOCAL_WORLD_ALIGNED): rows P J_b qdot_r = g with J_b the body's 6 x nv twist
 Jacobian and P the selected rows of I6. The required wrench [torque N m; force N] in the prescription's
 frame is P^T (-lam / h) (StepResult.body_wrenches). Pinocchio pipeline only: the data-free backends
-(solver 'pcg', or 'direct' beyond pin.Data's size) reject them.
+(solver 'pcg', or 'direct' beyond pin.Data's size) reject them. Components given as time functions
+(scene/body_twist.py) are evaluated at the step's end time t_k+1 by :func:`resolve`, before the rows.
 """
 from __future__ import annotations
+
+import dataclasses
 
 import numpy as np
 import pinocchio as pin
@@ -15,6 +18,14 @@ import pinocchio as pin
 from redmax_ros.core.scene.body_twist import FRAMES, BodyTwist, parse  # noqa: F401  (re-exported)
 
 _LOCAL = pin.ReferenceFrame.LOCAL
+
+
+def resolve(cmd, t_next: float):
+    """Commands with every timed body-twist component evaluated at t_next = t_k+1 [s] (a new Commands;
+    ``cmd`` itself when no component is timed)."""
+    if not any(bt.timed for bt in cmd.body_twists.values()):
+        return cmd
+    return dataclasses.replace(cmd, body_twists={n: bt.at(t_next) for n, bt in cmd.body_twists.items()})
 
 
 def twist_jacobian(mech, data, name: str, frame: str) -> np.ndarray:

@@ -3,6 +3,7 @@ StepResult).
 
     ws.deadline = budget.start()                        # the step budget (solvers/budget.py), or None
     cmd = trajectory.resolve(mech, state, cmd, h)       # joint trajectories -> this step's velocity rows
+    cmd = body_twist.resolve(cmd, t_k+1)                # timed body-twist components
     tau = applied_torques(mech, state, cmd, h)          # inputs checked (non-finite ones named)
     ws.extras.begin(...)                                # catalogue: J_rR of joint maps at q, load time
     vs = velocity(mech, ws, state, cmd, tau, h)         # stages 1-4 of the backend (below); inputs beyond
@@ -86,6 +87,7 @@ def _step(mech, ws, state: State, cmd, h: float, velocity, t0) -> tuple:
     lin, hs, q_base = (state, h, state.q) if pt is None else (
         dataclasses.replace(state, q=pt.q_lin, v=pt.v_lin), pt.h, pt.q_base)
     cmd = trajectory.resolve(mech, state, cmd, h, q_base)  # joint trajectories -> this step's prescribed velocities
+    cmd = body_twist.resolve(cmd, state.time_after(h))  # timed body-twist components at t_k+1
     tau = applied_torques(mech, state, cmd, h)
     if ws.extras is not None:  # catalogue: time of the timed loads, J_rR of spline/exp joints at q
         ws.extras.begin(mech, ws, state)

@@ -14,7 +14,15 @@ required torques (Eq. 7: effort = tau - *G_r^T lam / h) treat them exactly as ve
 
 Joints whose positions are their coordinates qualify (TRAJECTORY_JOINT_TYPES with nq = nv), and revolute
 joints with a (cos, sin) configuration (Pinocchio's unbounded revolute, URDF 'continuous'): their error
-q_p - q_k is wrapped to (-pi, pi].
+q_p - q_k is wrapped to (-pi, pi]. Joints whose configuration is not a vector (MANIFOLD_JOINT_TYPES:
+quaternion ``spherical``, ``planar``, ``free``, the composite ``free3d``) take their positions per velocity
+DOF in the joint_states convention (roll, pitch, yaw for rotations, model/dof_positions.py) and follow
+the same law on the manifold (step/joint_targets.py):
+
+    *qdot_r = v_p(t_k+1) + b log(q_k^-1 q_p(t_k+1))      (pin.difference restricted to the joint)
+
+with v_p the target's velocity in the joint's own velocity coordinates (body angular velocity
+omega_b = E_b(rpy) rpy_dot for a quaternion rotation).
 """
 from __future__ import annotations
 
@@ -23,15 +31,21 @@ import math
 
 import numpy as np
 
+from redmax_ros.core.step import joint_targets
+
 TRAJECTORY_JOINT_TYPES = ("revolute", "prismatic", "universal", "translational", "planar_translation")
+MANIFOLD_JOINT_TYPES = ("spherical", "planar", "free", "free3d")  # positions: model/dof_positions.py convention
 
 
 def trajectory_problem(mech, name: str, traj) -> str | None:
     """Why joint ``name`` cannot follow ``traj`` (a message naming the joint), or None."""
     j = mech.joint_index[name]
-    if j.type not in TRAJECTORY_JOINT_TYPES or not (j.nq == j.nv or (j.nq, j.nv) == (2, 1)):
-        return (f"joint '{name}' ({j.type}) cannot follow a position trajectory: its positions are not "
-                f"coordinates (trajectories: {', '.join(TRAJECTORY_JOINT_TYPES)} joints)")
+    coordinates = j.type in TRAJECTORY_JOINT_TYPES and (j.nq == j.nv or (j.nq, j.nv) == (2, 1))
+    manifold = j.type in MANIFOLD_JOINT_TYPES and joint_targets.supported(mech.model.joints[j.jid])
+    if not (coordinates or manifold):
+        kinds = TRAJECTORY_JOINT_TYPES + MANIFOLD_JOINT_TYPES
+        return (f"joint '{name}' ({j.type}) cannot follow a position trajectory "
+                f"(trajectories: {', '.join(kinds)} joints)")
     if traj.nv != j.nv:
         return f"trajectory of joint '{name}' needs {j.nv} position function(s), got {traj.nv}"
     return None
@@ -40,6 +54,9 @@ def trajectory_problem(mech, name: str, traj) -> str | None:
 def joint_rate(mech, name: str, traj, q, t_next: float) -> np.ndarray:
     """The prescribed velocity (nv,) of joint ``name`` for the step from configuration ``q`` to time t_next."""
     j = mech.joint_index[name]
+    if j.type in MANIFOLD_JOINT_TYPES:
+        q_p, v_p = joint_targets.target(mech.model.joints[j.jid], traj.position(t_next), traj.velocity(t_next))
+        return v_p + traj.b * joint_targets.joint_error(mech.model, j.jid, q, q_p)
     if j.nq == j.nv:
         return traj.rate(t_next, q[j.idx_q:j.idx_q + j.nq])
     c, s = q[j.idx_q], q[j.idx_q + 1]

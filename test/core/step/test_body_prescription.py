@@ -187,3 +187,68 @@ def test_catalogue_scene_holds_the_world_angular_velocity():
         assert abs(sim.joint_velocities().sum() + 1.0) < 1e-10
     w = r.body_wrenches["lower"]
     assert np.all(np.delete(w, 1) == 0.0) and np.isfinite(w[1])
+
+
+# -- timed components (time functions of the scene grammar, evaluated at t_k+1)
+A_W, F_W = 2.0, 0.8  # omega_y(t) = A sin(2 pi f t) [rad/s]
+OMEGA = {"type": "sine", "amplitude": A_W, "frequency": F_W}
+
+
+def test_timed_body_twist_equals_the_joint_velocity_law_with_the_same_function():
+    """omega_y(t) of the rod (a sine time function) = the hinge following q_p(t) with b = 0, whose row is
+    qdot_p(t_k+1) = A sin(2 pi f t_k+1) exactly: the same rows, so the same motion to round-off and the
+    wrench's torque equal to the joint's required torque; measured max |dq| 0 and |w_y - effort| < 1e-9."""
+    a, b = Simulator.load("catalogue/revolute"), Simulator.load("catalogue/revolute")
+    a.prescribe_bodies({"rod": {"angular": [None, OMEGA, None]}})
+    w = 2 * np.pi * F_W
+    q0 = float(b.state.q[0])
+    b.prescribe_joints({"hinge": {"position": {"type": "sine", "amplitude": A_W / w, "frequency": F_W,
+                                               "phase": -np.pi / 2, "offset": q0 + A_W / w}, "b": 0.0}})
+    for _ in range(600):
+        t1 = a.state.time_after(a.dt)
+        assert a.prescribed_bodies()["rod"]["values"][0] == pytest.approx(A_W * np.sin(w * t1), abs=1e-15)
+        ra, rb = a.step(), b.step()
+        assert abs(ra.v[0] - A_W * np.sin(w * ra.t)) < 1e-12
+        assert np.abs(ra.q - rb.q).max() < 1e-12
+        assert abs(ra.body_wrenches["rod"][1] - rb.effort[0]) < 1e-9
+
+
+def test_timed_twist_in_a_scene_and_mixed_components():
+    """prescribed.bodies.<body> with a time function next to constants: the free box's body omega follows
+    [0.5, ramp, 0] exactly (one step's value at t_k+1) and the scene and the API give the same steps."""
+    ramp = {"type": "ramp", "start": 0.0, "end": 0.2, "to": 1.5}
+    d = raw("free3d")
+    d["joints"][0]["conserve_momentum"] = False
+    d["prescribed"] = {"bodies": {"box": {"angular": [0.5, ramp, 0.0]}}}
+    a = Simulator(scene_from_dict(d, str(CAT / "free3d.yaml"), base_dir=CAT))
+    b = free_box()
+    b.prescribe_bodies({"box": {"angular": [0.5, ramp, 0.0]}})
+    for _ in range(300):
+        ra, rb = a.step(), b.step()
+        assert np.array_equal(ra.q, rb.q)
+        assert np.abs(twist(a, "box", "body")[:3] - [0.5, min(1.5, 7.5 * ra.t), 0.0]).max() < 1e-10
+    a.prescribe_bodies({"box": {"linear": [1.0, 0.0, 0.0]}})
+    a.restore_prescriptions(bodies=["box"])
+    assert a.prescribed_bodies()["box"]["values"].tolist() == [0.5, 1.5, 0.0]
+
+
+BAD_TF = [({"type": "wobble"}, "'angular\\[1\\]': unknown time function type 'wobble'"),
+          ({"type": "sine", "amplitude": float("nan"), "frequency": 1.0}, "'angular\\[1\\].amplitude' must be finite"),
+          ({"type": "ramp", "start": 1.0, "end": 0.5, "to": 1.0}, "'angular\\[1\\]': ramp end"),
+          ({"type": "sine", "amplitude": 1.0}, "missing 'frequency'")]
+
+
+@pytest.mark.parametrize("tf,match", BAD_TF, ids=[m for _, m in BAD_TF])
+def test_bad_time_function_is_a_command_or_scene_error_naming_body_and_component(tf, match):
+    sim = Simulator.load("catalogue/revolute")
+    sim.prescribe_bodies({"rod": {"angular": [None, 1.0, None]}})
+    before = sim.prescribed_bodies()
+    with pytest.raises(CommandError, match="body 'rod'") as e:
+        sim.prescribe_bodies({"rod": {"angular": [None, tf, None]}})
+    assert e.match(match)
+    assert sim.prescribed_bodies()["rod"]["values"].tolist() == before["rod"]["values"].tolist() == [1.0]
+    d = raw("revolute")
+    d["prescribed"] = {"bodies": {"rod": {"angular": [None, tf, None]}}}
+    with pytest.raises(SceneError, match="prescribed.bodies.rod") as e:
+        scene_from_dict(d)
+    assert e.match(match)

@@ -235,7 +235,7 @@ def test_unknown_or_unsuitable_joint_is_a_command_error():
     sim = Simulator.load("catalogue/trajectory")
     with pytest.raises(CommandError, match="unknown joint 'knee'"):
         sim.prescribe_joints({"knee": {"position": SINE}})
-    sph = Simulator.load("catalogue/spherical")
+    sph = Simulator.load("catalogue/spherical_euler")  # Euler-chart joint: not a trajectory joint
     name = sph.mech.joints[0].name
     with pytest.raises(CommandError, match=f"joint '{name}' .*cannot follow a position trajectory"):
         sph.prescribe_joints({name: {"position": 0.0}})
