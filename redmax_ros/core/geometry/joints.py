@@ -61,7 +61,9 @@ it has the chart's singularity (q2 = ±pi/2 for Tait-Bryan charts, q2 = 0, pi fo
 charts) where S, and therefore the mass matrix, become singular. A Pinocchio model's joint types are
 fixed once built, so with ``switch_charts: true`` the joint is instead realised as a coordinate map on a
 quaternion carrier (joint_maps.py), like ``spherical_exp``, and changes chart near the singularity
-(Eq. 2.40; euler_charts.py).
+(Eq. 2.40; euler_charts.py). ``free3d_exp`` is the notes' 3D free joint concatenated in reverse order
+(§2.5.11, Eq. 2.65-2.66): the exponential-coordinate rotation r first, then a translation t in the
+rotated frame, realised as a coordinate map on a FreeFlyer carrier; Grassia's map acts on r only.
 """
 from __future__ import annotations
 
