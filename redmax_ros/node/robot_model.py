@@ -35,7 +35,7 @@ import numpy as np
 import pinocchio as pin
 
 ONE_DOF = ("revolute", "prismatic")
-FLOATING_BASE = ("free", "planar", "free2d", "free3d")  # a body on one of these to the world: odom
+FLOATING_BASE = ("free", "planar", "free2d", "free3d", "free3d_exp")  # a body on one of these to the world: odom
 _TOL = 1e-12
 
 

@@ -185,6 +185,38 @@ def test_exp_reparameterization_keeps_rotation_and_angular_velocity():
     assert np.abs(R1 - R2).max() < 1e-14 and np.abs(S1 @ qd - S2 @ qd2).max() < 1e-13
 
 
+@pytest.mark.parametrize("norm", [1e-6, 1e-3, 0.05, 1.0, 3.0, 6.0])
+def test_free3d_exp_S_Sdot(norm):
+    """§2.5.11 in reverse order (free3d_exp: exponential-coordinate rotation r, then a translation t in
+    the rotated frame): Q = (exp([r]), exp([r]) t); S of Eq. 2.65 and Sdot of Eq. 2.66 vs FD of Q (1e-7),
+    near r = 0 (series) and near the 2 pi shell; equal to the composite rule (Eq. 2.53-2.58) of the
+    spherical_exp and translational joints (1e-14) and blockwise to Eq. 2.65 with S_w = Jexp3(r)."""
+    d = RNG.normal(size=3)
+    r, t, qd = d / np.linalg.norm(d) * norm, RNG.normal(size=3), RNG.normal(size=6)
+    q = np.r_[r, t]
+    assert max(fd_errors(jt.ref_free3d_exp, q, qd)) < FD_TOL
+    Q, S, Sd = jt.ref_free3d_exp(q, qd)
+    I = pin.SE3.Identity()
+    Qc, Sc, Sdc = jt.ref_compose([(I, *jt.ref_spherical_exp(r, qd[:3]), qd[:3]), (I, *jt.ref_translational(t), qd[3:])])
+    assert np.abs(Q.homogeneous - Qc.homogeneous).max() < 1e-14
+    assert np.abs(S - Sc).max() < 1e-14 and np.abs(Sd - Sdc).max() < 1e-14
+    Sw = pin.Jexp3(r)
+    assert np.abs(S[3:, :3] - Sw).max() < 1e-12 and np.abs(S[:3, :3] + jt.skew(t) @ Sw).max() < 1e-12
+    assert np.array_equal(S[:3, 3:], np.eye(3)) and not S[3:, 3:].any() and not Sd[:, 3:].any()
+
+
+def test_free3d_exp_reparameterization_keeps_pose_and_twist():
+    """Grassia's map of free3d_exp acts on r only: t and tdot unchanged, the same Q (1e-14) and the same
+    body twist S qdot (1e-13); below the threshold nothing changes."""
+    q, qd = np.r_[2.0, -2.5, 1.0, 0.3, -0.7, 1.1], RNG.normal(size=6)
+    q2, qd2, changed = jt.reparameterize_free3d_exp(q, qd)
+    assert changed and np.linalg.norm(q2[:3]) < math.pi
+    assert np.array_equal(q2[3:], q[3:]) and np.array_equal(qd2[3:], qd[3:])
+    (Q1, S1, _), (Q2, S2, _) = jt.ref_free3d_exp(q, qd), jt.ref_free3d_exp(q2, qd2)
+    assert np.abs(Q1.homogeneous - Q2.homogeneous).max() < 1e-14 and np.abs(S1 @ qd - S2 @ qd2).max() < 1e-13
+    assert not jt.reparameterize_free3d_exp(q2, qd2)[2]
+
+
 def test_spline_curve_and_surface_S_Sdot():
     """§2.5.12-2.5.13 (Alg. 3-4): S, Sdot vs FD on random control frames/grids, inside segments and
     across a segment boundary (the curve is C2 there: Q, S, dS/dq continuous)."""
@@ -200,7 +232,7 @@ def test_spline_curve_and_surface_S_Sdot():
         assert max(fd_errors(surf.kinematics, np.array(q), np.array([0.7, -0.4]))) < FD_TOL
 
 
-@pytest.mark.parametrize("scene", ["spherical_exp", "spline_curve", "spline_surface"])
+@pytest.mark.parametrize("scene", ["spherical_exp", "free3d_exp", "spline_curve", "spline_surface"])
 def test_mapped_joint_carrier_rows_are_S(scene):
     """The carrier of a mapped joint moves with twist S(g) gdot: its rows of J_rR are S(g) of the notes'
     joint (FreeFlyer: body twist; Spherical: angular part), and its pose is exactly Q(g) after steps."""
@@ -229,7 +261,8 @@ def _record(sim, n):
     return T0, v0, np.array(rows)
 
 
-@pytest.mark.parametrize("scene", ["spherical_exp", "spline_curve", "spline_surface", "spherical_euler_switch"])
+@pytest.mark.parametrize("scene", ["spherical_exp", "free3d_exp", "spline_curve", "spline_surface",
+                                   "spherical_euler_switch"])
 def test_reset_restores_configuration_dependent_J_rR(scene):
     """Simulator.reset() after a run restores exactly the initial behaviour of a coordinate-map joint:
     J_rR (the workspace's T, refreshed in place by every step) and the reported joint velocities before the first
@@ -357,6 +390,7 @@ def test_energy_classes_cover_the_catalogue():
     inputs |= {"trajectory"}  # driven by a trajectory prescription (test_trajectory_prescription.py)
     inputs |= {"body_twist"}  # driven by a body-twist prescription (test_body_prescription.py)
     inputs |= {"string"}  # a deformable string: its energy tests are test/core/deformable/ (docs/deformables.md)
+    inputs |= {"free3d_exp"}  # first-order error grows with w^2 |t|: test/core/dynamics/test_free3d_exp.py
     assert set(SYMPLECTIC + DECAYING + GYROSCOPIC + DISSIPATIVE + ["free2d"]) | inputs == names
 
 

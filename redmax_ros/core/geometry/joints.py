@@ -38,6 +38,9 @@ planar                 3        Pinocchio's Planar: the same motion as free2d, b
                                 velocities (vx, vy in the moving frame); kept for existing scenes
 free3d                 6        §2.5.11 (translational then spherical); Composite(Translation, Spherical):
                                 world(parent)-frame linear velocity, body-frame angular velocity
+free3d_exp             6        §2.5.11 in reverse order (Eq. 2.65-2.66): exponential-coordinate rotation r
+                                (§2.5.8) then a translation t in the rotated frame; coordinate map onto a
+                                FreeFlyer carrier (joint_maps.py), Grassia's reparameterisation of r
 free                   6        Pinocchio's FreeFlyer: body-frame twist (v, w)
 spline_curve           1        §2.5.12 (Lee & Terzopoulos 2008); coordinate map (joint_maps.py)
 spline_surface         2        §2.5.13; coordinate map (joint_maps.py)
@@ -58,7 +61,9 @@ it has the chart's singularity (q2 = ±pi/2 for Tait-Bryan charts, q2 = 0, pi fo
 charts) where S, and therefore the mass matrix, become singular. A Pinocchio model's joint types are
 fixed once built, so with ``switch_charts: true`` the joint is instead realised as a coordinate map on a
 quaternion carrier (joint_maps.py), like ``spherical_exp``, and changes chart near the singularity
-(Eq. 2.40; euler_charts.py).
+(Eq. 2.40; euler_charts.py). ``free3d_exp`` is the notes' 3D free joint concatenated in reverse order
+(§2.5.11, Eq. 2.65-2.66): the exponential-coordinate rotation r first, then a translation t in the
+rotated frame, realised as a coordinate map on a FreeFlyer carrier; Grassia's map acts on r only.
 """
 from __future__ import annotations
 
@@ -318,6 +323,28 @@ def ref_spherical_exp(q, qd):
     return pin.SE3(R, np.zeros(3)), S, Sd
 
 
+def ref_free3d_exp(q, qd):
+    """§2.5.11 in reverse order: Q = Q_1 Q_2 with Q_1 the exponential-coordinate spherical joint of
+    §2.5.8 (R = exp([r]), r = q[:3]) and Q_2 the translational joint (t = q[3:], expressed in the
+    rotated frame), so Q = (R, R t): the joint origin is at R t in the parent frame [m].
+
+    S of Eq. 2.65 (notes' order: [[S_w, 0], [-[t] S_w, I]]) and Sdot of Eq. 2.66
+    ([[Sdot_w, 0], [-[tdot] S_w - [t] Sdot_w, 0]]), here in Pinocchio's order (linear rows first), with
+    S_w, Sdot_w the angular blocks of §2.5.8 (:func:`exp_jacobian`). With qdot = (rdot, tdot) the body
+    twist is (tdot + w x t, w), w = S_w rdot the body angular velocity [rad/s]. Equal to the composite
+    rule (Eq. 2.53-2.58, :func:`ref_compose`) of the two joints."""
+    q, qd = np.asarray(q, float), np.asarray(qd, float)
+    t, td = q[3:6], qd[3:6]
+    R, Sw, Sdw = exp_jacobian(q[:3], qd[:3])
+    S, Sd = np.zeros((6, 6)), np.zeros((6, 6))
+    S[:3, :3] = -skew(t) @ Sw
+    S[:3, 3:] = np.eye(3)
+    S[3:, :3] = Sw
+    Sd[:3, :3] = -skew(td) @ Sw - skew(t) @ Sdw
+    Sd[3:, :3] = Sdw
+    return pin.SE3(R, R @ t), S, Sd
+
+
 def reparameterize_exp(q, qd, threshold=math.pi):
     """Grassia's reparameterisation (§2.5.8): if ||q|| > threshold, q <- (1 - 2 pi/||q||) q (the same
     rotation, ||q_new|| = 2 pi - ||q||) and qdot <- S(q_new)^-1 S(q) qdot (the same angular velocity).
@@ -331,6 +358,22 @@ def reparameterize_exp(q, qd, threshold=math.pi):
     _, S1, _ = exp_jacobian(q)
     _, S2, _ = exp_jacobian(q2)
     return q2, np.linalg.solve(S2, S1 @ qd), True
+
+
+def reparameterize_free3d_exp(q, qd, threshold=math.pi):
+    """Grassia's reparameterisation of the rotation r = q[:3] of a free3d_exp joint
+    (:func:`reparameterize_exp`); the translation t = q[3:] and its rate are unchanged: the rotation R
+    and the angular velocity w are the same, so the origin R t and the body twist (tdot + w x t, w)
+    are too. Returns (q, qdot, changed)."""
+    q, qd = np.asarray(q, float), np.asarray(qd, float)
+    r2, rd2, changed = reparameterize_exp(q[:3], qd[:3], threshold)
+    if not changed:
+        return q, qd, False
+    return np.concatenate([r2, q[3:]]), np.concatenate([rd2, qd[3:]]), True
+
+
+# scene type -> reparameterisation of its exponential coordinates (joint_maps.Maps.reparameterize)
+REPARAMETERIZE = {"spherical_exp": reparameterize_exp, "free3d_exp": reparameterize_free3d_exp}
 
 
 # ----------------------------------------------------------------------------------------------
@@ -456,4 +499,4 @@ def q_index(model, dof: int):
 # types whose Pinocchio model is built here (native Pinocchio joints, possibly composite)
 NATIVE_TYPES = {"planar_translation", "translational", "spherical_euler", "free2d", "free3d", "composite"}
 # types realised as a coordinate map on a carrier joint (joint_maps.py)
-MAPPED_TYPES = {"spherical_exp", "spline_curve", "spline_surface"}
+MAPPED_TYPES = {"spherical_exp", "free3d_exp", "spline_curve", "spline_surface"}

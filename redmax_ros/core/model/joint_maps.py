@@ -2,16 +2,18 @@
 
 Pinocchio's joints are a closed set (a boost::variant compiled into the library; no joint can be
 added from Python), so the spline curve/surface joints (notes §2.5.12-2.5.13), the
-exponential-coordinate spherical joint (§2.5.8) and the three-angle spherical joint whose chart changes
+exponential-coordinate spherical joint (§2.5.8), the rotation-first free joint in exponential
+coordinates (§2.5.11, Eq. 2.65-2.66, ``free3d_exp``) and the three-angle spherical joint whose chart changes
 at run time (§2.5.5, Eq. 2.40, ``switch_charts: true``) cannot be Pinocchio joints. They are realised with
 the notes' own tool for chaining Jacobians, hyper-reduced coordinates with a *configuration-
 dependent* J_rR (§2.7, Eq. 2.88-2.90):
 
 * the Pinocchio model carries a **carrier** joint that can reach every pose of the joint: a FreeFlyer
-  for spline joints (body twist (v, w), 6 DOF), a quaternion Spherical for ``spherical_exp`` (body
+  for spline joints and ``free3d_exp`` (body twist (v, w), 6 DOF), a quaternion Spherical for ``spherical_exp`` (body
   angular velocity, 3 DOF); the child body hangs on the carrier;
 * the joint's own coordinates g (spline parameter(s), or the exponential coordinates) are stored in
-  a **coordinate** joint: a massless leaf (PX, Composite(PX, PY) or Translation) attached to the
+  a **coordinate** joint: a massless leaf (PX, Composite(PX, PY), Translation, or for the 6
+  coordinates of ``free3d_exp`` Composite(Translation, Translation)) attached to the
   carrier, named like the scene joint, whose configuration *is* g and whose velocity is gdot; it has
   no inertia, so it adds nothing to the kinetic energy;
 * the hyper-reduced velocity holds gdot once: J_rR maps it to the coordinate joint (identity rows)
@@ -20,7 +22,8 @@ dependent* J_rR (§2.7, Eq. 2.88-2.90):
   J_rR^T M (Jdot_rR qdot_R) with Jdot_rR qdot_R = Sdot(g, gdot) gdot on the carrier rows;
 * after the configuration update the coordinates are integrated as in the notes
   (g+ = g + h gdot+, which pin.integrate does on the coordinate joint) and the carrier is set to
-  exactly Q(g+), so the body never leaves the spline/sphere; ``spherical_exp`` coordinates are
+  exactly Q(g+), so the body never leaves the spline/sphere; ``spherical_exp`` coordinates (and the
+  rotation coordinates g[:3] of ``free3d_exp``, whose translation is left as it is) are
   reparameterised when ||g|| > the joint's reparam_threshold (default pi; Grassia; joints.reparameterize_exp), which also maps gdot, and a
   switching ``spherical_euler`` joint changes chart when its rotation enters the home chart's
   singular band (euler_charts.select), with g from R and gdot mapped by Eq. 2.40. Its current chart
@@ -49,6 +52,7 @@ I6 = pin.SE3.Identity()
 
 
 ROTATION_TYPES = ("spherical_exp", "spherical_euler")  # mapped joints on a quaternion Spherical carrier
+ANALYTIC_TYPES = ROTATION_TYPES + ("free3d_exp",)  # mapped joints whose Q, S, Sdot are closed forms (joints.py)
 
 
 def is_mapped(j) -> bool:
@@ -63,7 +67,7 @@ def carrier_name(name: str) -> str:
 
 
 def coordinate_count(jtype: str) -> int:
-    return {"spherical_exp": 3, "spherical_euler": 3, "spline_curve": 1, "spline_surface": 2}[jtype]
+    return {"spherical_exp": 3, "spherical_euler": 3, "free3d_exp": 6, "spline_curve": 1, "spline_surface": 2}[jtype]
 
 
 def carrier_model(jtype: str):
@@ -75,6 +79,8 @@ def coordinate_model(k: int):
         return pin.JointModelPX()
     if k == 2:
         return jt.composite([(pin.JointModelPX(), I6), (pin.JointModelPY(), I6)])
+    if k == 6:
+        return jt.composite([(pin.JointModelTranslation(), I6), (pin.JointModelTranslation(), I6)])
     return pin.JointModelTranslation()
 
 
@@ -83,6 +89,8 @@ def joint_kinematics(j, g, gd, chart=None):
     ``chart``, default its home chart)."""
     if j.type == "spherical_exp":
         return jt.ref_spherical_exp(g, gd)
+    if j.type == "free3d_exp":
+        return jt.ref_free3d_exp(g, gd)
     if j.type == "spherical_euler":
         return jt.ref_euler(chart or j.extra["chart"], g, gd)
     return j.extra["geometry"].kinematics(g, gd)
@@ -145,7 +153,7 @@ class MappedJoint:
         """(Q, S, Sdot) at the coordinates in q (Sdot for rates vg, zero if None). Spline evaluations are
         cached on g (the step evaluates the same g for J_rR and for the Jdot_rR term)."""
         g = q[self.gq]
-        if self.spec.type in ROTATION_TYPES:
+        if self.spec.type in ANALYTIC_TYPES:
             return joint_kinematics(self.spec, g, np.zeros(self.k) if vg is None else vg, self.chart)
         key = g.tobytes()
         if self._key != key:
@@ -262,16 +270,16 @@ class Maps:
         return q
 
     def reparameterize(self, q, vR, T):
-        """Grassia's reparameterisation of spherical_exp coordinates with ||g|| > the joint's
-        reparam_threshold (default pi; notes §2.5.8); maps gdot through the hyper-reduced columns of the
-        coordinate joint. Returns True if anything changed."""
+        """Grassia's reparameterisation of spherical_exp coordinates (free3d_exp: its rotation
+        coordinates) with ||g|| > the joint's reparam_threshold (default pi; notes §2.5.8); maps gdot
+        through the hyper-reduced columns of the coordinate joint. Returns True if anything changed."""
         changed = False
         for m in self.items:
-            if m.spec.type != "spherical_exp":
+            if m.spec.type not in jt.REPARAMETERIZE:
                 continue
             Tg = T[m.gv]
             gd = Tg @ vR
-            g2, gd2, ch = jt.reparameterize_exp(q[m.gq], gd, m.spec.extra.get("reparam_threshold", math.pi))
+            g2, gd2, ch = jt.REPARAMETERIZE[m.spec.type](q[m.gq], gd, m.spec.extra.get("reparam_threshold", math.pi))
             if ch:
                 cols = [int(np.flatnonzero(Tg[i])[0]) for i in range(m.k)]
                 q[m.gq] = g2

@@ -29,6 +29,7 @@ TYPES = {
     "spherical_exp": (3, 3),
     "free2d": (3, 3),
     "free3d": (6, 6),
+    "free3d_exp": (6, 6),
     "composite": (None, None),
     "spline_curve": (1, 1),
     "spline_surface": (2, 2),
@@ -40,7 +41,8 @@ SUB_TYPES = {"revolute": (1, 1), "prismatic": (1, 1), "universal": (2, 2), "sphe
 COMMON_KEYS = {"name", "type", "parent", "child", "placement", "body_placement", "q0", "v0", "limits", "stiffness",
                "rest", "damping", "armature", "torque"}
 SPECIFIC_KEYS = {"planar_translation": {"axes"}, "translational": set(), "spherical_euler": {"chart", "switch_charts"},
-                 "spherical_exp": {"reparam_threshold", "friction"}, "free2d": set(), "free3d": {"conserve_momentum"}, "composite": {"joints"},
+                 "spherical_exp": {"reparam_threshold", "friction"}, "free2d": set(), "free3d": {"conserve_momentum"},
+                 "free3d_exp": {"reparam_threshold"}, "composite": {"joints"},
                  "spline_curve": {"control_frames", "cyclic"}, "spline_surface": {"control_grid"}}
 
 
@@ -53,6 +55,8 @@ def coordinate_dofs(jtype: str, nv: int, parts=()) -> list:
         return [True] * 3 + [False] * 3
     if jtype == "spherical_exp":
         return [False] * 3  # reparameterisation jumps the coordinates: no limits/linear constraints
+    if jtype == "free3d_exp":
+        return [False] * 3 + [True] * 3  # r jumps at reparameterisation, t does not
     if jtype == "composite":
         return [b for p in parts for b in coordinate_dofs(p.type, p.extra["nv"])]
     return [True] * nv
@@ -126,7 +130,7 @@ def validate_joint(v, entry, d, base_dir=None):
                     v.err(entry, f"'{k}' is not allowed with switch_charts: true (the angles jump at a chart "
                                  "switch; euler_charts.py)")
             extra["switch_charts"] = True
-    elif t == "spherical_exp" and "reparam_threshold" in d:
+    elif t in ("spherical_exp", "free3d_exp") and "reparam_threshold" in d:
         # Grassia's reparameterisation q <- (1 - 2 pi/||q||) q when ||q|| > threshold (notes §2.5.8; the
         # reference uses 1.5 pi). ||q_new|| = 2 pi - ||q|| is then below the threshold only if it is >= pi,
         # and S(q) is singular on the 2 pi shell: pi <= threshold < 2 pi.
