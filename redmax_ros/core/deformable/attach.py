@@ -1,7 +1,8 @@
 """Attachment rows of the deformable coupling (Wang et al. 2019 §4, the equation after Eq. 5:
 G_m J_mr qdot_r + G_d qdot_d = 0): a vertex held at a body point p gives three rows
 [J_p, -S_i] (qdot_r; qdot_d) = 0 with J_p = J_lin - [p - c]_x J_ang the point Jacobian (Sueda's notes
-Eq. S2.4) and S_i the 3 x 3N selector of vertex i; a vertex held at a world point gives [0, S_i] = 0.
+Eq. S2.4) and S_i the 3 x 3N selector of vertex i; a vertex held at a world point gives [0, S_i] = 0. With Baumgarte
+stabilization the right-hand side is -b phi (``residual``) instead of 0.
 """
 from __future__ import annotations
 
@@ -40,3 +41,14 @@ def rows(n_r, n_vertices, vertex, J_points):
     cols = (3 * np.asarray(vertex, dtype=np.int64)[:, None] + np.arange(3)).ravel()
     G_d = sp.csr_matrix((sign, (np.arange(3 * a), cols)), shape=(3 * a, 3 * n_vertices))
     return G_r, G_d
+
+
+def residual(P, x, world):
+    """(3a,) position residual phi of the attachment rows, row by row, signed so that each row reads
+    G z = d/dt phi: for a body point (row [J_p, -S_i], vertex sign -1) J_p qdot_r - v_i = d/dt (P(q) - x_i),
+    so phi = P - x_i; for a world point (row [0, S_i], vertex sign +1, P fixed) v_i = d/dt (x_i - P), so
+    phi = x_i - P. In short phi = sign_i (x_i - P). P (a,3) the points [m], x (a,3) the attached vertices [m],
+    world (a,) True for world points. Baumgarte's rows G z = -b phi(q_k, x_k) make phi decay as (1 - b h)^k."""
+    phi = np.asarray(P, dtype=float) - x
+    phi[np.asarray(world, dtype=bool)] *= -1.0
+    return phi.ravel()

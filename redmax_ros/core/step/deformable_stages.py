@@ -10,6 +10,10 @@ pipeline.pinocchio_velocity) with the deformable DOFs joined to the velocity sol
     q+ = q (+) h qdot_r+          = pipeline.update_configuration (manifold, loops)
     x+ = x + h v_d+, then attached vertices projected onto their points at q+ (post-stabilization)
 
+With ``stabilization: {method: baumgarte, b}`` (mech.loop_baumgarte = b [1/s], 0 for post) the attachment rows
+read [J_p, -S_i] z = -b phi(q_k, x_k) (attach.residual: phi = P - x_i for body points, x_i - P for world
+points) and no projection follows: the residual at q+, x+ is the reported violation.
+
 The deformable state (deformable.system.DeformState) is State.deform; a state without it starts from the
 mesh's rest positions at rest. A failed step raises StepError and leaves the state as it
 was (State is immutable).
@@ -165,13 +169,16 @@ def coupled_velocity(mech, ws, dm, state, ds, cmd, tau, h, timing=None):
     A_d, b_d = dm.assemble(ds.x, ds.v, h)  # 2 of the deformables
     t2 = time.perf_counter()
     n_r, N = len(system.b), dm.n_vertices
-    _, Js = attachment_points(mech, ws.data, dm)
+    P, Js = attachment_points(mech, ws.data, dm)  # at q_k (the skeleton stages' kinematics)
     if ws.T is not None:
         Js = [None if J is None else J @ ws.T for J in Js]
     Ga_r, Ga_d = attach.rows(n_r, N, dm.attach.vertex, Js)
     G = sp.vstack([sp.hstack([sp.csr_matrix(cons.G), sp.csr_matrix((cons.m, 3 * N))]),
                    sp.hstack([sp.csr_matrix(Ga_r), Ga_d])], format="csr")
-    g = np.concatenate([cons.g, np.zeros(len(Ga_r))])
+    g_att = np.zeros(len(Ga_r))
+    if mech.loop_baumgarte and len(Ga_r):  # Baumgarte: G z = -b phi(q_k, x_k)
+        g_att = -mech.loop_baumgarte * attach.residual(P, ds.x[dm.attach.vertex], dm.attach.body < 0)
+    g = np.concatenate([cons.g, g_att])
     C, lo, hi, row_vertex = _unilateral(cons, dm, ds, n_r, N, h)
     warm_v = ws.cache.get("deformable_floor_active", ())  # last step's active floor vertices (scratch)
     warm = [i for i, vtx in enumerate(row_vertex) if vtx in warm_v]
@@ -218,7 +225,8 @@ def step(mech, ws, dm, state, cmd, h, timing=None):
     """One step with the deformables. Returns (State, StepResult); StepResult.diagnostics energies include
     the deformables' (kinetic, gravitational, elastic in E_spring); ``violation_pos`` is the largest
     attachment (and loop) residual after the projection; the attachment drift the velocity step left before it
-    (O(h^2)) is ``timing["attachment_drift"]``."""
+    (O(h^2)) is ``timing["attachment_drift"]``. With Baumgarte (mech.loop_baumgarte > 0) nothing is projected
+    and both are the residual max |x_i - P| [m] at q+, x+."""
     t0 = time.perf_counter()
     ds = deform_state(dm, state)
     cmd = trajectory.resolve(mech, state, cmd, h, state.q)  # joint trajectories -> this step's prescribed velocities
@@ -236,8 +244,11 @@ def step(mech, ws, dm, state, cmd, h, timing=None):
         pin.forwardKinematics(mech.model, ws.data, q_new)
         P, _ = attachment_points(mech, ws.data, dm, jacobians=False)
         drift = float(np.abs(x_new[dm.attach.vertex] - P).max())
-        x_new[dm.attach.vertex] = P
-        resid = float(np.abs(x_new[dm.attach.vertex] - attachment_points(mech, ws.data, dm, jacobians=False)[0]).max())
+        if mech.loop_baumgarte:  # Baumgarte: no projection, the residual is the violation
+            resid = drift
+        else:
+            x_new[dm.attach.vertex] = P
+            resid = float(np.abs(x_new[dm.attach.vertex] - attachment_points(mech, ws.data, dm, jacobians=False)[0]).max())
     if timing is not None:
         timing["attachment_drift"] = drift  # what the velocity step left before the projection [m]
     if not math.isfinite(float(x_new.ravel() @ x_new.ravel())):
