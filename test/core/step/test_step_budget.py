@@ -247,12 +247,15 @@ def test_time_budget_fails_a_pcg_step_and_keeps_the_state():
 
 
 def test_time_budget_fails_the_compiled_staggered_loop_and_keeps_the_state():
-    """The walker driven at 1e5 rad/s: a few steps later the staggered loop runs to its caps (50
-    iterations of two 500-sweep PGS solves, ~50 ms of CPU here); under a budget the compiled loop runs in
-    pieces with the deadline checked between them and fails with the budget's error."""
+    """The walker driven at 1e4 rad/s: a few steps later the staggered loop runs to its caps (50
+    iterations of two 500-sweep PGS solves, ~20 ms of CPU here at the 7th step); under a budget the compiled
+    loop runs in pieces with the deadline checked between them and fails with the budget's error. (At 1e5 rad/s,
+    since the friction rows whose slip the drive fixes are weighed by their mobility (condense.fixed_row_weights),
+    the loop settles in 6-50 short iterations and the 4th step is rejected as diverging before any piece runs
+    long.)"""
     sim = Simulator.load("klann", budget=StepBudget(cpu_time=1e-9))
     sim.step(3)
-    sim.prescribe_joints({"crank_fwd": 1e5})
+    sim.prescribe_joints({"crank_fwd": 1e4})
     for _ in range(10):
         before = snapshot(sim)
         try:
