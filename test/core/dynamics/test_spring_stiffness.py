@@ -22,41 +22,16 @@ from redmax_ros.core.dynamics.forces import assemble
 from redmax_ros.core.dynamics.springs import clamp_lever_blocks, geometric_blocks_kernel, spring_terms
 from redmax_ros.core.step.backends import DataFreeBackend, DirectBackend
 
-SCENE = """
-name: lever_springs
-description: two free boxes on off-centre springs (stretched, zero rest length, tie) and a direction spring
-units: SI
-gravity: [0, 0, -9.81]
-dt: {dt}
-bodies:
-  - {{name: a, shape: {{type: box, size: [0.2, 0.1, 0.05]}}, mass: 1.0}}
-  - {{name: b, shape: {{type: box, size: [0.1, 0.3, 0.1]}}, mass: 2.0}}
-joints:
-  - {{name: fa, type: free, parent: world, child: a, q0: [0.0, 0.0, -0.1, 0.3, -0.2, 0.5], v0: [0.1, 0, 0, 0.5, -1.0, 2.0]}}
-  - {{name: fb, type: free, parent: world, child: b, q0: [0.4, 0.1, -0.2, -0.4, 0.1, 1.2], v0: [0, 0.2, 0, 1.0, 0.5, -0.3]}}
-sites:
-  - {{name: a1, body: a, pos: [0.1, 0.05, 0.025]}}
-  - {{name: a2, body: a, pos: [-0.1, -0.05, 0.0]}}
-  - {{name: b1, body: b, pos: [0.05, -0.15, 0.05]}}
-  - {{name: b2, body: b, pos: [-0.05, 0.15, -0.05]}}
-  - {{name: w1, body: world, pos: [0.0, 0.0, 0.3]}}
-  - {{name: w2, body: world, pos: [0.5, 0.3, 0.3]}}
-springs:
-  - {{name: hang_a, a: a1, b: w1, stiffness: 300.0, rest_length: 0.1}}
-  - {{name: zero_b, a: b2, b: w2, stiffness: 150.0, rest_length: 0.0}}
-  - {{name: tie, a: a2, b: b1, stiffness: 80.0, rest_length: 0.05}}
-{forces}
-{integrator}
-"""
-DIRECTION = """forces:
-  - {name: dir, type: direction_spring, a: b1, b: w1, direction: [1, 2, 0.5], stiffness: 120.0, rest_length: -0.2}"""
+SCENE = "catalogue/lever_springs"  # two free boxes on off-centre springs (stretched, zero rest length, a tie)
+DIRECTION = ("forces=[{name: dir, type: direction_spring, a: b1, b: w1, direction: [1, 2, 0.5], stiffness: 120.0, "
+             "rest_length: -0.2}]")
 
 
-def _load(tmp_path, direction=False, form=None):
-    path = tmp_path / "lever_springs.yaml"
-    integ = "" if form is None else f"integrator: {{spring_stiffness: {form}}}"
-    path.write_text(SCENE.format(forces=DIRECTION if direction else "", integrator=integ, dt=0.01))
-    return Simulator.load(str(path), solver="reference")
+def _load(direction=False, form=None, dt=0.01):
+    overrides = [f"dt={dt}"] + ([DIRECTION] if direction else [])
+    if form is not None:
+        overrides.append(f"integrator.spring_stiffness={form}")
+    return Simulator.load(SCENE, overrides, solver="reference")
 
 
 def _spring_force(sim, ws, q):
@@ -138,10 +113,10 @@ def _states(sim, n=3, seed=4):
 
 
 @pytest.mark.parametrize("direction", [False, True])
-def test_full_stiffness_is_the_symmetrised_derivative_of_the_spring_force(tmp_path, direction):
+def test_full_stiffness_is_the_symmetrised_derivative_of_the_spring_force(direction):
     """K_r = T^T H T to 1e-7 relative on free bodies (point-to-point springs stretched, at zero rest length and as
     a tie; with a direction spring); no spring is compressed, so the transverse clamp is idle."""
-    sim = _load(tmp_path, direction)
+    sim = _load(direction)
     ws = DirectBackend(sim.mech).workspace
     for q in _states(sim):
         kin = kinematics.compute(sim.mech, ws, q, np.zeros(sim.mech.nv))
@@ -154,9 +129,9 @@ def test_full_stiffness_is_the_symmetrised_derivative_of_the_spring_force(tmp_pa
         assert np.abs(K - K.T).max() <= 1e-9 * np.abs(K).max()
 
 
-def test_gauss_newton_form_misses_the_lever_arm_terms(tmp_path):
+def test_gauss_newton_form_misses_the_lever_arm_terms():
     """integrator.spring_stiffness: gauss_newton keeps J^T K J only: off by O(|f| |r|), here > 1 % of |K|."""
-    sim = _load(tmp_path, True, "gauss_newton")
+    sim = _load(True, "gauss_newton")
     ws = DirectBackend(sim.mech).workspace
     q = sim.state.q
     K = _lhs_stiffness(sim, ws, q)
@@ -164,14 +139,12 @@ def test_gauss_newton_form_misses_the_lever_arm_terms(tmp_path):
     assert np.abs(K - want).max() / np.abs(want).max() > 1e-2
 
 
-def test_data_free_and_compiled_paths_take_the_same_stiffness(tmp_path):
+def test_data_free_and_compiled_paths_take_the_same_stiffness():
     """The compiled step (geometric_blocks_kernel and clamp_lever_blocks inside the kernel) equals the Pinocchio
     pipeline over 100 steps of the tumbling boxes at h = 5 ms; from the state reached, one data-free direct step
     and one PCG step (tree_forces.maximal_blocks) equal the pipeline's."""
-    path = tmp_path / "lever_springs.yaml"
-    path.write_text(SCENE.format(forces="", integrator="", dt=0.005))
-    ref = Simulator.load(str(path), solver="reference")
-    sim = Simulator.load(str(path), solver="direct")  # the compiled step
+    ref = Simulator.load(SCENE, solver="reference")
+    sim = Simulator.load(SCENE, solver="direct")  # the compiled step
     ref.step(100)
     sim.step(100)
     assert np.abs(sim.state.q - ref.state.q).max() <= 1e-9
@@ -184,18 +157,17 @@ def test_data_free_and_compiled_paths_take_the_same_stiffness(tmp_path):
     assert np.abs(rp.v - rr.v).max() <= 1e-8 * scale
 
 
-def test_spring_stiffness_option_is_validated(tmp_path):
+def test_spring_stiffness_option_is_validated():
     with pytest.raises(SceneError, match="integrator.spring_stiffness"):
-        _load(tmp_path, False, "exact")
+        _load(False, "exact")
 
 
-def test_lever_clamp_keeps_the_lhs_positive_definite_and_is_idle_at_small_steps(tmp_path):
+def test_lever_clamp_keeps_the_lhs_positive_definite_and_is_idle_at_small_steps():
     """Along 0.3 s of the tumbling boxes (h = 1 ms), the LHS of Eq. (2) with the lever-arm blocks is assembled
     at h = 1 ms, 10 ms and 50 ms. Unclamped, the springs that pull a lever arm inwards make it indefinite at the
     larger steps; with springs.clamp_lever_blocks the smallest eigenvalue of M^-1 A stays >= 1/2 at every h,
     and at h = 1 ms the clamp changes nothing."""
-    sim = _load(tmp_path)
-    sim.dt = 1e-3
+    sim = _load(dt=1e-3)
     mech = sim.mech
     ws = DirectBackend(mech).workspace
     changed = {1e-3: 0, 1e-2: 0, 5e-2: 0}

@@ -146,3 +146,19 @@ def test_slowly_driven_crank_torque(solver, rate):
             worst = max(worst, abs(tau - an) / an)
     print(f"{solver} at {rate} rad/s: torque {tau:.7f} N m, analytic {an:.7f}, worst relative {worst:.2e}")
     assert worst < 0.01
+
+
+def test_catalogue_scene_sticks_until_the_analytic_threshold():
+    """catalogue/fourbar_friction is this setup as a scene, with the crank torque ramped 0.27 -> 0.34 N m over
+    2 s (a joint_torque force element, evaluated at t_k): the linkage stays at rest while the ramp is below the
+    analytic forward threshold and turns forwards once past it."""
+    sim = Simulator.load("catalogue/fourbar_friction")
+    tp = crank_torque(sim.state.q.copy(), 1)[0]
+    t_star = (tp - 0.27) / 0.035  # when the ramp reaches the threshold [s]
+    assert 1.0 < t_star < 1.6
+    while sim.state.t < t_star - 0.02:
+        sim.step()
+        assert abs(sim.state.v[0]) < 1e-8, sim.state.t
+    while sim.state.t < t_star + 0.1:
+        sim.step()
+    assert sim.state.v[0] > 1e-3
