@@ -38,6 +38,23 @@ def error_to_target(sim, name, q, t):
     return float(np.linalg.norm(joint_targets.joint_error(sim.mech.model, sim.mech.joint_index[name].jid, q, q_p)))
 
 
+def tracking_errors(sim, name, T, after):
+    """Run ``sim`` for T s; over t > after: (largest rotation error to the target [rad], largest |effort -
+    pin.rnea(q_p, v_p, a_p)| along the target [N m], a_p by central differences of v_p)."""
+    model = sim.mech.model
+    data = model.createData()
+    e = te = 0.0
+    for _ in range(int(round(T / sim.dt))):
+        r = sim.step()
+        if r.t <= after:
+            continue
+        e = max(e, error_to_target(sim, name, r.q, r.t))
+        q_p, v_p = target_of(sim, name, r.t)
+        a_p = (target_of(sim, name, r.t + 1e-5)[1] - target_of(sim, name, r.t - 1e-5)[1]) / 2e-5
+        te = max(te, np.abs(r.effort - pin.rnea(model, data, q_p, v_p, a_p)).max())
+    return e, te
+
+
 def test_body_rates_are_the_local_rpy_jacobian():
     """omega_b = E_b(rpy) rpy_dot equals pin.rpy.computeRpyJacobian(LOCAL) and the finite difference
     vee(R^T dR/dt) of R = Rz(y) Ry(p) Rx(r) (central, step 1e-6: agreement 1e-9)."""
@@ -62,17 +79,7 @@ def test_spherical_pendulum_tracks_a_rotation_to_first_order():
     for h in (2e-3, 1e-3, 5e-4):
         sim = Simulator.load("catalogue/spherical", [f"dt={h}"])
         sim.prescribe_joints({"ball": {"position": RPY, "b": 5.0}})
-        model = sim.mech.model
-        data = model.createData()
-        e = te = 0.0
-        for _ in range(int(round(4.0 / h))):
-            r = sim.step()
-            if r.t <= 2.0:
-                continue
-            e = max(e, error_to_target(sim, "ball", r.q, r.t))
-            q_p, v_p = target_of(sim, "ball", r.t)
-            a_p = (target_of(sim, "ball", r.t + 1e-5)[1] - target_of(sim, "ball", r.t - 1e-5)[1]) / 2e-5
-            te = max(te, np.abs(r.effort - pin.rnea(model, data, q_p, v_p, a_p)).max())
+        e, te = tracking_errors(sim, "ball", 4.0, 2.0)
         errs.append(e)
         terrs.append(te)
     assert errs[0] < 2 * 1.5 * 2e-3  # a few h |omega_p|
@@ -200,18 +207,7 @@ def test_catalogue_spherical_trajectory_scene():
     smaller h (ratio 1.5 between h = 2 and 1 ms here: not yet asymptotic)."""
     errs, terrs = [], []
     for h in (2e-3, 1e-3):
-        sim = Simulator.load("catalogue/spherical_trajectory", [f"dt={h}"])
-        model = sim.mech.model
-        data = model.createData()
-        e = te = 0.0
-        for _ in range(int(round(3.0 / h))):
-            r = sim.step()
-            if r.t <= 1.5:
-                continue
-            e = max(e, error_to_target(sim, "ball", r.q, r.t))
-            q_p, v_p = target_of(sim, "ball", r.t)
-            a_p = (target_of(sim, "ball", r.t + 1e-5)[1] - target_of(sim, "ball", r.t - 1e-5)[1]) / 2e-5
-            te = max(te, np.abs(r.effort - pin.rnea(model, data, q_p, v_p, a_p)).max())
+        e, te = tracking_errors(Simulator.load("catalogue/spherical_trajectory", [f"dt={h}"]), "ball", 3.0, 1.5)
         errs.append(e)
         terrs.append(te)
     assert errs[1] < 5e-3 and 1.7 < errs[0] / errs[1] < 2.3, errs  # measured 3.75e-3, 1.87e-3 rad
