@@ -393,6 +393,7 @@ def test_energy_classes_cover_the_catalogue():
     inputs |= {"free3d_exp"}  # first-order error grows with w^2 |t|: test/core/dynamics/test_free3d_exp.py
     inputs |= {"lever_springs"}  # tumbling boxes (explicit gyroscopic gain): test/core/dynamics/test_spring_stiffness.py
     inputs |= {"fourbar_friction"}  # driven (ramped crank torque) against friction: test/core/friction/test_frictional_fourbar.py
+    inputs |= {"baumgarte_loop"}  # loop held by Baumgarte feedback: test/core/dynamics/test_loop_stabilization.py
     inputs |= {"spherical_trajectory"}  # driven by a trajectory prescription (test/core/step/test_manifold_trajectory.py)
     assert set(SYMPLECTIC + DECAYING + GYROSCOPIC + DISSIPATIVE + ["free2d"]) | inputs == names
 

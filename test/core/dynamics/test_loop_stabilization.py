@@ -40,6 +40,16 @@ def test_default_post_stabilization_closes_to_round_off(load_sim):
         assert max(viol) < 1e-9, scene
 
 
+def test_catalogue_scene_is_the_slider_crank_with_baumgarte(load_sim):
+    """catalogue/baumgarte_loop is slider_crank with stabilization {method: baumgarte, b: 5}: the same steps."""
+    a = load_sim("catalogue/baumgarte_loop")
+    b = load_sim("slider_crank", [baumgarte(5.0)])
+    assert a.mech.loop_baumgarte == 5.0
+    for _ in range(200):
+        ra, rb = a.step(), b.step()
+    assert np.array_equal(ra.q, rb.q) and 1e-6 < ra.diagnostics.violation_pos < 1e-2
+
+
 @pytest.mark.parametrize("scene", ["fourbar", "slider_crank"])
 def test_drift_ordering_on_a_moving_mechanism(load_sim, scene):
     """Swinging under gravity for 1 s: Baumgarte settles where b h phi balances the O(h^2 |qdot|^2) drift
