@@ -154,7 +154,33 @@ def _solve_qp(A, b, cons, eps, deadline=None):
     x = np.array(qp.results.x)
     if not np.all(np.isfinite(x)):
         raise StepError("joint-limit QP (Eq. 5) returned non-finite velocities")
-    return x, np.array(qp.results.y), np.array(qp.results.z), iters
+    z = np.array(qp.results.z)
+    polished = polish(A, b, cons, z)
+    if polished is not None:
+        return polished.v, polished.lam, polished.mu, iters
+    return x, np.array(qp.results.y), z, iters
+
+
+POLISH_ACTIVE = 1e-9  # |z_i| above this fraction of max(|z|, 1) marks row i active in ProxSuite's solution
+
+
+def polish(A, b, cons, z):
+    """ProxSuite's solution made exact and reproducible: the rows its multipliers z mark active (z_i > 0 at the
+    upper bound, < 0 at the lower one; ProxSuite's sign convention, the same as solvers/problem.py's) start the
+    dense active set (solvers/active_set.py), which then solves the equality-constrained KKT system of those rows
+    by Cholesky (KKT conditions to round-off instead of eps_abs) and confirms the set, normally in one iteration.
+
+    Why: ProxSuite's iterates depend on the memory alignment of its internal Eigen buffers at the round-off level
+    (measured: the same QP solved in fresh QP objects differs by 2.6e-16 between runs), and a chaotic mechanism
+    amplifies that, so the same inputs did not give the same trajectory (HAGFISH: two runs apart from step 50
+    with ProxSuite as its contact QP, step 149 with the active set falling back to it). The active set's
+    LAPACK Cholesky gave identical results at every alignment tried. Returns None (keep ProxSuite's solution)
+    when the active set does not settle."""
+    if cons.C is None or not len(z):
+        return None
+    scale = POLISH_ACTIVE * max(1.0, float(np.abs(z).max()))
+    warm = [(int(i), bool(z[i] > 0)) for i in np.flatnonzero(np.abs(z) > scale)]
+    return active_set.solve(A, b, cons.G, cons.g, cons.C, cons.lo, cons.hi, warm)
 
 
 # ------------------------------------------------------------------------------------------------
