@@ -179,8 +179,34 @@ def polish(A, b, cons, z):
     if cons.C is None or not len(z):
         return None
     scale = POLISH_ACTIVE * max(1.0, float(np.abs(z).max()))
-    warm = [(int(i), bool(z[i] > 0)) for i in np.flatnonzero(np.abs(z) > scale)]
-    return active_set.solve(A, b, cons.G, cons.g, cons.C, cons.lo, cons.hi, warm)
+    rows = np.flatnonzero(np.abs(z) > scale)
+    upper = z[rows] > 0
+    if len(b) <= SMALL_N:  # small systems: the working set's KKT system in one compiled call, checked here
+        r = _confirm_working_set(A, b, cons, rows, upper)
+        if r is not None:
+            return r
+    return active_set.solve(A, b, cons.G, cons.g, cons.C, cons.lo, cons.hi, list(zip(rows.tolist(), upper.tolist())))
+
+
+def _confirm_working_set(A, b, cons, rows, upper):
+    """The QP's solution if the rows ``rows`` (at their upper bound where ``upper``) are exactly its active set:
+    the KKT system with them as equalities (kkt.kkt_solve), then every bound held and every multiplier of the
+    right sign (active_set.TOL); else None."""
+    m = cons.m
+    E = np.vstack([cons.G, cons.C[rows]]) if len(rows) else cons.G
+    e = np.concatenate([cons.g, np.where(upper, cons.hi[rows], cons.lo[rows])])
+    status, v, nu, _, ratio, _, _ = kkt_solve(A, b, np.ascontiguousarray(E), e, _NO_ROWS, _EMPTY, _EMPTY)
+    if status != 0 or ratio <= 1e-8:
+        return None
+    muW = nu[m:]
+    if (np.where(upper, -muW, muW) > active_set.TOL).any():  # a row that pulls away from its bound
+        return None
+    Cv = cons.C @ v
+    if (Cv < cons.lo - active_set.TOL).any() or (Cv > cons.hi + active_set.TOL).any():
+        return None
+    mu = np.zeros(len(cons.lo))
+    mu[rows] = muW
+    return active_set.ActiveSetResult(v, nu[:m].copy(), mu, 1, sorted(rows.tolist()))
 
 
 # ------------------------------------------------------------------------------------------------
