@@ -49,6 +49,7 @@ class Deformables:
     gravity: np.ndarray
     floor: float | None = None
     floor_vertices: np.ndarray | None = None  # global indices of vertices that touch the floor
+    floor_mu: float = 0.0  # Coulomb friction of the floor contacts (four-sided pyramid on world x, y)
 
     @property
     def n_vertices(self) -> int:

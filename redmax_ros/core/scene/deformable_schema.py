@@ -23,7 +23,8 @@
         rayleigh: {alpha: 0, beta: 0.01}
         attachments:
           - {body: foot, inside: true}        # every vertex inside the body's shape (box, sphere, cylinder, capsule)
-        floor: 0.0                # optional: its vertices stay above z = floor (unilateral rows, frictionless)
+        floor: 0.0                # optional: its free vertices stay above z = floor (contact rows)
+        floor_mu: 0.5             # optional: Coulomb friction of those contacts (four-sided pyramid), 0 = frictionless
 
 Parsed into :class:`DeformableSpec` (SceneSpec.deformables, [] when absent); a bad entry is a SceneError
 naming it (``deformables.pad.young``).
@@ -64,6 +65,7 @@ class DeformableSpec:
     beta: float = 0.0  # Rayleigh [s]
     attachments: list = field(default_factory=list)
     floor: float | None = None
+    floor_mu: float = 0.0  # Coulomb friction coefficient of the floor contacts
     source: str = ""  # mesh file or builder
 
 
@@ -74,7 +76,8 @@ def parse(v, raw, spec, body_names) -> list:
     for entry, d in v.entries(raw, "deformables"):
         entry = f"deformables.{d.get('name', entry)}" if isinstance(d, dict) else entry
         v.keys(entry, d, {"name", "type", "n", "start", "end", "mass", "stiffness", "rayleigh", "attachments",
-                          "mesh", "pos", "young", "poisson", "density", "floor"}, required=("name", "type"))
+                          "mesh", "pos", "young", "poisson", "density", "floor",
+                          "floor_mu"}, required=("name", "type"))
         name = str(d["name"])
         if name in names:
             v.err(entry, f"duplicate deformable name '{name}'")
@@ -123,6 +126,10 @@ def parse(v, raw, spec, body_names) -> list:
         ds.attachments = _attachments(v, f"{entry}.attachments", d.get("attachments") or [], body_names, len(ds.vertices))
         if d.get("floor") is not None:
             ds.floor = v.number(entry, "floor", d["floor"])
+        if d.get("floor_mu") is not None:
+            if ds.floor is None:
+                v.err(f"{entry}.floor_mu", "'floor_mu' needs a 'floor'")
+            ds.floor_mu = v.number(entry, "floor_mu", d["floor_mu"], nonneg=True)
         out.append(ds)
     return out
 

@@ -27,11 +27,12 @@ import numpy as np
 import pinocchio as pin
 import scipy.sparse as sp
 
-from redmax_ros.core.deformable import attach, coupled_solve
+from redmax_ros.core.deformable import attach, coupled_solve, reduction
 from redmax_ros.core.deformable.fem import TetFEM
 from redmax_ros.core.deformable.string import String
 from redmax_ros.core.deformable.system import Attachments, Deformables, DeformState
 from redmax_ros.core.dynamics.energy import energies
+from redmax_ros.core.dynamics.kinematics import point_jacobians
 from redmax_ros.core.errors import SceneError, StepError
 from redmax_ros.core.solvers.direct import Solution
 from redmax_ros.core.step import trajectory
@@ -116,7 +117,7 @@ def build(mech) -> Deformables | None:
                 al.append(x if bi < 0 else M.rotation.T @ (x - M.translation))
                 labels.append(f"{d.name}/vertex {int(v)} -> {a.body}")
         if d.floor is not None:
-            floors.append((d.floor, np.arange(off, off + e.n)))
+            floors.append((d.floor, np.arange(off, off + e.n), d.floor_mu))
         names.append(d.name)
         elements.append(e)
         offsets.append(off + e.n)
@@ -126,7 +127,8 @@ def build(mech) -> Deformables | None:
     if floors:  # attached vertices move with their body: a floor row on them could conflict with the attachment
         fl = floors[0][0]
         fv = np.setdiff1d(np.concatenate([f[1] for f in floors]), np.asarray(av, dtype=np.int64))
-    return Deformables(names, elements, np.asarray(offsets), att, np.asarray(mech.spec.gravity, float), fl, fv)
+    return Deformables(names, elements, np.asarray(offsets), att, np.asarray(mech.spec.gravity, float), fl, fv,
+                       floors[0][2] if floors else 0.0)
 
 
 def deform_state(dm: Deformables, state) -> DeformState:
@@ -135,31 +137,41 @@ def deform_state(dm: Deformables, state) -> DeformState:
     return d if isinstance(d, DeformState) else dm.initial()
 
 
-def attachment_points(mech, data, dm: Deformables, jacobians: bool = True):
-    """(world points (a,3), point Jacobians: list of (3,nv), None for world points; or None without
-    ``jacobians``) at data's kinematics (forward kinematics; joint Jacobians for ``jacobians``)."""
+def attachment_points(mech, data, dm: Deformables, support=None):
+    """(world points P (a,3) [m], their Jacobians E (3a, nv) stacked per attached vertex (rows 3k..3k+2; zero
+    for world points), or None without ``support`` (attachment_support)) at data's kinematics (forward
+    kinematics; the WORLD joint Jacobians of computeJointJacobians for the Jacobians): E_k = J_lin - [P_k]_x J_ang on the DOFs supporting
+    the body (kinematics.point_jacobians, Sueda's notes Eq. S2.4)."""
     att = dm.attach
-    P = np.empty((len(att.vertex), 3))
-    Js = [None] * len(att.vertex) if jacobians else None
+    a = len(att.vertex)
+    P = np.empty((a, 3))
     world = att.body < 0
     P[world] = att.local[world]
     for jid in np.unique(att.body[~world]):  # vectorised per joint
         k = np.nonzero(att.body == jid)[0]
         M = data.oMi[int(jid)]
-        o = M.translation
-        P[k] = o + att.local[k] @ M.rotation.T
-        if jacobians:
-            J6 = np.asarray(pin.getJointJacobian(mech.model, data, int(jid), LWA)).reshape(6, mech.nv)
-            r = P[k] - o  # J_p = J_lin - [r]x J_ang = J_lin + [J_ang]x-columns x r
-            Jp = J6[None, :3, :] - np.cross(r[:, None, :], J6[3:].T[None, :, :]).transpose(0, 2, 1)
-            for kk, Jk in zip(k, Jp):
-                Js[kk] = Jk
-    return P, Js
+        P[k] = M.translation + att.local[k] @ M.rotation.T
+    if support is None:
+        return P, None
+    return P, point_jacobians(data.J.reshape(6, mech.nv), P, support).reshape(3 * a, mech.nv)
+
+
+def attachment_support(mech, dm):
+    """(a, nv) bool: the DOFs that move each attached vertex's body (none for world points)."""
+    sup = np.zeros((len(dm.attach.vertex), mech.nv), dtype=bool)
+    model = mech.model
+    for k, jid in enumerate(dm.attach.body):
+        for j in (model.supports[int(jid)] if jid > 0 else ()):
+            if j > 0:
+                jm = model.joints[j]
+                sup[k, jm.idx_v:jm.idx_v + jm.nv] = True
+    return sup
 
 
 def coupled_velocity(mech, ws, dm, state, ds, cmd, tau, h, timing=None):
-    """Stages 1-4 with the deformables: (VelocitySolve of the skeleton, vertex velocities (N,3), attachment
-    rows' count)."""
+    """Stages 1-4 with the deformables: (VelocitySolve of the skeleton, vertex velocities (N,3)). The attached
+    vertices are eliminated (deformable/reduction.py), the reduced system solved with the skeleton's rows and
+    the floor contacts (deformable/coupled_solve.py)."""
     t0 = time.perf_counter()
     sk = skeleton_stages(mech, ws, state, cmd, tau, h)  # 1-3, as the Pinocchio pipeline
     system, cons = sk.system, sk.cons
@@ -169,56 +181,81 @@ def coupled_velocity(mech, ws, dm, state, ds, cmd, tau, h, timing=None):
     A_d, b_d = dm.assemble(ds.x, ds.v, h)  # 2 of the deformables
     t2 = time.perf_counter()
     n_r, N = len(system.b), dm.n_vertices
-    P, Js = attachment_points(mech, ws.data, dm)  # at q_k (the skeleton stages' kinematics)
-    if ws.T is not None:
-        Js = [None if J is None else J @ ws.T for J in Js]
-    Ga_r, Ga_d = attach.rows(n_r, N, dm.attach.vertex, Js)
-    G = sp.vstack([sp.hstack([sp.csr_matrix(cons.G), sp.csr_matrix((cons.m, 3 * N))]),
-                   sp.hstack([sp.csr_matrix(Ga_r), Ga_d])], format="csr")
-    g_att = np.zeros(len(Ga_r))
-    if mech.loop_baumgarte and len(Ga_r):  # Baumgarte: G z = -b phi(q_k, x_k)
-        g_att = -mech.loop_baumgarte * attach.residual(P, ds.x[dm.attach.vertex], dm.attach.body < 0)
-    g = np.concatenate([cons.g, g_att])
-    C, lo, hi, row_vertex = _unilateral(cons, dm, ds, n_r, N, h)
-    warm_v = ws.cache.get("deformable_floor_active", ())  # last step's active floor vertices (scratch)
-    warm = [i for i, vtx in enumerate(row_vertex) if vtx in warm_v]
-    sol = coupled_solve.solve(system.A, system.b, A_d, b_d, G, g, cons.labels + dm.attach.labels, C, lo, hi, warm=warm)
-    ws.cache["deformable_floor_active"] = {row_vertex[i] for i in sol.active if row_vertex[i] >= 0}
+    red, cws = _reduction(ws, dm, A_d, n_r)
+    E, t = _attached_velocity_map(mech, ws, dm, ds, n_r)
+    cache = ws.cache.setdefault("deformable_buffers", {})
+    if cache.get("n") != (red.n, len(red.indices), E.shape[0]):
+        cache.update(n=(red.n, len(red.indices), E.shape[0]), data=np.empty(len(red.indices)), b=np.empty(red.n),
+                     work=np.empty(E.shape))
+    reduction.fill(red, A_d.data, b_d, E, t, system.A, system.b, cache["data"], cache["b"], cache["work"])
+    contacts = _floor_contacts(dm, ds, red, h)
+    C = cons.C if cons.C is not None and len(cons.lo) else None
+    sol = coupled_solve.solve(cws, cache["data"], cache["b"], n_r, np.asarray(cons.G).reshape(cons.m, n_r), cons.g,
+                              C, cons.lo if C is not None else None, cons.hi if C is not None else None, contacts,
+                              ws.cache.get("deformable_contacts"), cons.labels + dm.attach.labels)
+    ws.cache["deformable_contacts"] = sol.contact_state
+    v_r = sol.z[red.n_free:]
+    v_d = np.empty(3 * N)
+    v_d[(3 * red.free[:, None] + np.arange(3)).ravel()] = sol.z[:red.n_free]
+    v_d[red.att_dof] = E @ v_r + t
     t3 = time.perf_counter()
     if timing is not None:
         timing["skeleton"] += t1 - t0
         timing["mesh_assembly"] += t2 - t1
         timing["coupled_solve"] += t3 - t2
-    s = Solution(sol.v_r, sol.lam, sol.mu, sol.iterations, "coupled", None, None, sol.violation,
+        timing["contact_iterations"] = sol.iterations
+        timing["contact_converged"] = sol.converged
+    s = Solution(v_r, sol.lam, sol.mu, sol.iterations, "coupled", None, None, sol.violation,
                  given_residual=sol.residual)
     vs = VelocitySolve(s, cons.joint_rows, cons.site_rows,
                        cons.G[cons.loop_rows] if len(mech.loop_ab) else None, sol.violation, "coupled",
                        sol.iterations)
-    return vs, sol.v_d.reshape(-1, 3)
+    return vs, v_d.reshape(-1, 3)
 
 
-def _unilateral(cons, dm, ds, n_r, N, h):
-    """(C sparse, lo, hi, vertex of each row or -1) of the skeleton's joint-limit rows and the floor rows of
-    the vertices near it."""
-    parts, lo, hi, rv = [], [], [], []
-    if cons.C is not None and len(cons.lo):
-        parts.append(sp.hstack([sp.csr_matrix(cons.C), sp.csr_matrix((len(cons.lo), 3 * N))]))
-        lo.append(cons.lo)
-        hi.append(cons.hi)
-        rv += [-1] * len(cons.lo)
-    if dm.floor is not None:
-        idx = dm.floor_vertices
-        gap = ds.x[idx, 2] - dm.floor
-        near = idx[gap < FLOOR_MARGIN + h * np.abs(ds.v[idx, 2]) + h * h * abs(dm.gravity[2])]
-        if len(near):
-            k = len(near)
-            parts.append(sp.csr_matrix((np.ones(k), (np.arange(k), n_r + 3 * near + 2)), shape=(k, n_r + 3 * N)))
-            lo.append((dm.floor - ds.x[near, 2]) / h)
-            hi.append(np.full(k, np.inf))
-            rv += [int(i) for i in near]
-    if not parts:
-        return None, None, None, []
-    return sp.vstack(parts, format="csr"), np.concatenate(lo), np.concatenate(hi), rv
+def _reduction(ws, dm, A_d, n_r):
+    """The Reduction of A_d's pattern (built once, rebuilt if the pattern changes) and the coupled solve's
+    workspace for it."""
+    A_d = A_d.tocsr()
+    A_d.sort_indices()
+    red, cws = ws.cache.get("deformable_reduction", (None, None))
+    if red is None or red.n_r != n_r or not red.matches(A_d.indptr, A_d.indices):
+        red = reduction.build(A_d.indptr, A_d.indices, dm.n_vertices, dm.attach.vertex, n_r)
+        cws = coupled_solve.Workspace(red.indptr, red.indices, red.n)
+        ws.cache["deformable_reduction"] = (red, cws)
+    return red, cws
+
+
+def _attached_velocity_map(mech, ws, dm, ds, n_r):
+    """(E (3a, n_r), t (3a,)) with v_a = E qdot_r + t for every attached vertex: E the body point's Jacobian
+    (0 for a world point), t = -g (body point) or +g (world point) of the attachment row's right-hand side g
+    (0 with post-stabilization, -b phi with Baumgarte; attach.py's rows [J_p, -S_i] and [0, S_i])."""
+    att = dm.attach
+    a = len(att.vertex)
+    if not a:
+        return np.zeros((0, n_r)), np.zeros(0)
+    support = ws.cache.get("deformable_support")
+    if support is None:
+        support = ws.cache["deformable_support"] = attachment_support(mech, dm)
+    P, J = attachment_points(mech, ws.data, dm, support)  # at q_k (the skeleton stages' kinematics)
+    E = J if ws.T is None else J @ ws.T
+    t = np.zeros(3 * a)
+    if mech.loop_baumgarte:  # G z = -b phi(q_k, x_k)
+        world = att.body < 0
+        sgn = np.repeat(np.where(world, 1.0, -1.0), 3)
+        t = sgn * (-mech.loop_baumgarte * attach.residual(P, ds.x[att.vertex], world))
+    return E, t
+
+
+def _floor_contacts(dm, ds, red, h):
+    """The free vertices near the floor (within FLOOR_MARGIN or their step's travel) as VertexContacts, with
+    the speculative bound v_z >= (floor - z)/h; None without a floor."""
+    if dm.floor is None:
+        return None
+    idx = dm.floor_vertices
+    gap = ds.x[idx, 2] - dm.floor
+    near = idx[gap < FLOOR_MARGIN + h * np.abs(ds.v[idx, 2]) + h * h * abs(dm.gravity[2])]
+    return coupled_solve.VertexContacts(red.dof[3 * near], (dm.floor - ds.x[near, 2]) / h, float(dm.floor_mu), near)
 
 
 def step(mech, ws, dm, state, cmd, h, timing=None):
@@ -242,7 +279,7 @@ def step(mech, ws, dm, state, cmd, h, timing=None):
     drift = resid = 0.0
     if len(dm.attach.vertex):  # post-stabilization: attached vertices onto their points at q+
         pin.forwardKinematics(mech.model, ws.data, q_new)
-        P, _ = attachment_points(mech, ws.data, dm, jacobians=False)
+        P, _ = attachment_points(mech, ws.data, dm)
         drift = float(np.abs(x_new[dm.attach.vertex] - P).max())
         if mech.loop_baumgarte:  # Baumgarte: no projection, the residual is the violation
             resid = drift

@@ -1,0 +1,199 @@
+"""Elimination of the attached vertices from the coupled step (Wang et al. 2019 §4, the equation after Eq. 5).
+
+An attachment row G_m J_mr qdot_r + G_d qdot_d = g holds a vertex's velocity to a body point's,
+v_i = J_p qdot_r - g_i (attach.py: rows [J_p, -S_i], right-hand side g_i, 0 without Baumgarte), or to a world
+point, v_i = g_i. Substituting these into the step's quadratic form 1/2 z^T A z - b^T z (A = blockdiag(A_r, A_d))
+is the null-space method for those rows (Nocedal & Wright, Numerical Optimization, §16.2): with v_d = E qdot_r + t
+on the attached vertices (E the stacked J_p, 0 for world points; t = -g_i or +g_i) and the free vertices' v_f
+left as unknowns, the reduced unknowns z = (v_f, qdot_r) (free DOFs first, skeleton last) solve
+
+    [ A_ff          A_fa E            ] [v_f   ]   [ b_f - A_fa t                  ]
+    [ E^T A_af      A_r + E^T A_aa E  ] [qdot_r] = [ b_r + E^T (b_a - A_aa t)      ]
+
+with the skeleton's rows (loops, prescriptions, joint limits) on qdot_r unchanged, so their multipliers are the
+coupled KKT system's. The attachment rows hold exactly (v_a = E qdot_r + t), and the system is symmetric and
+half the size of the KKT matrix with its 3a attachment rows.
+
+The reduced matrix's pattern is fixed by the mesh topology (a Reduction, built once per A_d pattern): free-free
+entries of A_d; a dense row segment over the n_r skeleton columns for every free DOF next to an attached vertex
+(the "adjacent" DOFs); and the dense skeleton block. ``fill`` writes one step's values into it in one compiled
+call.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from redmax_ros.core.jit import njit
+
+
+@dataclass(frozen=True)
+class Reduction:
+    """Index maps of the reduced system of one A_d pattern (3N DOFs) and attachment set.
+
+    ``dof``: (3N,) reduced index of every free vertex DOF, or -(r + 1) for the attached DOF of row r of E;
+    ``free``: (n_f,) free vertex indices, in order (free DOF p = 3 k + c of free vertex free[k]);
+    ``indptr``, ``indices``: the reduced CSR pattern (n = 3 n_f + n_r, columns sorted, the skeleton last);
+    ``pos``: (nnz(A_d),) position in the reduced data of every free-free entry of A_d, -1 otherwise;
+    ``skel_start``: (3 n_f,) position of a free row's first skeleton column, -1 where the row has none;
+    ``adj_rank``: (3 n_f,) rank of a free DOF among the adjacent ones (the free columns of every skeleton
+    row), -1 where not adjacent."""
+    n_r: int
+    n_free: int  # 3 n_f
+    dof: np.ndarray
+    free: np.ndarray
+    indptr: np.ndarray
+    indices: np.ndarray
+    pos: np.ndarray
+    skel_start: np.ndarray
+    adj_rank: np.ndarray
+    att_dof: np.ndarray  # (3a,) the A_d DOF of row r of E
+    ad_indptr: np.ndarray  # the A_d pattern it was built for
+    ad_indices: np.ndarray
+
+    @property
+    def n(self) -> int:
+        return self.n_free + self.n_r
+
+    def matches(self, indptr, indices) -> bool:
+        """Whether A_d's CSR pattern is the one this Reduction was built for."""
+        return (len(indptr) == len(self.ad_indptr) and len(indices) == len(self.ad_indices)
+                and np.array_equal(indptr, self.ad_indptr) and np.array_equal(indices, self.ad_indices))
+
+
+def build(ad_indptr, ad_indices, n_vertices: int, attached, n_r: int) -> Reduction:
+    """The Reduction of an A_d CSR pattern (3N x 3N, sorted column indices) with the ``attached`` vertices
+    (their order = the attachment order: vertex attached[k] is rows 3k..3k+2 of E) and n_r skeleton DOFs."""
+    ad_indptr = np.asarray(ad_indptr, dtype=np.int64)
+    ad_indices = np.asarray(ad_indices, dtype=np.int64)
+    attached = np.asarray(attached, dtype=np.int64)
+    dof = np.empty(3 * n_vertices, dtype=np.int64)
+    is_att = np.zeros(n_vertices, dtype=bool)
+    is_att[attached] = True
+    free = np.nonzero(~is_att)[0]
+    for k, v in enumerate(free):
+        dof[3 * v:3 * v + 3] = 3 * k + np.arange(3)
+    for k, v in enumerate(attached):
+        dof[3 * v:3 * v + 3] = -(3 * k + np.arange(3) + 1)
+    nf3 = 3 * len(free)
+    adjacent = np.zeros(nf3, dtype=bool)
+    rows = [[] for _ in range(nf3)]
+    for i in range(3 * n_vertices):
+        p = dof[i]
+        for e in range(ad_indptr[i], ad_indptr[i + 1]):
+            q = dof[ad_indices[e]]
+            if p >= 0 and q >= 0:
+                rows[p].append(q)
+            elif p >= 0 > q:
+                adjacent[p] = True
+    adj = np.nonzero(adjacent)[0]
+    adj_rank = np.full(nf3, -1, dtype=np.int64)
+    adj_rank[adj] = np.arange(len(adj))
+    skel = nf3 + np.arange(n_r)
+    indptr = [0]
+    indices = []
+    skel_start = np.full(nf3, -1, dtype=np.int64)
+    for p in range(nf3):
+        cols = sorted(set(rows[p]) | {p})
+        indices += cols
+        if adjacent[p]:
+            skel_start[p] = len(indices)
+            indices += list(skel)
+        indptr.append(len(indices))
+    for _ in range(n_r):
+        indices += list(adj) + list(skel)
+        indptr.append(len(indices))
+    indptr = np.asarray(indptr, dtype=np.int64)
+    indices = np.asarray(indices, dtype=np.int64)
+    pos = np.full(len(ad_indices), -1, dtype=np.int64)
+    for i in range(3 * n_vertices):
+        p = dof[i]
+        if p < 0:
+            continue
+        row = indices[indptr[p]:indptr[p + 1]]
+        for e in range(ad_indptr[i], ad_indptr[i + 1]):
+            q = dof[ad_indices[e]]
+            if q >= 0:
+                pos[e] = indptr[p] + int(np.searchsorted(row, q))
+    att_dof = (3 * attached[:, None] + np.arange(3)).ravel()
+    return Reduction(int(n_r), nf3, dof, free, indptr, indices, pos, skel_start, adj_rank, att_dof, ad_indptr,
+                     ad_indices)
+
+
+def fill(red: Reduction, ad_data, b_d, E, t, A_r, b_r, data_out, b_out, work):
+    """One step's reduced matrix values (into ``data_out``, red.indptr/indices layout) and right-hand side
+    (into ``b_out``): A_d's CSR values ``ad_data`` and b_d (3N,), E (3a, n_r) the attached points' Jacobians,
+    t (3a,) their offsets (v_a = E qdot_r + t), A_r (n_r, n_r), b_r (n_r,); ``work`` (3a, n_r) scratch."""
+    fill_kernel(red.ad_indptr, red.ad_indices, np.asarray(ad_data, float), np.asarray(b_d, float), red.dof, red.pos,
+                red.skel_start, red.adj_rank, red.att_dof, red.indptr, red.n_free, np.ascontiguousarray(E, dtype=float),
+                np.asarray(t, float), np.ascontiguousarray(A_r, dtype=float), np.asarray(b_r, float), data_out, b_out,
+                work)
+
+
+@njit
+def fill_kernel(ad_indptr, ad_indices, ad_data, b_d, dof, pos, skel_start, adj_rank, att_dof, indptr, nf3, E, t, A_r,
+                b_r, data, b, Y):
+    n_r = A_r.shape[0]
+    na = E.shape[0]
+    ecols = np.empty((na, n_r), dtype=np.int64)  # the nonzero columns of each row of E (a body's supporting DOFs)
+    ecount = np.zeros(na, dtype=np.int64)
+    for r in range(na):
+        for k in range(n_r):
+            if E[r, k] != 0.0:
+                ecols[r, ecount[r]] = k
+                ecount[r] += 1
+    data[:] = 0.0
+    Y[:, :] = 0.0  # Y = A_aa E (3a, n_r)
+    ta = np.zeros(na)  # A_aa t
+    for p in range(nf3):
+        b[p] = 0.0
+    for k in range(n_r):
+        b[nf3 + k] = b_r[k]
+    for i in range(len(ad_indptr) - 1):
+        p = dof[i]
+        if p >= 0:
+            b[p] += b_d[i]
+        for e in range(ad_indptr[i], ad_indptr[i + 1]):
+            a = ad_data[e]
+            q = dof[ad_indices[e]]
+            if p >= 0:
+                if q >= 0:
+                    data[pos[e]] += a
+                else:  # free row, attached column: A_fa E and -A_fa t
+                    r = -q - 1
+                    s = skel_start[p]
+                    for j in range(ecount[r]):
+                        k = ecols[r, j]
+                        data[s + k] += a * E[r, k]
+                    b[p] -= a * t[r]
+            else:
+                r = -p - 1
+                if q >= 0:  # attached row, free column: E^T A_af (skeleton row k, column q)
+                    c = adj_rank[q]
+                    for j in range(ecount[r]):
+                        k = ecols[r, j]
+                        data[indptr[nf3 + k] + c] += E[r, k] * a
+                else:
+                    s = -q - 1
+                    for j in range(ecount[s]):
+                        k = ecols[s, j]
+                        Y[r, k] += a * E[s, k]
+                    ta[r] += a * t[s]
+    for r in range(na):  # b_r + E^T (b_a - A_aa t)
+        ba = b_d[att_dof[r]] - ta[r]
+        for j in range(ecount[r]):
+            k = ecols[r, j]
+            b[nf3 + k] += E[r, k] * ba
+    n_adj = indptr[nf3 + 1] - indptr[nf3] - n_r if n_r else 0
+    for k in range(n_r):  # A_r into the dense skeleton block
+        s = indptr[nf3 + k] + n_adj
+        for l in range(n_r):
+            data[s + l] += A_r[k, l]
+    for r in range(na):  # + E^T A_aa E = E^T Y
+        for j in range(ecount[r]):
+            k = ecols[r, j]
+            s = indptr[nf3 + k] + n_adj
+            erk = E[r, k]
+            for l in range(n_r):
+                data[s + l] += erk * Y[r, l]
