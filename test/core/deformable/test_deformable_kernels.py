@@ -11,8 +11,11 @@ import pytest
 import scipy.sparse as sp
 from scipy.spatial.transform import Rotation
 
+from redmax_ros.core import Simulator
 from redmax_ros.core.deformable import fem_kernels, meshes
 from redmax_ros.core.deformable.fem import TetFEM, polar
+from redmax_ros.core.deformable.string import String
+from redmax_ros.core.deformable.system import Attachments, Deformables
 
 
 def _rot(axis, ang):
@@ -135,3 +138,58 @@ def test_polar_of_zero_and_rank_one():
     v1 = np.array([0.3, -1.0, 0.2]) / np.linalg.norm([0.3, -1.0, 0.2])
     u1 = np.array([1.0, 2.0, 0.5]) / np.linalg.norm([1.0, 2.0, 0.5])
     assert np.abs(R[0] @ v1 - u1).max() < 1e-14
+
+
+def _no_attachments():
+    return Attachments(np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64), np.zeros((0, 3)), [])
+
+
+def test_pattern_is_sorted_csr_with_every_diagonal_block():
+    x0 = np.stack([np.linspace(0, 1, 5), np.zeros(5), np.zeros(5)], 1)
+    els = [_mesh(), String(x0, mass=0.2, stiffness=50.0)]
+    offsets = np.cumsum([0] + [e.n for e in els])
+    dm = Deformables(["fem", "rope"], els, offsets, _no_attachments(), np.array([0.0, 0.0, -9.81]))
+    indptr, indices = dm.csr_pattern()
+    n = 3 * dm.n_vertices
+    A = sp.csr_matrix((np.ones(len(indices)), indices, indptr), shape=(n, n))
+    assert A.has_sorted_indices and A.nnz == len(indices)
+    assert np.all(A.diagonal() == 1.0)
+    B = A.toarray()
+    assert np.array_equal(B, B.T)
+    assert not B[:3 * els[0].n, 3 * els[0].n:].any()  # no coupling between deformables
+    assert dm.csr_pattern()[1] is indices  # computed once
+
+
+def test_filled_system_equals_the_former_assembly_on_the_starfish():
+    dm = Simulator.load("starfish").deformables
+    fem = dm.elements[0]
+    assert isinstance(fem, TetFEM) and len(dm.elements) == 1
+    rng = np.random.default_rng(7)
+    x = fem.x0 @ _rot([1, -0.5, 0.3], 0.4).T + 0.004 * rng.standard_normal(fem.x0.shape)
+    v = 0.1 * rng.standard_normal(x.shape)
+    h = 1e-3
+    indptr, indices = dm.csr_pattern()
+    data, b = np.full(len(indices), np.nan), np.full(3 * dm.n_vertices, np.nan)
+    dm.fill(x, v, h, data, b)
+    n = 3 * dm.n_vertices
+    A = sp.csr_matrix((data, indices, indptr), shape=(n, n)).toarray()
+    A_ref, b_ref = reference_system(fem, x, v, h, dm.gravity)
+    assert fem.beta > 0 and np.abs(A_ref - np.diag(np.diag(A_ref))).max() > 1e-3 * np.abs(A_ref).max()
+    assert np.abs(A - A_ref).max() <= 1e-12 * np.abs(A_ref).max()
+    assert np.abs(b - b_ref).max() <= 1e-12 * np.abs(b_ref).max()
+    A2, b2 = dm.assemble(x, v, h)
+    assert np.array_equal(A2.toarray(), A) and np.array_equal(b2, b)
+
+
+def test_string_fill_has_mass_damping_and_stiffness():
+    x0 = np.stack([np.linspace(0, 1, 6), np.zeros(6), np.zeros(6)], 1)
+    s = String(x0, mass=0.3, stiffness=80.0, alpha=0.5, beta=0.01)
+    dm = Deformables(["rope"], [s], np.array([0, 6]), _no_attachments(), np.array([0.0, 0.0, -9.81]))
+    rng = np.random.default_rng(1)
+    x, v, h = x0 + 0.05 * rng.standard_normal(x0.shape), rng.standard_normal(x0.shape), 2e-3
+    A, b = dm.assemble(x, v, h)
+    m3 = np.repeat(s.mass, 3)
+    A_ref = np.diag(m3 * (1 + h * s.alpha)) + (h * s.beta + h * h) * s.stiffness(x).toarray()
+    b_ref = m3 * v.ravel() + h * (s.force(x) + s.mass[:, None] * dm.gravity).ravel()
+    assert np.abs(A.toarray() - A_ref).max() <= 1e-14 * np.abs(A_ref).max()
+    assert np.abs(b - b_ref).max() <= 1e-14 * np.abs(b_ref).max()
