@@ -17,13 +17,17 @@ the rotation's, so K is the energy's Hessian and the FD check holds to round-off
 
 mu, lambda the Lame parameters of Young's modulus E and Poisson's ratio nu. Mass: each tetrahedron's
 density * volume split equally over its four vertices (lumped). Damping (Rayleigh): D = alpha M + beta K.
+
+The formulas are implemented once, compiled, in fem_kernels.py (polar decomposition, P, forces, the exact
+element stiffness, the scatter into a fixed CSR pattern); this module holds the mesh and its precomputed
+rest data (B, volumes, masses, the sparsity pattern).
 """
 from __future__ import annotations
 
 import numpy as np
-import scipy.sparse as sp
 
-from redmax_ros.core.deformable.string import block_coo
+from redmax_ros.core.deformable import fem_kernels
+from redmax_ros.core.deformable.sparsity import PatternElement
 
 
 def lame(young: float, poisson: float) -> tuple:
@@ -32,18 +36,12 @@ def lame(young: float, poisson: float) -> tuple:
 
 
 def polar(F):
-    """(R, S) with F = R S, R a proper rotation (det +1), S symmetric, for a batch (T,3,3) of F."""
-    U, s, Vt = np.linalg.svd(F)
-    flip = np.linalg.det(U) * np.linalg.det(Vt) < 0
-    if flip.any():
-        U = U.copy()
-        U[flip, :, 2] *= -1.0
-    R = U @ Vt
-    S = np.swapaxes(R, 1, 2) @ F
-    return R, 0.5 * (S + np.swapaxes(S, 1, 2))
+    """(R, S) with F = R S, R a proper rotation (det +1; for det F < 0 the reflection on the smallest
+    singular value, S then indefinite), S symmetric, for a batch (T,3,3) of F (fem_kernels.polar3)."""
+    return fem_kernels.polar_batch(np.ascontiguousarray(F, dtype=float).reshape(-1, 3, 3))
 
 
-class TetFEM:
+class TetFEM(PatternElement):
     """A tetrahedral mesh: rest vertices x0 (n,3) [m], tets (T,4) vertex indices; ``young`` [Pa],
     ``poisson`` (< 0.5), ``density`` [kg/m^3]; Rayleigh ``alpha`` [1/s], ``beta`` [s]. Inverted rest
     tetrahedra are reoriented; degenerate ones (volume <= 1e-14 of the bounding box's) are an error."""
@@ -71,6 +69,7 @@ class TetFEM:
         if np.any(det <= 1e-14 * scale):
             raise ValueError(f"degenerate tetrahedron {int(np.argmin(det))} (zero volume)")
         self.x0, self.tets, self.n, self.n_elements = x0, tets, len(x0), len(tets)
+        self.cells = tets
         self.vol = det / 6.0
         Dinv = np.linalg.inv(Dm)
         B = np.empty((len(tets), 4, 3))
@@ -84,70 +83,22 @@ class TetFEM:
         np.add.at(m, tets.ravel(), np.repeat(density * self.vol / 4.0, 4))
         self.mass = m
 
-    def kinematics(self, x):
-        """(F, R, S) of every tetrahedron at x; the last one is kept (force, stiffness and energy of one step
-        share one SVD)."""
-        x = np.asarray(x, float)
-        key = x.tobytes()
-        if getattr(self, "_last_key", None) != key:
-            F = self.deformation_gradient(x)
-            R, S = polar(F)
-            self._last_key, self._last = key, (F, R, S)
-        return self._last
+    def add(self, x, ck: float, hf: float, data, f) -> float:
+        """f (n,3) += hf * elastic forces [N], pattern's ``data`` += ck * K [N/m]; returns the elastic energy
+        [J] at x (n,3) [m] (fem_kernels.fem_add)."""
+        return fem_kernels.fem_add(np.ascontiguousarray(x, dtype=float), self.tets, self.B, self.vol, self.mu,
+                                   self.lam, self.pattern.blk, self.pattern.stride, ck, hf, data, f)
 
-    def deformation_gradient(self, x):
-        """(T,3,3) F = D_s D_m^-1 = sum_a x_a b_a^T."""
-        return np.einsum("tai,tak->tik", np.asarray(x, float)[self.tets], self.B)
-
-    def stress(self, x):
+    def stress(self, x) -> np.ndarray:
         """(T,3,3) first Piola-Kirchhoff stress P [Pa] per tetrahedron."""
-        F, R, S = self.kinematics(x)
-        return 2.0 * self.mu * (F - R) + (self.lam * (np.trace(S, axis1=1, axis2=2) - 3.0))[:, None, None] * R
-
-    def energy(self, x) -> float:
-        F, R, S = self.kinematics(x)
-        psi = self.mu * np.sum((F - R) ** 2, axis=(1, 2)) + 0.5 * self.lam * (np.trace(S, axis1=1, axis2=2) - 3.0) ** 2
-        return float(self.vol @ psi)
-
-    def force(self, x) -> np.ndarray:
-        """(n,3) elastic forces f_a = -sum_t V_t P_t b_ta."""
-        fe = -self.vol[:, None, None] * np.einsum("tik,tak->tai", self.stress(x), self.B)
-        f = np.zeros((self.n, 3))
-        np.add.at(f, self.tets.ravel(), fe.reshape(-1, 3))
-        return f
+        return fem_kernels.fem_stress(np.ascontiguousarray(x, dtype=float), self.tets, self.B, self.mu, self.lam)
 
     def element_stiffness(self, x) -> np.ndarray:
-        """(T,12,12) per-tetrahedron K_e = -df_e/dx_e (exact, with the rotation's differential), in closed form
-        over the 12 unit displacements (vertex a, component c): dF = e_c b_a^T, so R^T dF = r_c b_a^T (r_c the
-        c-th row of R), tr(R^T dF) = r_c . b_a, axial(R^T dF - dF^T R) = b_a x r_c, and
-        K[(b,d),(a,c)] = V [2 mu (b_a . b_b) delta_cd + lambda (r_c . b_a)(R b_b)_d
-                            + (lambda tr(S - I) - 2 mu) (R (w_ac x b_b))_d],  (tr S I - S) w_ac = b_a x r_c."""
-        F, R, S = self.kinematics(x)
-        B = self.B
-        T = len(F)
-        trS = np.trace(S, axis1=1, axis2=2)
-        RT = np.swapaxes(R, 1, 2)
-        BB = B @ np.swapaxes(B, 1, 2)  # (T,4,4) b_a . b_b
-        RB = B @ RT  # (T,4,3) [a,c] = r_c . b_a = (R b_a)_c
-        axial = np.cross(B[:, :, None, :], R[:, None, :, :])  # (T,4,3,3) b_a x r_c
-        Ainv = np.linalg.inv(trS[:, None, None] * np.eye(3) - S)
-        w = axial @ np.swapaxes(Ainv, 1, 2)[:, None]  # (T,4,3,3) w_ac
-        RwB = np.cross(w[:, :, :, None, :], B[:, None, None, :, :]) @ RT[:, None, None]  # (T,a,c,b,d)
-        coef = self.lam * (trS - 3.0) - 2.0 * self.mu
-        K = coef[:, None, None, None, None] * RwB
-        K += self.lam * RB[:, :, :, None, None] * RB[:, None, None, :, :]
-        K += 2.0 * self.mu * BB[:, :, None, :, None] * np.eye(3)[None, None, :, None, :]
-        K *= self.vol[:, None, None, None, None]
-        return np.ascontiguousarray(K.transpose(0, 3, 4, 1, 2)).reshape(T, 12, 12)
-
-    def stiffness(self, x) -> sp.csr_matrix:
-        """(3n,3n) K = -df/dx, sparse (assembled from element_stiffness)."""
-        Ke = self.element_stiffness(x)
-        T = len(Ke)
-        blocks = Ke.reshape(T, 4, 3, 4, 3).transpose(0, 1, 3, 2, 4).reshape(-1, 3, 3)
-        bi = np.repeat(self.tets, 4, axis=1).ravel()
-        bj = np.tile(self.tets, (1, 4)).ravel()
-        return block_coo(blocks, bi, bj, self.n)
+        """(T,12,12) per-tetrahedron K_e = -df_e/dx_e [N/m] (exact, with the rotation's differential), row
+        3a + c the force component c of vertex a, column 3b + d the displacement component d of vertex b."""
+        Kb = fem_kernels.fem_element_stiffness(np.ascontiguousarray(x, dtype=float), self.tets, self.B,
+                                               self.vol, self.mu, self.lam)
+        return np.ascontiguousarray(Kb.transpose(0, 1, 3, 2, 4)).reshape(-1, 12, 12)
 
     def surface(self) -> np.ndarray:
         """(F,3) boundary triangles (faces of one tetrahedron only), outward-oriented at rest."""

@@ -7,14 +7,58 @@ axial stiffness [N] (force per unit strain). Force on i+1: -(EA/L)(l - L) u, u =
 Hessian block (the stiffness K = -df/dx of Eq. 2's form) is (EA/L) [u u^T + (1 - L/l)(I - u u^T)] with signs
 [[K, -K], [-K, K]]. Mass: consistent lumping of a uniform line density (interior vertices m/(n-1), the two
 ends half of that), so a hanging string converges to the continuous elastic catenary at O(1/n^2).
+Energy, forces and stiffness come from one compiled loop (``string_add``) scattering into the string's fixed
+CSR pattern (sparsity.py).
 """
 from __future__ import annotations
 
 import numpy as np
-import scipy.sparse as sp
+
+from redmax_ros.core.deformable.sparsity import PatternElement, add_block
+from redmax_ros.core.jit import njit, njit_inline
 
 
-class String:
+@njit_inline
+def segment_terms(x, i, j, L, k, fs, Kb):
+    """Segment (i, j) of rest length L [m] and axial stiffness k = EA [N] at x (n,3) [m]: fs (3,) := the
+    force on i, (EA/L)(l - L) u [N] (-fs on j); Kb (3,3) := (EA/L) [u u^T + (1 - L/l)(I - u u^T)] [N/m], the
+    block of K = -df/dx with signs [[Kb, -Kb], [-Kb, Kb]]. Returns the energy 1/2 (EA/L)(l - L)^2 [J]."""
+    d0, d1, d2 = x[j, 0] - x[i, 0], x[j, 1] - x[i, 1], x[j, 2] - x[i, 2]
+    l = np.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
+    u = (d0 / l, d1 / l, d2 / l)
+    kl = k / L
+    t = kl * (l - L)
+    g = 1.0 - L / l
+    for a in range(3):
+        fs[a] = t * u[a]
+        for b in range(3):
+            Kb[a, b] = kl * (u[a] * u[b] + g * ((1.0 if a == b else 0.0) - u[a] * u[b]))
+    return 0.5 * kl * (l - L) ** 2
+
+
+@njit
+def string_add(x, seg, rest, k, blk, stride, ck, hf, data, f):
+    """Over every segment: f (n,3) += hf * (elastic forces [N]) when hf != 0, the CSR ``data`` of a
+    sparsity.BlockPattern += ck * (segment stiffness blocks [N/m]) when ck != 0. Returns the elastic energy
+    [J]. x (n,3) [m], seg (S,2), rest (S,) [m], k = EA [N]."""
+    fs, Kb = np.empty(3), np.empty((3, 3))
+    energy = 0.0
+    for s in range(len(seg)):
+        i, j = seg[s, 0], seg[s, 1]
+        energy += segment_terms(x, i, j, rest[s], k, fs, Kb)
+        if hf != 0.0:
+            for c in range(3):
+                f[i, c] += hf * fs[c]
+                f[j, c] -= hf * fs[c]
+        if ck != 0.0:
+            add_block(data, blk[s, 0, 0], stride[i], ck, Kb)
+            add_block(data, blk[s, 0, 1], stride[i], -ck, Kb)
+            add_block(data, blk[s, 1, 0], stride[j], -ck, Kb)
+            add_block(data, blk[s, 1, 1], stride[j], ck, Kb)
+    return energy
+
+
+class String(PatternElement):
     """n point masses x0 (n,3) in a chain; ``mass`` the total [kg], ``stiffness`` EA [N]; Rayleigh damping
     D = alpha M + beta K."""
 
@@ -27,6 +71,7 @@ class String:
         self.x0 = x0
         self.n = len(x0)
         self.seg = np.stack([np.arange(self.n - 1), np.arange(1, self.n)], axis=1)
+        self.cells = self.seg
         self.rest = np.linalg.norm(np.diff(x0, axis=0), axis=1) if rest is None else np.asarray(rest, float)
         if np.any(self.rest <= 0):
             raise ValueError("string points must be distinct (zero rest length)")
@@ -39,43 +84,13 @@ class String:
         self.mass = m
         self.n_elements = len(self.seg)
 
-    def _geom(self, x):
-        d = x[self.seg[:, 1]] - x[self.seg[:, 0]]
-        l = np.linalg.norm(d, axis=1)
-        return d, l, d / l[:, None]
-
-    def energy(self, x) -> float:
-        _, l, _ = self._geom(np.asarray(x, float))
-        return float(0.5 * np.sum(self.k / self.rest * (l - self.rest) ** 2))
+    def add(self, x, ck: float, hf: float, data, f) -> float:
+        """f (n,3) += hf * elastic forces [N], pattern's ``data`` += ck * K [N/m]; returns the elastic energy
+        [J] at x (n,3) [m] (``string_add``)."""
+        return string_add(np.ascontiguousarray(x, dtype=float), self.seg, self.rest, self.k, self.pattern.blk,
+                          self.pattern.stride, ck, hf, data, f)
 
     def strain(self, x) -> np.ndarray:
-        _, l, _ = self._geom(np.asarray(x, float))
+        """(S,) axial strain (l - L) / L of every segment."""
+        l = np.linalg.norm(np.diff(np.asarray(x, float), axis=0), axis=1)
         return (l - self.rest) / self.rest
-
-    def force(self, x) -> np.ndarray:
-        """(n,3) elastic forces -dE/dx."""
-        _, l, u = self._geom(np.asarray(x, float))
-        fs = (self.k / self.rest * (l - self.rest))[:, None] * u  # tension along +u pulls i toward i+1
-        f = np.zeros((self.n, 3))
-        np.add.at(f, self.seg[:, 0], fs)
-        np.add.at(f, self.seg[:, 1], -fs)
-        return f
-
-    def stiffness(self, x) -> sp.csr_matrix:
-        """(3n,3n) K = -df/dx (exact Hessian of the energy), sparse."""
-        _, l, u = self._geom(np.asarray(x, float))
-        uu = u[:, :, None] * u[:, None, :]
-        c = (self.k / self.rest)[:, None, None]
-        Kb = c * (uu + (1.0 - self.rest / l)[:, None, None] * (np.eye(3) - uu))  # (S,3,3)
-        blocks = np.concatenate([Kb, -Kb, -Kb, Kb])  # (ii, ij, ji, jj)
-        i, j = self.seg[:, 0], self.seg[:, 1]
-        bi = np.concatenate([i, i, j, j])
-        bj = np.concatenate([i, j, i, j])
-        return block_coo(blocks, bi, bj, self.n)
-
-
-def block_coo(blocks, bi, bj, n):
-    """Sparse (3n,3n) from 3x3 blocks at block rows bi and columns bj (duplicates summed)."""
-    r = (3 * bi[:, None, None] + np.arange(3)[None, :, None]).repeat(3, axis=2)
-    c = (3 * bj[:, None, None] + np.arange(3)[None, None, :]).repeat(3, axis=1)
-    return sp.coo_matrix((blocks.ravel(), (r.ravel(), c.ravel())), shape=(3 * n, 3 * n)).tocsr()

@@ -3,13 +3,21 @@
 Per step (Eq. 2's form, Wang et al. 2019 §4: M_d qdot_d = f_d, linearised implicitly):
 A_d = M_d + h D_d + h^2 K_d,  b_d = M_d v_d + h f_d(x),  D_d = alpha M_d + beta K_d per element,
 K_d = -df_d/dx at the step's x (fem.py, string.py), f_d the elastic forces plus gravity.
+
+A_d has a fixed sparsity pattern (the vertex blocks that share an element, and every vertex's diagonal
+block; sparsity.py), computed once per Deformables (``csr_pattern``); each step the compiled element kernels
+write its CSR values and b_d into preallocated arrays (``fill``) with no COO triplets and no sort.
+``assemble`` wraps both into a scipy CSR matrix.
 """
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 import scipy.sparse as sp
+
+from redmax_ros.core.deformable.sparsity import stack, start_system
 
 
 @dataclass(frozen=True)
@@ -66,18 +74,46 @@ class Deformables:
     def part(self, i, a):
         return a[self.offsets[i]:self.offsets[i + 1]]
 
-    def assemble(self, x, v, h):
-        """(A_d sparse CSC (3N,3N), b_d (3N,)) of the step."""
-        blocks, rhs = [], []
+    @cached_property
+    def _csr(self) -> tuple:
+        """(indptr, indices, data offsets of the elements) of A_d (sparsity.stack of the element patterns)."""
+        return stack([e.pattern for e in self.elements])
+
+    def csr_pattern(self) -> tuple:
+        """(indptr (3N+1,) int32, indices (nnz,) int32): the CSR pattern of A_d (3N,3N), DOF 3i + c the
+        world axis c of global vertex i; column indices sorted in every row; every vertex's 3 x 3 diagonal
+        block is present. Fixed for the Deformables (computed on the first call; the same arrays after: do
+        not modify them). ``fill`` writes the values in this order."""
+        indptr, indices, _ = self._csr
+        return indptr, indices
+
+    def fill(self, x, v, h: float, data: np.ndarray, b: np.ndarray) -> None:
+        """The step's system in place: data (nnz,) := the CSR values of A_d = M_d + h D_d + h^2 K_d [kg] in
+        ``csr_pattern``'s order, b (3N,) := b_d = M_d v + h f_d [N s] (f_d the elastic forces and gravity
+        [N]), at positions x (N,3) [m], velocities v (N,3) [m/s], step h [s]. One compiled element loop per
+        deformable (fem_kernels.fem_add, string.string_add), no allocation of the size of A_d."""
+        _, indices, at = self._csr
+        for a, shape in ((data, indices.shape), (b, (3 * self.n_vertices,))):
+            if a.shape != shape or a.dtype != np.float64 or not a.flags.c_contiguous:
+                raise ValueError(f"fill writes into contiguous float64 arrays data {indices.shape} and b "
+                                 f"({3 * self.n_vertices},), not {a.dtype} {a.shape}")
+        x = np.ascontiguousarray(x, dtype=float).reshape(-1, 3)
+        v = np.ascontiguousarray(v, dtype=float).reshape(-1, 3)
+        g = np.ascontiguousarray(self.gravity, dtype=float)
         for i, e in enumerate(self.elements):
-            xe, ve = self.part(i, x), self.part(i, v)
-            K = e.stiffness(xe)
-            m3 = np.repeat(e.mass, 3)
-            A = sp.diags(m3 * (1.0 + h * e.alpha)) + (h * e.beta + h * h) * K
-            f = e.force(xe) + e.mass[:, None] * self.gravity
-            rhs.append(m3 * ve.ravel() + h * f.ravel())
-            blocks.append(A)
-        return sp.block_diag(blocks, format="csc"), np.concatenate(rhs)
+            lo, hi = self.offsets[i], self.offsets[i + 1]
+            d, be = data[at[i]:at[i + 1]], b[3 * lo:3 * hi]
+            p = e.pattern
+            start_system(e.mass, v[lo:hi], h, g, 1.0 + h * e.alpha, p.diag, p.stride, d, be)
+            e.add(x[lo:hi], h * e.beta + h * h, h, d, be.reshape(-1, 3))
+
+    def assemble(self, x, v, h):
+        """(A_d sparse CSR (3N,3N) [kg], b_d (3N,) [N s]) of the step (``fill`` on ``csr_pattern``)."""
+        indptr, indices = self.csr_pattern()
+        data, b = np.empty(len(indices)), np.empty(3 * self.n_vertices)
+        self.fill(x, v, h, data, b)
+        n = 3 * self.n_vertices
+        return sp.csr_matrix((data, indices, indptr), shape=(n, n)), b
 
     def energies(self, x, v) -> tuple:
         """(kinetic, gravitational, elastic) [J]; gravity relative to x = 0."""
