@@ -1082,35 +1082,59 @@ def solve_vector_kernel(sptr, rptr, rows, voff, diag, values, x, buf):
 
 @njit
 def solve_matrix_kernel(sptr, rptr, rows, voff, diag, values, x):
-    """x <- (L D L^T)^-1 x in place for k right-hand sides at once (x (n, k) C-ordered, permuted order):
-    column sweeps whose inner loops run over the right-hand sides."""
+    """x <- (L D L^T)^-1 x in place for k right-hand sides at once (x (n, k) C-ordered, permuted order, flat
+    uint64 indexing): per supernode, each row below its columns loses its L row times the columns' rows of x
+    (forward), each column's row of x loses the column of L times the rows below (backward), three at a
+    time; the inner loops run over the right-hand sides."""
     ns = len(sptr) - 1
     k = U(x.shape[1])
+    xf = x.reshape(-1)
     for s in range(ns):
         o, f, w, m, r0 = U(voff[s]), U(sptr[s]), U(sptr[s + 1] - sptr[s]), U(rptr[s + 1] - rptr[s]), U(rptr[s])
-        for c in range(w):
-            col = o + c * m
-            for i in range(c + U(1), m):
-                lv = values[col + i]
-                if lv != 0.0:
-                    r = f + i if i < w else U(rows[r0 + i])
-                    for t in range(k):
-                        x[r, t] -= lv * x[f + c, t]
+        for i in range(U(1), m):
+            y = (f + i if i < w else U(rows[r0 + i])) * k
+            nc = min(i, w)
+            c = U(0)
+            while c + U(3) <= nc:
+                l0, l1, l2 = values[o + c * m + i], values[o + (c + U(1)) * m + i], values[o + (c + U(2)) * m + i]
+                x0 = (f + c) * k
+                x1 = x0 + k
+                x2 = x1 + k
+                for t in range(k):
+                    xf[y + t] -= l0 * xf[x0 + t] + l1 * xf[x1 + t] + l2 * xf[x2 + t]
+                c += U(3)
+            while c < nc:
+                l0 = values[o + c * m + i]
+                x0 = (f + c) * k
+                for t in range(k):
+                    xf[y + t] -= l0 * xf[x0 + t]
+                c += U(1)
     for j in range(len(diag)):
         inv = 1.0 / values[U(diag[j])]
+        y = U(j) * k
         for t in range(k):
-            x[j, t] *= inv
+            xf[y + t] *= inv
     for s in range(ns - 1, -1, -1):
         o, f, w, m, r0 = U(voff[s]), U(sptr[s]), U(sptr[s + 1] - sptr[s]), U(rptr[s + 1] - rptr[s]), U(rptr[s])
         for cc in range(w):
             c = w - U(1) - cc
             col = o + c * m
-            for i in range(c + U(1), m):
-                lv = values[col + i]
-                if lv != 0.0:
-                    r = f + i if i < w else U(rows[r0 + i])
-                    for t in range(k):
-                        x[f + c, t] -= lv * x[r, t]
+            y = (f + c) * k
+            i = c + U(1)
+            while i + U(3) <= m:
+                l0, l1, l2 = values[col + i], values[col + i + U(1)], values[col + i + U(2)]
+                x0 = (f + i if i < w else U(rows[r0 + i])) * k
+                x1 = (f + i + U(1) if i + U(1) < w else U(rows[r0 + i + U(1)])) * k
+                x2 = (f + i + U(2) if i + U(2) < w else U(rows[r0 + i + U(2)])) * k
+                for t in range(k):
+                    xf[y + t] -= l0 * xf[x0 + t] + l1 * xf[x1 + t] + l2 * xf[x2 + t]
+                i += U(3)
+            while i < m:
+                l0 = values[col + i]
+                x0 = (f + i if i < w else U(rows[r0 + i])) * k
+                for t in range(k):
+                    xf[y + t] -= l0 * xf[x0 + t]
+                i += U(1)
 
 
 def solve(sym: LDLSymbolic, num: LDLNumeric, b) -> np.ndarray:
