@@ -66,7 +66,7 @@ setup(
         "mcap-ros2-support",
         "tqdm",  # progress bars of redmax_run, redmax_sweep and redmax_bench
         "pyarrow",  # redmax_sweep's Parquet results table (redmax_ros/sweep/table.py)
-        "scipy",  # sparse LU of the coupled deformable solve (core/deformable/coupled_solve.py)
+        "scipy",  # sparse LU of the coupled deformable solve (sparse matrices of the deformables)
         "meshio",  # tetrahedral mesh files of deformables (.msh, .vtk, .vtu; core/deformable/mesh_io.py)
     ],
     extras_require={

@@ -56,11 +56,6 @@ class Reduction:
     def n(self) -> int:
         return self.n_free + self.n_r
 
-    def matches(self, indptr, indices) -> bool:
-        """Whether A_d's CSR pattern is the one this Reduction was built for."""
-        return (len(indptr) == len(self.ad_indptr) and len(indices) == len(self.ad_indices)
-                and np.array_equal(indptr, self.ad_indptr) and np.array_equal(indices, self.ad_indices))
-
 
 def build(ad_indptr, ad_indices, n_vertices: int, attached, n_r: int) -> Reduction:
     """The Reduction of an A_d CSR pattern (3N x 3N, sorted column indices) with the ``attached`` vertices

@@ -6,7 +6,7 @@ pipeline.pinocchio_velocity) with the deformable DOFs joined to the velocity sol
     A_d, b_d                      = deformable.system.Deformables.assemble (M_d + h D_d + h^2 K_d, M_d v_d + h f_d)
     [J_p, -S_i] z = 0             = attachments (deformable/attach.py), after the skeleton's rows
     z_floor >= (floor - z_i) / h  = unilateral row per vertex near the floor (frictionless, no penalty)
-    z = (qdot_R+, v_d+)           = deformable.coupled_solve.solve (sparse KKT LU, active set)
+    z = (qdot_R+, v_d+)           = solvers.coupled.solve (attached vertices eliminated, sparse LDL^T, active set)
     q+ = q (+) h qdot_r+          = pipeline.update_configuration (manifold, loops)
     x+ = x + h v_d+, then attached vertices projected onto their points at q+ (post-stabilization)
 
@@ -25,15 +25,15 @@ import time
 
 import numpy as np
 import pinocchio as pin
-import scipy.sparse as sp
 
-from redmax_ros.core.deformable import attach, coupled_solve, reduction
+from redmax_ros.core.deformable import attach, reduction
 from redmax_ros.core.deformable.fem import TetFEM
 from redmax_ros.core.deformable.string import String
 from redmax_ros.core.deformable.system import Attachments, Deformables, DeformState
 from redmax_ros.core.dynamics.energy import energies
 from redmax_ros.core.dynamics.kinematics import point_jacobians
 from redmax_ros.core.errors import SceneError, StepError
+from redmax_ros.core.solvers import coupled
 from redmax_ros.core.solvers.direct import Solution
 from redmax_ros.core.step import trajectory
 from redmax_ros.core.step.pipeline import VelocitySolve, required_forces, skeleton_stages, update_configuration
@@ -171,26 +171,22 @@ def attachment_support(mech, dm):
 def coupled_velocity(mech, ws, dm, state, ds, cmd, tau, h, timing=None):
     """Stages 1-4 with the deformables: (VelocitySolve of the skeleton, vertex velocities (N,3)). The attached
     vertices are eliminated (deformable/reduction.py), the reduced system solved with the skeleton's rows and
-    the floor contacts (deformable/coupled_solve.py)."""
+    the floor contacts (solvers/coupled.py)."""
     t0 = time.perf_counter()
     sk = skeleton_stages(mech, ws, state, cmd, tau, h)  # 1-3, as the Pinocchio pipeline
     system, cons = sk.system, sk.cons
     if cons.m:
         check_rows(cons)
     t1 = time.perf_counter()
-    A_d, b_d = dm.assemble(ds.x, ds.v, h)  # 2 of the deformables
-    t2 = time.perf_counter()
     n_r, N = len(system.b), dm.n_vertices
-    red, cws = _reduction(ws, dm, A_d, n_r)
+    red, cws, buf = _reduction(ws, dm, n_r)
+    dm.fill(ds.x, ds.v, h, buf["ad"], buf["bd"])  # 2 of the deformables: A_d, b_d in A_d's fixed pattern
+    t2 = time.perf_counter()
     E, t = _attached_velocity_map(mech, ws, dm, ds, n_r)
-    cache = ws.cache.setdefault("deformable_buffers", {})
-    if cache.get("n") != (red.n, len(red.indices), E.shape[0]):
-        cache.update(n=(red.n, len(red.indices), E.shape[0]), data=np.empty(len(red.indices)), b=np.empty(red.n),
-                     work=np.empty(E.shape))
-    reduction.fill(red, A_d.data, b_d, E, t, system.A, system.b, cache["data"], cache["b"], cache["work"])
+    reduction.fill(red, buf["ad"], buf["bd"], E, t, system.A, system.b, buf["data"], buf["b"], buf["work"])
     contacts = _floor_contacts(dm, ds, red, h)
     C = cons.C if cons.C is not None and len(cons.lo) else None
-    sol = coupled_solve.solve(cws, cache["data"], cache["b"], n_r, np.asarray(cons.G).reshape(cons.m, n_r), cons.g,
+    sol = coupled.solve(cws, buf["data"], buf["b"], n_r, np.asarray(cons.G).reshape(cons.m, n_r), cons.g,
                               C, cons.lo if C is not None else None, cons.hi if C is not None else None, contacts,
                               ws.cache.get("deformable_contacts"), cons.labels + dm.attach.labels)
     ws.cache["deformable_contacts"] = sol.contact_state
@@ -213,17 +209,17 @@ def coupled_velocity(mech, ws, dm, state, ds, cmd, tau, h, timing=None):
     return vs, v_d.reshape(-1, 3)
 
 
-def _reduction(ws, dm, A_d, n_r):
-    """The Reduction of A_d's pattern (built once, rebuilt if the pattern changes) and the coupled solve's
-    workspace for it."""
-    A_d = A_d.tocsr()
-    A_d.sort_indices()
-    red, cws = ws.cache.get("deformable_reduction", (None, None))
-    if red is None or red.n_r != n_r or not red.matches(A_d.indptr, A_d.indices):
-        red = reduction.build(A_d.indptr, A_d.indices, dm.n_vertices, dm.attach.vertex, n_r)
-        cws = coupled_solve.Workspace(red.indptr, red.indices, red.n)
-        ws.cache["deformable_reduction"] = (red, cws)
-    return red, cws
+def _reduction(ws, dm, n_r):
+    """(Reduction of A_d's fixed pattern, the coupled solve's Workspace for it, the step's buffers), built on
+    the first step and kept in ws.cache."""
+    hit = ws.cache.get("deformable_reduction")
+    if hit is None or hit[0].n_r != n_r:
+        indptr, indices = dm.csr_pattern()
+        red = reduction.build(indptr, indices, dm.n_vertices, dm.attach.vertex, n_r)
+        buf = {"ad": np.empty(len(indices)), "bd": np.empty(3 * dm.n_vertices), "data": np.empty(len(red.indices)),
+               "b": np.empty(red.n), "work": np.empty((3 * len(dm.attach.vertex), n_r))}
+        hit = ws.cache["deformable_reduction"] = (red, coupled.Workspace(red.indptr, red.indices, red.n), buf)
+    return hit
 
 
 def _attached_velocity_map(mech, ws, dm, ds, n_r):
@@ -255,7 +251,7 @@ def _floor_contacts(dm, ds, red, h):
     idx = dm.floor_vertices
     gap = ds.x[idx, 2] - dm.floor
     near = idx[gap < FLOOR_MARGIN + h * np.abs(ds.v[idx, 2]) + h * h * abs(dm.gravity[2])]
-    return coupled_solve.VertexContacts(red.dof[3 * near], (dm.floor - ds.x[near, 2]) / h, float(dm.floor_mu), near)
+    return coupled.VertexContacts(red.dof[3 * near], (dm.floor - ds.x[near, 2]) / h, float(dm.floor_mu), near)
 
 
 def step(mech, ws, dm, state, cmd, h, timing=None):

@@ -1,9 +1,10 @@
 """The coupled velocity solve of articulated and deformable DOFs (Wang et al. 2019 §4, the equation after Eq. 5),
-on the reduced system of reduction.py (attached vertices eliminated): unknowns z = (v_f, qdot_r),
+on the reduced system of deformable/reduction.py (attached vertices eliminated): unknowns z = (v_f, qdot_r),
 
     A z = b + F + R,     G qdot_r = g (multipliers lam),     lo <= C qdot_r <= hi (joint limits, Eq. 5),
 
-A the reduced symmetric matrix (one sparse factorisation per working set), G the skeleton's bilateral rows
+A the reduced symmetric matrix (one sparse LDL^T factorisation per working set, solvers/sparse_ldl.py, on a
+pattern analysed once), G the skeleton's bilateral rows
 (loops, prescriptions; sign convention of solvers/problem.py: A z + G^T lam = b), F the friction impulses of
 sliding floor contacts, R the reactions on the DOFs held fixed (floor contacts). The bilateral and the active
 limit rows are taken by the Schur complement S = G A^-1 G^T (one A solve per row; the skeleton has few).
@@ -28,9 +29,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import scipy.sparse as sp
-from scipy.sparse.linalg import splu
 
 from redmax_ros.core.errors import StepError
+from redmax_ros.core.solvers import sparse_ldl
 
 MAX_ITER = 100  # cap of working-set / staggered iterations per step
 TOL_V = 1e-9  # [m/s] the staggered loop's tolerance on the velocity change of a sliding impulse update
@@ -60,23 +61,6 @@ class CoupledSolution:
     converged: bool = True
 
 
-class Factor:
-    """A factorisation of the reduced matrix: scipy's SuperLU in symmetric mode (minimum degree on A + A^T,
-    diagonal pivots)."""
-
-    def __init__(self, indptr, indices, data, n, labels=()):
-        K = sp.csc_matrix((data, indices, indptr), shape=(n, n))  # symmetric: CSR pattern = CSC pattern
-        try:
-            self.lu = splu(K, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
-                           options={"SymmetricMode": True})
-        except RuntimeError as e:  # SuperLU: "Factor is exactly singular"
-            raise StepError("the coupled system of the skeleton and the deformables is singular "
-                            f"(among: {', '.join(sorted(set(labels))[:6]) or 'the mesh'}): {e}") from None
-
-    def solve(self, B):
-        return self.lu.solve(np.asarray(B, dtype=float))
-
-
 def _pattern_maps(indptr, indices, n):
     """(diag position (n,), transpose position (nnz,)) of a symmetric CSR pattern."""
     rows = np.repeat(np.arange(n), np.diff(indptr))
@@ -89,12 +73,31 @@ def _pattern_maps(indptr, indices, n):
 
 
 class Workspace:
-    """Per-pattern scratch of the coupled solve (the reduced pattern's diagonal and transpose maps)."""
+    """Per-pattern state of the coupled solve: the reduced CSR pattern, its symbolic LDL^T analysis (minimum
+    degree, once), the diagonal and transpose maps used to hold DOFs, and the numeric factor's storage."""
 
     def __init__(self, indptr, indices, n):
         self.indptr, self.indices, self.n = indptr, indices, n
         self.diag, self.tpos = _pattern_maps(indptr, indices, n)
         self.rowlen = np.diff(indptr)
+        self.sym = sparse_ldl.analyse(indptr, indices, n)
+        self.num = sparse_ldl.LDLNumeric.empty(self.sym)
+
+
+class Factor:
+    """The LDL^T factorisation (solvers/sparse_ldl.py, no pivoting) of the reduced matrix with values ``data``
+    in ``ws``'s pattern, into ws's storage; a zero pivot is a StepError naming the rows involved."""
+
+    def __init__(self, ws: Workspace, data, labels=()):
+        self.ws = ws
+        try:
+            sparse_ldl.factor(ws.sym, data, out=ws.num)
+        except StepError as e:
+            raise StepError("the coupled system of the skeleton and the deformables is singular "
+                            f"(among: {', '.join(sorted(set(labels))[:6]) or 'the mesh'}): {e}") from None
+
+    def solve(self, B):
+        return sparse_ldl.solve(self.ws.sym, self.ws.num, B)
 
 
 def _held(ws, data, fixed_dofs):
@@ -150,7 +153,7 @@ def solve(ws: Workspace, data, b, n_r, G, g, C=None, lo=None, hi=None, contacts:
                 F[contacts.dof[sl] + c] = sign[sl, c] * contacts.mu * alpha[sl]
         new_key = fixed.tobytes()
         if factor is None or new_key != key:
-            factor, key = Factor(ws.indptr, ws.indices, _held(ws, data, fixed), n, labels), new_key
+            factor, key = Factor(ws, _held(ws, data, fixed), labels), new_key
         rhs = b + F
         if len(fixed):
             w = np.zeros(n)
