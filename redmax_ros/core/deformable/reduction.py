@@ -192,3 +192,73 @@ def fill_kernel(ad_indptr, ad_indices, ad_data, b_d, dof, pos, skel_start, adj_r
             erk = E[r, k]
             for l in range(n_r):
                 data[s + l] += erk * Y[r, l]
+
+
+def unit_rows(G, C=None):
+    """(rows, columns, coefficients) of the rows of G (m, n_r) with exactly one nonzero c on a column no other
+    row of G or C touches: the prescribed joint velocities of Eq. (7) without couplings, c qdot_j = g_i. Such a
+    row is imposed by holding the DOF (``hold``) instead of by a Schur complement (one solve per row)."""
+    G = np.asarray(G, dtype=float)
+    nz = G != 0.0
+    count = nz.sum(axis=1)
+    touched = nz.sum(axis=0)
+    if C is not None and len(C):
+        touched = touched + (np.asarray(C) != 0.0).sum(axis=0)
+    rows = np.nonzero(count == 1)[0]
+    cols = np.argmax(nz[rows], axis=1) if len(rows) else np.zeros(0, dtype=np.int64)
+    keep = touched[cols] == 1
+    rows, cols = rows[keep], cols[keep]
+    return rows, cols, G[rows, cols]
+
+
+def hold(indptr, indices, diag, tpos, data, b, dofs, vals):
+    """Impose z[dofs] = vals on the symmetric system (CSR values ``data`` in the pattern indptr/indices,
+    right-hand side b, both modified in place): b -= A[:, dofs] vals, then the rows and columns of ``dofs``
+    become identity rows with b[dofs] = vals (the pattern, hence the symbolic factorisation, is unchanged).
+    ``diag`` (n,) is each row's diagonal position, ``tpos`` (nnz,) each entry's transpose position. Returns the
+    held rows' original values (concatenated, in ``dofs`` order) and b[dofs], for their reactions
+    (``reactions``)."""
+    dofs = np.asarray(dofs, dtype=np.int64)
+    lens = indptr[dofs + 1] - indptr[dofs]
+    saved = np.empty(int(lens.sum()))
+    b_saved = b[dofs].copy()
+    hold_kernel(indptr, indices, diag, tpos, data, b, dofs, np.asarray(vals, dtype=float), saved)
+    return saved, b_saved
+
+
+@njit
+def hold_kernel(indptr, indices, diag, tpos, data, b, dofs, vals, saved):
+    k = 0
+    for i in range(len(dofs)):  # b -= A[:, j] v_j, A symmetric: the column is the row
+        j = dofs[i]
+        for e in range(indptr[j], indptr[j + 1]):
+            saved[k] = data[e]
+            k += 1
+            b[indices[e]] -= data[e] * vals[i]
+    for i in range(len(dofs)):
+        j = dofs[i]
+        for e in range(indptr[j], indptr[j + 1]):
+            data[e] = 0.0
+            data[tpos[e]] = 0.0
+        data[diag[j]] = 1.0
+        b[j] = vals[i]
+
+
+def reactions(indptr, indices, dofs, saved, b_saved, z):
+    """(A z - b)[dofs] with the held rows' original values ``saved`` and right-hand sides ``b_saved`` (``hold``):
+    the reaction each held DOF needs (the multiplier of its row, up to the row's coefficient)."""
+    out = np.empty(len(dofs))
+    reactions_kernel(indptr, indices, np.asarray(dofs, dtype=np.int64), saved, b_saved, z, out)
+    return out
+
+
+@njit
+def reactions_kernel(indptr, indices, dofs, saved, b_saved, z, out):
+    k = 0
+    for i in range(len(dofs)):
+        j = dofs[i]
+        acc = -b_saved[i]
+        for e in range(indptr[j], indptr[j + 1]):
+            acc += saved[k] * z[indices[e]]
+            k += 1
+        out[i] = acc
