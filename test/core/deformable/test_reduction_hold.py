@@ -47,3 +47,34 @@ def test_held_dofs_reproduce_the_kkt_solution_and_its_multipliers():
     lam = -reduction.reactions(ws.indptr, ws.indices, dofs, saved, b_saved, z) / coef
     assert np.abs(z - ref[:n]).max() <= 1e-12 * np.abs(ref[:n]).max()
     assert np.abs(lam - ref[n:]).max() <= 1e-11 * max(1.0, np.abs(ref[n:]).max())
+
+
+def test_the_next_steps_system_filled_at_the_end_of_a_step_is_used_only_for_its_own_state():
+    """deformable_stages fills A_d, b_d for the next step when a step ends (its elastic energy at x+ is a
+    by-product) and keeps it only for a step from that very DeformState with the same h: a run that goes on,
+    a run restarted from an equal copy of the state, and a step with another h after it all equal fresh fills."""
+    import dataclasses
+
+    from redmax_ros.core import Simulator
+    from redmax_ros.core.deformable.system import DeformState
+
+    sim = Simulator.load("starfish")
+    sim.step(20)
+    s20 = sim.state
+    sim.step(10)
+    ref = sim.state
+    copy = dataclasses.replace(s20, deform=DeformState.of(s20.deform.x, s20.deform.v))
+    other = Simulator.load("starfish")
+    other.set_state(copy)  # a new DeformState: its system is filled afresh
+    other.step(10)
+    for a, b in ((ref.q, other.state.q), (ref.deform.x, other.state.deform.x), (ref.deform.v, other.state.deform.v)):
+        assert np.array_equal(a, b)
+    e_cont = sim.step(1).diagnostics.E_spring
+    e_copy = other.step(1).diagnostics.E_spring
+    assert e_cont == e_copy
+    fresh = Simulator.load("starfish")
+    fresh.set_state(dataclasses.replace(sim.state, deform=DeformState.of(sim.state.deform.x, sim.state.deform.v)))
+    sim.dt = fresh.dt = 5e-4  # the system kept for h = 1e-3 must not serve a step of 5e-4
+    sim.step(3)
+    fresh.step(3)
+    assert np.array_equal(sim.state.q, fresh.state.q) and np.array_equal(sim.state.deform.x, fresh.state.deform.x)
