@@ -179,7 +179,7 @@ def coupled_velocity(mech, ws, dm, state, ds, cmd, tau, h, timing=None):
         check_rows(cons)
     t1 = time.perf_counter()
     n_r, N = len(system.b), dm.n_vertices
-    red, cws, buf = _reduction(ws, dm, n_r)
+    red, cws, buf = _reduction(mech, ws, dm, n_r)
     filled = ws.cache.get(_PREFILLED)
     if filled is None or filled[0] is not ds or filled[1] != h:  # the last step filled it when it ended in ds
         dm.fill(ds.x, ds.v, h, buf["ad"], buf["bd"])  # 2 of the deformables: A_d, b_d in A_d's fixed pattern
@@ -240,17 +240,29 @@ def _prefill(ws, dm, ds: DeformState, h: float) -> float:
     return elastic
 
 
-def _reduction(ws, dm, n_r):
+def _reduction(mech, ws, dm, n_r):
     """(Reduction of A_d's fixed pattern, the coupled solve's Workspace for it, the step's buffers), built on
-    the first step and kept in ws.cache."""
+    the first step and kept in ws.cache. The reduced pattern couples a free vertex next to attached ones only to
+    the skeleton DOFs that move them (their bodies' supports, through J_rR with couplings)."""
     hit = ws.cache.get("deformable_reduction")
     if hit is None or hit[0].n_r != n_r:
         indptr, indices = dm.csr_pattern()
-        red = reduction.build(indptr, indices, dm.n_vertices, dm.attach.vertex, n_r)
+        support = _support(mech, ws, dm)
+        if ws.T is not None:
+            support = (support.astype(float) @ np.abs(ws.T)) != 0.0
+        red = reduction.build(indptr, indices, dm.n_vertices, dm.attach.vertex, n_r, support)
         buf = {"ad": np.empty(len(indices)), "bd": np.empty(3 * dm.n_vertices), "data": np.empty(len(red.indices)),
                "b": np.empty(red.n), "work": np.empty((3 * len(dm.attach.vertex), n_r))}
         hit = ws.cache["deformable_reduction"] = (red, coupled.Workspace(red.indptr, red.indices, red.n), buf)
     return hit
+
+
+def _support(mech, ws, dm):
+    """attachment_support, kept in ws.cache."""
+    support = ws.cache.get("deformable_support")
+    if support is None:
+        support = ws.cache["deformable_support"] = attachment_support(mech, dm)
+    return support
 
 
 def _attached_velocity_map(mech, ws, dm, ds, n_r):
@@ -261,10 +273,7 @@ def _attached_velocity_map(mech, ws, dm, ds, n_r):
     a = len(att.vertex)
     if not a:
         return np.zeros((0, n_r)), np.zeros(0)
-    support = ws.cache.get("deformable_support")
-    if support is None:
-        support = ws.cache["deformable_support"] = attachment_support(mech, dm)
-    P, J = attachment_points(mech, ws.data, dm, support)  # at q_k (the skeleton stages' kinematics)
+    P, J = attachment_points(mech, ws.data, dm, _support(mech, ws, dm))  # at q_k (the skeleton stages' kinematics)
     E = J if ws.T is None else J @ ws.T
     t = np.zeros(3 * a)
     if mech.loop_baumgarte:  # G z = -b phi(q_k, x_k)
