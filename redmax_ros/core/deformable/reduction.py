@@ -138,27 +138,31 @@ def fill(red: Reduction, ad_data, b_d, E, t, A_r, b_r, data_out, b_out, work):
     """One step's reduced matrix values (into ``data_out``, red.indptr/indices layout) and right-hand side
     (into ``b_out``): A_d's CSR values ``ad_data`` and b_d (3N,), E (3a, n_r) the attached points' Jacobians
     (nonzero only on the support ``build`` was given), t (3a,) their offsets (v_a = E qdot_r + t), A_r (n_r,
-    n_r), b_r (n_r,); ``work`` (3a, n_r) scratch."""
+    n_r), b_r (n_r,); ``work`` (3a + n_adj, n_r) scratch (``work_shape``)."""
+    na = len(red.att_dof)
     fill_kernel(red.ad_indptr, red.ad_indices, np.asarray(ad_data, float), np.asarray(b_d, float), red.dof, red.pos,
                 red.adj_rank, red.fs_pos, red.sf_pos, red.sk_start, red.att_dof, red.n_free,
                 np.ascontiguousarray(E, dtype=float), np.asarray(t, float), np.ascontiguousarray(A_r, dtype=float),
-                np.asarray(b_r, float), data_out, b_out, work)
+                np.asarray(b_r, float), data_out, b_out, work[:na], work[na:])
+
+
+def work_shape(red: Reduction) -> tuple:
+    """The shape of ``fill``'s scratch: rows of Y = A_aa E (one per attached DOF) and of A_fa E (one per
+    adjacent free DOF), n_r columns."""
+    return len(red.att_dof) + red.fs_pos.shape[0], red.n_r
 
 
 @njit
 def fill_kernel(ad_indptr, ad_indices, ad_data, b_d, dof, pos, adj_rank, fs_pos, sf_pos, sk_start, att_dof, nf3, E,
-                t, A_r, b_r, data, b, Y):
+                t, A_r, b_r, data, b, Y, W):
+    """The loops of ``fill``: each A_d entry once; the products with E as contiguous rows over the n_r skeleton
+    columns (Y = A_aa E, W = A_fa E; E's zero columns cost less than indexing the nonzero ones), scattered into
+    the reduced pattern once at the end; E^T A_af = W^T (A_d symmetric); E^T A_aa E symmetrised."""
     n_r = A_r.shape[0]
     na = E.shape[0]
-    ecols = np.empty((na, n_r), dtype=np.int64)  # the nonzero columns of each row of E (a body's supporting DOFs)
-    ecount = np.zeros(na, dtype=np.int64)
-    for r in range(na):
-        for k in range(n_r):
-            if E[r, k] != 0.0:
-                ecols[r, ecount[r]] = k
-                ecount[r] += 1
     data[:] = 0.0
-    Y[:, :] = 0.0  # Y = A_aa E (3a, n_r)
+    Y[:, :] = 0.0
+    W[:, :] = 0.0
     ta = np.zeros(na)  # A_aa t
     for p in range(nf3):
         b[p] = 0.0
@@ -168,6 +172,7 @@ def fill_kernel(ad_indptr, ad_indices, ad_data, b_d, dof, pos, adj_rank, fs_pos,
         p = dof[i]
         if p >= 0:
             b[p] += b_d[i]
+            c = adj_rank[p]
             for e in range(ad_indptr[i], ad_indptr[i + 1]):
                 a = ad_data[e]
                 q = dof[ad_indices[e]]
@@ -175,45 +180,40 @@ def fill_kernel(ad_indptr, ad_indices, ad_data, b_d, dof, pos, adj_rank, fs_pos,
                     data[pos[e]] += a
                 else:  # free row, attached column: A_fa E and -A_fa t
                     r = -q - 1
-                    c = adj_rank[p]
-                    for j in range(ecount[r]):
-                        k = ecols[r, j]
-                        data[fs_pos[c, k]] += a * E[r, k]
+                    for k in range(n_r):
+                        W[c, k] += a * E[r, k]
                     b[p] -= a * t[r]
         else:
             r = -p - 1
             for e in range(ad_indptr[i], ad_indptr[i + 1]):
                 q = dof[ad_indices[e]]
-                if q < 0:  # attached row and column: Y = A_aa E (E^T A_af is the transpose of A_fa E, below)
+                if q < 0:  # attached row and column: Y = A_aa E
                     a = ad_data[e]
                     s = -q - 1
-                    for j in range(ecount[s]):
-                        k = ecols[s, j]
+                    for k in range(n_r):
                         Y[r, k] += a * E[s, k]
                     ta[r] += a * t[s]
-    for c in range(fs_pos.shape[0]):  # E^T A_af = (A_fa E)^T, A_d symmetric
+    for c in range(fs_pos.shape[0]):  # A_fa E and E^T A_af = (A_fa E)^T
         for k in range(n_r):
-            if fs_pos[c, k] >= 0:
-                data[sf_pos[c, k]] = data[fs_pos[c, k]]
+            f = fs_pos[c, k]
+            if f >= 0:
+                data[f] = W[c, k]
+                data[sf_pos[c, k]] = W[c, k]
     for r in range(na):  # b_r + E^T (b_a - A_aa t)
         ba = b_d[att_dof[r]] - ta[r]
-        for j in range(ecount[r]):
-            k = ecols[r, j]
+        for k in range(n_r):
             b[nf3 + k] += E[r, k] * ba
-    for r in range(na):  # E^T A_aa E = E^T Y, symmetric: its upper triangle, then mirrored
-        for j in range(ecount[r]):
-            k = ecols[r, j]
-            s = sk_start[k]
+    S = np.zeros((n_r, n_r))  # E^T A_aa E = E^T Y
+    for r in range(na):
+        for k in range(n_r):
             erk = E[r, k]
-            for l in range(k, n_r):
-                data[s + l] += erk * Y[r, l]
-    for k in range(n_r):
-        for l in range(k):
-            data[sk_start[k] + l] = data[sk_start[l] + k]
-    for k in range(n_r):  # + A_r into the dense skeleton block
+            if erk != 0.0:
+                for l in range(n_r):
+                    S[k, l] += erk * Y[r, l]
+    for k in range(n_r):  # + A_r: the dense skeleton block
         s = sk_start[k]
         for l in range(n_r):
-            data[s + l] += A_r[k, l]
+            data[s + l] = 0.5 * (S[k, l] + S[l, k]) + A_r[k, l]
 
 
 def unit_rows(G, C=None):

@@ -252,7 +252,7 @@ def _reduction(mech, ws, dm, n_r):
             support = (support.astype(float) @ np.abs(ws.T)) != 0.0
         red = reduction.build(indptr, indices, dm.n_vertices, dm.attach.vertex, n_r, support)
         buf = {"ad": np.empty(len(indices)), "bd": np.empty(3 * dm.n_vertices), "data": np.empty(len(red.indices)),
-               "b": np.empty(red.n), "work": np.empty((3 * len(dm.attach.vertex), n_r))}
+               "b": np.empty(red.n), "work": np.empty(reduction.work_shape(red))}
         hit = ws.cache["deformable_reduction"] = (red, coupled.Workspace(red.indptr, red.indices, red.n), buf)
     return hit
 
