@@ -142,18 +142,13 @@ def attachment_points(mech, data, dm: Deformables, support=None):
     for world points), or None without ``support`` (attachment_support)) at data's kinematics (forward
     kinematics; the WORLD joint Jacobians of computeJointJacobians for the Jacobians): E_k = J_lin - [P_k]_x J_ang
     on the DOFs supporting the body (kinematics.point_jacobians, Sueda's notes Eq. S2.4). The joint placements
-    are read in one pass over data.oMi (one element at a time costs ~2.5 us, the pass ~0.8 us per joint) and the
-    points formed in one vectorised product."""
+    are read in one pass over data.oMi.tolist() (indexing one element costs ~2.5 us, the pass ~0.8 us per joint) and the
+    points formed in one compiled loop (attach.world_points)."""
     att = dm.attach
-    a = len(att.vertex)
-    world = att.body < 0
-    H = np.array([M.homogeneous for M in data.oMi])
-    jid = np.where(world, 0, att.body)
-    P = H[jid, :3, 3] + np.einsum("kij,kj->ki", H[jid, :3, :3], att.local)
-    P[world] = att.local[world]
+    P = attach.world_points(np.array([M.homogeneous for M in data.oMi.tolist()]), att.body, att.local)
     if support is None:
         return P, None
-    return P, point_jacobians(data.J.reshape(6, mech.nv), P, support).reshape(3 * a, mech.nv)
+    return P, point_jacobians(data.J.reshape(6, mech.nv), P, support).reshape(3 * len(P), mech.nv)
 
 
 def attachment_support(mech, dm):
