@@ -188,7 +188,7 @@ def coupled_velocity(mech, ws, dm, state, ds, cmd, tau, h, timing=None):
     C = cons.C if cons.C is not None and len(cons.lo) else None
     sol = coupled.solve(cws, buf["data"], buf["b"], n_r, np.asarray(cons.G).reshape(cons.m, n_r), cons.g,
                               C, cons.lo if C is not None else None, cons.hi if C is not None else None, contacts,
-                              ws.cache.get("deformable_contacts"), cons.labels + dm.attach.labels)
+                              ws.cache.get("deformable_contacts"), cons.labels + dm.attach.labels, stats=timing)
     ws.cache["deformable_contacts"] = sol.contact_state
     v_r = sol.z[red.n_free:]
     v_d = np.empty(3 * N)
