@@ -18,7 +18,7 @@ from redmax_ros.core.scene.registry import int_param, register_builder, take
 
 DEFAULTS = {"radius": 0.25, "core": 0.05, "width": 0.06, "thickness": 0.04, "cell": 0.028, "layers": 1,
             "young": 5.0e4, "poisson": 0.3, "density": 1000.0, "beta": 0.005, "bone_density": 400.0,
-            "amplitude": 0.35, "frequency": 0.5, "stiffness": 0.3, "damping": 0.02}
+            "amplitude": 0.35, "frequency": 0.5, "stiffness": 0.3, "damping": 0.02, "mu": 0.8}
 TYPES = ("universal", "revolute", "universal", "revolute")
 
 
@@ -84,5 +84,6 @@ def starfish(params: dict) -> dict:
         "deformables": [{"name": "body", "type": "fem",
                          "mesh": {"vertices": (x + [0, 0, z0]).tolist(), "tets": tets.tolist()},
                          "young": p["young"], "poisson": p["poisson"], "density": p["density"],
-                         "rayleigh": {"alpha": 0.0, "beta": p["beta"]}, "attachments": attachments, "floor": 0.0}],
+                         "rayleigh": {"alpha": 0.0, "beta": p["beta"]}, "attachments": attachments, "floor": 0.0,
+                         "floor_mu": p["mu"]}],
     }

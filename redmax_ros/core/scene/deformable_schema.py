@@ -24,7 +24,7 @@
         attachments:
           - {body: foot, inside: true}        # every vertex inside the body's shape (box, sphere, cylinder, capsule)
         floor: 0.0                # optional: its free vertices stay above z = floor (contact rows)
-        floor_mu: 0               # optional; only 0 (frictionless) is accepted so far
+        floor_mu: 0.5             # optional Coulomb friction of the floor (default 0, frictionless)
 
 Parsed into :class:`DeformableSpec` (SceneSpec.deformables, [] when absent); a bad entry is a SceneError
 naming it (``deformables.pad.young``).
@@ -129,10 +129,8 @@ def parse(v, raw, spec, body_names) -> list:
         if d.get("floor_mu") is not None:
             if ds.floor is None:
                 v.err(f"{entry}.floor_mu", "'floor_mu' needs a 'floor'")
-            ds.floor_mu = v.number(entry, "floor_mu", d["floor_mu"], nonneg=True)
-            if ds.floor_mu > 0:  # solvers/coupled.py's stick/slide active set cycles on a sliding stiff block
-                v.err(f"{entry}.floor_mu", "floor friction of deformables is not supported yet (issue 15); "
-                      "use floor_mu: 0 (frictionless floor rows)")
+            # Coulomb coefficient of the floor contacts (solvers/coupled.py, four-sided pyramid on world x, y)
+            ds.floor_mu = v.number(f"{entry}.floor_mu", "floor_mu", d["floor_mu"], nonneg=True)
         out.append(ds)
     return out
 

@@ -33,8 +33,9 @@ import scipy.sparse as sp
 from redmax_ros.core.errors import StepError
 from redmax_ros.core.solvers import sparse_ldl
 
-MAX_ITER = 100  # cap of working-set / staggered iterations per step
-TOL_V = 1e-9  # [m/s] the staggered loop's tolerance on the velocity change of a sliding impulse update
+MAX_ITER = 200  # cap of sub-problem solves per step (friction and normal stages together)
+TOL_V = 1e-6  # [m/s] the staggered loop's tolerance on the velocity change of a friction bound update (as friction.tol)
+STICK_V = 1e-9  # [m/s] a new contact slower than this along a tangent starts stuck on it
 
 
 @dataclass(frozen=True)
@@ -57,8 +58,10 @@ class CoupledSolution:
     violation: float  # max |G qdot_r - g|
     residual: float  # stationarity |A z + G^T lam + C^T mu - b - F - R| / |b|
     contact_impulse: np.ndarray  # (k,3) floor impulses on the contact vertices (beta_x, beta_y, alpha) [N s]
-    contact_state: dict = field(default_factory=dict)  # vertex -> (normal, stick_x, stick_y, sign_x, sign_y)
+    contact_state: dict = field(default_factory=dict)  # vertex -> (normal, stick_x, stick_y, sign_x, sign_y, alpha)
     converged: bool = True
+    factorisations: int = 0  # LDL^T factorisations of the reduced matrix this solve
+    contact_tol: np.ndarray | None = None  # (k,) [N s] |beta| <= mu alpha + contact_tol: the loop's TOL_V A_jj
 
 
 def _pattern_maps(indptr, indices, n):
@@ -114,64 +117,165 @@ def _held(ws, data, fixed_dofs):
     return d
 
 
+class _HeldSystem:
+    """The reduced system with a set of DOFs held at given velocities (identity rows, ``_held``) and the
+    skeleton rows taken by the Schur complement S = W A_H^-1 W^T (W = [G; active limit rows]). The LDL^T of
+    A_H is recomputed only when the held set changes (``factorisations`` counts them); A u (the held
+    velocities' column terms), A_H^-1 W^T and S^-1 are kept while neither the held set nor the limit rows change."""
+
+    def __init__(self, ws, data, n_r, G, g, labels):
+        self.ws, self.data, self.n, self.nf = ws, data, ws.n, ws.n - n_r
+        self.G, self.g, self.labels = G, g, labels
+        self.A = sp.csr_matrix((data, ws.indices, ws.indptr), shape=(ws.n, ws.n))
+        self.factor, self.key, self.schur_key = None, None, None
+        self.factorisations = 0
+
+    def solve(self, fixed, vals, rhs, W, w, wkey):
+        """(z, lam, mu_W): A z + [0; G^T lam + W^T mu_W] = rhs with z[fixed] = vals, G z_r = g, W z_r = w."""
+        key = fixed.tobytes() + vals.tobytes()
+        if self.factor is None or key != self.key:
+            self.factor, self.key = Factor(self.ws, _held(self.ws, self.data, fixed), self.labels), key
+            self.factorisations += 1
+            self.schur_key = None
+            u = np.zeros(self.n)
+            u[fixed] = vals
+            self.Au = self.A @ u if len(fixed) else None
+            self.fixed, self.vals = fixed, vals
+        if self.Au is not None:
+            rhs = rhs - self.Au
+            rhs[self.fixed] = self.vals
+        z0 = self.factor.solve(rhs)
+        m = len(self.g)
+        if not m and W is None:
+            return z0, np.zeros(0), np.zeros(0)
+        if self.schur_key != wkey:
+            rows = self.G if W is None else np.vstack([self.G, W])
+            Gt = np.zeros((self.n, len(rows)))
+            Gt[self.nf:] = rows.T
+            Y = self.factor.solve(Gt)
+            try:
+                Sinv = np.linalg.inv(rows @ Y[self.nf:])
+            except np.linalg.LinAlgError:
+                raise StepError("the skeleton's rows are redundant or conflicting in the coupled solve "
+                                f"(among: {', '.join(sorted(set(self.labels))[:6])})") from None
+            self.rows, self.Y, self.Sinv, self.schur_key = rows, Y, Sinv, wkey
+        vals_w = self.g if W is None else np.concatenate([self.g, w])
+        lm = self.Sinv @ (self.rows @ z0[self.nf:] - vals_w)
+        return z0 - self.Y @ lm, lm[:m], lm[m:]
+
+
 def solve(ws: Workspace, data, b, n_r, G, g, C=None, lo=None, hi=None, contacts: VertexContacts | None = None,
-          warm=None, labels=(), tol=1e-12) -> CoupledSolution:
+          warm=None, labels=(), tol=1e-12, stats=None) -> CoupledSolution:
     """The coupled solve on the reduced system (values ``data`` in ws's CSR pattern, right-hand side b (n,)):
     G (m, n_r) dense with g (m,), joint-limit rows C (p, n_r) with lo, hi (+-inf where open) or None, the
-    floor ``contacts`` of free vertices or None, ``warm`` the last step's contact states (vertex -> state)."""
+    floor ``contacts`` of free vertices or None, ``warm`` the last step's contact states (vertex -> state, as
+    CoupledSolution.contact_state). ``stats`` (a dict or None) receives ``contact_iterations`` (sub-problem
+    solves), ``contact_factorisations`` and ``contact_converged``. Raises StepError when the contact iteration
+    does not converge within MAX_ITER sub-problem solves (the caller's state is then left as it was)."""
     n = ws.n
-    A = sp.csr_matrix((data, ws.indices, ws.indptr), shape=(n, n))
     nf = n - n_r
-    m = len(g)
     p = 0 if C is None else len(lo)
     k = 0 if contacts is None else len(contacts.dof)
     scale = 1.0 + float(np.abs(b).max()) if n else 1.0
     tol_imp = tol * scale
-    # contact state: normal held, stick x / y, sliding sign x / y
-    normal = np.zeros(k, dtype=bool)
-    stick = np.zeros((k, 2), dtype=bool)
-    sign = np.zeros((k, 2))
-    if k and warm:
-        for i, vtx in enumerate(contacts.vertex):
-            st = warm.get(int(vtx))
-            if st is not None:
-                normal[i], stick[i, 0], stick[i, 1], sign[i, 0], sign[i, 1] = st
+    hs = _HeldSystem(ws, data, n_r, G, g, labels)
+    A = hs.A
+    fric = 0.0 if contacts is None else float(contacts.mu)
+    normal = np.zeros(k, dtype=bool)  # v_z = lo held (alpha >= 0)
+    stick = np.zeros((k, 2), dtype=bool)  # tangent held at 0 (|beta| <= mu alpha)
+    sign = np.zeros((k, 2))  # sign of a sliding tangent's friction impulse (its velocity has the other sign)
+    alpha = np.zeros(k)  # the normal impulse the friction bound mu alpha uses [N s]
+    known = np.zeros(k, dtype=bool)  # alpha computed (this step or the last): stuck tangents may be released
+    if k:
+        cdof = contacts.dof[:, None] + np.arange(3)  # (k, 3) the contact vertices' DOFs (world x, y, z)
+        tdof, ndof = cdof[:, :2], cdof[:, 2]
+        A_c = A[cdof.ravel()]  # their rows: the reactions A z - b - F there
+        diag = data[ws.diag][contacts.dof]  # A_xx of each contact vertex: impulse -> velocity
+        if warm:
+            for i, vtx in enumerate(contacts.vertex):
+                st = warm.get(int(vtx))
+                if st is not None:
+                    normal[i], stick[i, 0], stick[i, 1], sign[i, 0], sign[i, 1], alpha[i] = st
+                    known[i] = True
+            if fric <= 0:
+                stick[:] = False
+
+    def reactions(z, F):  # (k, 3) A z - b - F on the contact vertices' DOFs
+        return (A_c @ z - (b + F)[cdof.ravel()]).reshape(k, 3)
+
     F = np.zeros(n)
     active = {}  # limit row -> bound it is held at
-    factor, key = None, None
-    mu = np.zeros(p)
-    alpha = np.zeros(k)
-    z = lam = r = None
+    mu_lim = np.zeros(p)
+    z = lam = rc = None
+    fixed, vals = np.zeros(0, np.int64), np.zeros(0)
+    dirty = True
     converged = False
     it = 0
-    for it in range(1, MAX_ITER + 1):
-        fixed, vals = _fixed(contacts, normal, stick) if k else (np.zeros(0, np.int64), np.zeros(0))
-        if k:  # sliding impulses from the current normal impulses (Eq. 12's bound mu alpha)
-            F[:] = 0.0
-            for c in range(2):
-                sl = normal & ~stick[:, c] & (contacts.mu > 0)
-                F[contacts.dof[sl] + c] = sign[sl, c] * contacts.mu * alpha[sl]
-        new_key = fixed.tobytes()
-        if factor is None or new_key != key:
-            factor, key = Factor(ws, _held(ws, data, fixed), labels), new_key
-        rhs = b + F
-        if len(fixed):
-            w = np.zeros(n)
-            w[fixed] = vals
-            rhs = rhs - A @ w
-            rhs[fixed] = vals
-        idx = np.fromiter(active, dtype=np.int64, count=len(active))
-        z, lam, muW = _schur(factor, rhs, n, n_r, G, g, C[idx] if len(idx) else None,
-                             np.array([active[i] for i in idx]), labels)
-        r = A @ z - b - F  # reactions on the held DOFs (elsewhere the skeleton rows' G^T lam, C^T mu or 0)
+    while it < MAX_ITER:
+        # friction stage (Eq. 12 with alpha fixed; normal working set and limit rows held): primal active set
+        # with descent on min 1/2 z^T A z - (b + N^T alpha)^T z + sum_j mu alpha_j |z_j| over the tangents
+        done = False
+        while it < MAX_ITER:
+            it += 1
+            if k:
+                if dirty:
+                    fixed, vals = _fixed(contacts, normal, stick)
+                    dirty = False
+                slide = normal[:, None] & ~stick if fric > 0 else np.zeros((k, 2), dtype=bool)
+                F[tdof] = np.where(slide, sign * (fric * alpha)[:, None], 0.0)  # the sub-problem's linear term
+            idx = np.fromiter(active, dtype=np.int64, count=len(active))
+            zs, lam, muW = hs.solve(fixed, vals, b + F, C[idx] if len(idx) else None,
+                                    np.array([active[i] for i in idx]), idx.tobytes())
+            if not k:
+                z = zs
+                done = True
+                break
+            zt_s = zs[tdof]
+            wrong = slide & (zt_s * sign > 0)  # moving along its friction impulse in the sub-problem
+            if z is None:  # first solve: the warm state's face; a wrong-way slider sticks (z_j = 0)
+                z = zs
+                if wrong.any():
+                    stick |= wrong
+                    z[tdof[wrong]] = 0.0
+                    dirty = True
+                    continue
+            elif wrong.any():  # exact line search to zs, stopping at the first slider that reaches 0
+                zt = z[tdof]
+                tj = np.full((k, 2), np.inf)
+                tj[wrong] = np.clip(zt[wrong] / (zt[wrong] - zt_s[wrong]), 0.0, 1.0)  # zt sign <= 0 < zt_s sign
+                tb = float(tj.min())
+                z += tb * (zs - z)
+                hit = wrong & ((tj <= tb) | (np.abs(z[tdof]) <= STICK_V))
+                stick |= hit
+                z[tdof[hit]] = 0.0
+                dirty = True
+                continue
+            else:
+                z = zs
+            rc = reactions(z, F)
+            if fric > 0:
+                held_t = normal[:, None] & stick & known[:, None]
+                if held_t.any():  # the stuck tangent whose reaction most exceeds its bound slides
+                    excess = np.where(held_t, np.abs(rc[:, :2]) - (fric * alpha)[:, None], -np.inf)
+                    j = np.unravel_index(int(np.argmax(excess)), excess.shape)
+                    if excess[j] > tol_imp:
+                        stick[j] = False
+                        sign[j] = np.sign(rc[j[0], j[1]])
+                        dirty = True
+                        continue
+            done = True
+            break
+        if not done:
+            break
+        # normal stage (Alg. 2 line 9, the friction impulses fixed): v_z >= lo with alpha >= 0; joint limits
         changed = False
-        mu = np.zeros(p)
-        mu[idx] = muW
+        mu_lim = np.zeros(p)
+        mu_lim[idx] = muW
         for j, i in enumerate(idx):  # limits: release rows whose multiplier pulls, hold violated ones
             lower = active[i] == lo[i]
             if (lower and muW[j] > tol_imp) or (not lower and muW[j] < -tol_imp):
                 del active[i]
-                mu[i] = 0.0
+                mu_lim[i] = 0.0
                 changed = True
         if p:
             Cv = C @ z[nf:]
@@ -181,30 +285,61 @@ def solve(ws: Workspace, data, b, n_r, G, g, C=None, lo=None, hi=None, contacts:
                     changed = True
         moved = 0.0
         if k:
-            ch, moved = _update_contacts(contacts, z, r, normal, stick, sign, alpha, data[ws.diag], tol_imp)
-            changed |= ch
+            a_new = rc[:, 2]
+            off = normal & (a_new < -tol_imp)  # the floor would pull: released
+            on = ~normal & (z[ndof] < contacts.lo - 1e-12)  # below the floor's bound: held
+            keep = normal & ~off
+            if fric > 0 and keep.any():  # Alg. 2 line 12: the velocity change the bound's change makes
+                moved = float((fric * np.abs(np.maximum(a_new[keep], 0.0) - alpha[keep]) / diag[keep]).max())
+            alpha[keep] = np.maximum(a_new[keep], 0.0)
+            known[keep] = True
+            if off.any():
+                normal[off] = False
+                stick[off] = False
+                sign[off] = 0.0
+                alpha[off] = 0.0
+                known[off] = False
+                changed = True
+            if on.any():  # new contacts slide along their tangential velocity (stick if it is ~0)
+                normal[on] = True
+                z[ndof[on]] = contacts.lo[on]
+                zt = z[tdof[on]]
+                stick[on] = (np.abs(zt) <= STICK_V) & (fric > 0)
+                sign[on] = np.where(stick[on], 0.0, -np.sign(zt))
+                z[tdof[on]] = np.where(stick[on], 0.0, zt)
+                alpha[on] = 0.0
+                known[on] = False
+                changed = True
+            dirty |= changed
         if not changed and moved <= TOL_V:
             converged = True
             break
+    if stats is not None:
+        stats["contact_iterations"] = it
+        stats["contact_factorisations"] = hs.factorisations
+        stats["contact_converged"] = converged
+    if not converged:
+        raise StepError(f"the floor contact solve of the deformables did not converge in {MAX_ITER} sub-problem "
+                        f"solves ({int(normal.sum())} vertices in contact, {int(stick.sum())} tangents stuck, "
+                        f"{hs.factorisations} factorisations)")
+    r = A @ z - b - F
     imp = np.zeros((k, 3))
     if k:
-        for c in range(3):
-            imp[:, c] = np.where(normal, r[contacts.dof + c], 0.0)
-        for c in range(2):
-            imp[:, c] = np.where(normal & ~stick[:, c], F[contacts.dof + c], imp[:, c])
+        imp[:, 2] = np.where(normal, r[ndof], 0.0)
+        imp[:, :2] = np.where(normal[:, None] & stick, r[tdof], np.where(normal[:, None], F[tdof], 0.0))
     res = r.copy()
     if k:
-        held = _fixed(contacts, normal, stick)[0]
-        res[held] = 0.0
+        res[_fixed(contacts, normal, stick)[0]] = 0.0
+    m = len(g)
     if m:
         res[nf:] += G.T @ lam
     if p:
-        res[nf:] += C.T @ mu
-    state = {int(v): (bool(normal[i]), bool(stick[i, 0]), bool(stick[i, 1]), float(sign[i, 0]), float(sign[i, 1]))
-             for i, v in enumerate(contacts.vertex) if normal[i]} if k else {}
+        res[nf:] += C.T @ mu_lim
+    state = {int(v): (bool(normal[i]), bool(stick[i, 0]), bool(stick[i, 1]), float(sign[i, 0]), float(sign[i, 1]),
+                      float(alpha[i])) for i, v in enumerate(contacts.vertex) if normal[i]} if k else {}
     viol = float(np.abs(G @ z[nf:] - g).max()) if m else 0.0
-    return CoupledSolution(z, lam, mu, it, viol, float(np.linalg.norm(res) / max(np.linalg.norm(b), 1e-300)), imp,
-                           state, converged)
+    return CoupledSolution(z, lam, mu_lim, it, viol, float(np.linalg.norm(res) / max(np.linalg.norm(b), 1e-300)),
+                           imp, state, converged, hs.factorisations, TOL_V * diag if k else np.zeros(0))
 
 
 def _fixed(contacts, normal, stick):
@@ -219,66 +354,3 @@ def _fixed(contacts, normal, stick):
     v = np.concatenate(vals)
     o = np.argsort(d)
     return d[o], v[o]
-
-
-def _update_contacts(contacts, z, r, normal, stick, sign, alpha, diag, tol_imp):
-    """One projection of every contact vertex's state (module docstring); updates the arrays in place and
-    returns (whether a held set changed, the largest velocity change |delta F| / A_pp of the sliding impulses)."""
-    changed = False
-    moved = 0.0
-    mu = contacts.mu
-    for i in range(len(contacts.dof)):
-        d = contacts.dof[i]
-        if not normal[i]:
-            if z[d + 2] < contacts.lo[i] - 1e-12:
-                normal[i] = True
-                stick[i] = mu > 0
-                alpha[i] = 0.0
-                changed = True
-            continue
-        a = r[d + 2]
-        if a < -tol_imp:  # the floor would pull: release the vertex
-            normal[i] = False
-            stick[i] = False
-            sign[i] = 0.0
-            alpha[i] = 0.0
-            changed = True
-            continue
-        a = max(a, 0.0)
-        if mu > 0:
-            for c in range(2):
-                if stick[i, c]:
-                    beta = r[d + c]
-                    if abs(beta) > mu * a + tol_imp:  # the cone cannot hold it: slide
-                        stick[i, c] = False
-                        sign[i, c] = np.sign(beta)
-                        changed = True
-                elif z[d + c] * sign[i, c] > 1e-12:  # moving along the friction impulse: it overshot, stick
-                    stick[i, c] = True
-                    changed = True
-                else:
-                    moved = max(moved, abs(mu * (a - alpha[i])) / diag[d + c])
-        alpha[i] = a
-    return changed, moved
-
-
-def _schur(factor, rhs, n, n_r, G, g, W, w, labels):
-    """z = A^-1 (rhs - [0; G^T lam] - [0; W^T mu]) with G z_r = g and W z_r = w (the Schur complement of the
-    skeleton rows; A^-1 through ``factor``)."""
-    z0 = factor.solve(rhs)
-    rows = G if W is None else np.vstack([G, W])
-    vals = g if W is None else np.concatenate([g, w])
-    if not len(vals):
-        return z0, np.zeros(len(g)), np.zeros(0 if W is None else len(w))
-    nf = n - n_r
-    Gt = np.zeros((n, len(vals)))
-    Gt[nf:] = rows.T
-    Y = factor.solve(Gt)
-    S = rows @ Y[nf:]
-    try:
-        lm = np.linalg.solve(S, rows @ z0[nf:] - vals)
-    except np.linalg.LinAlgError:
-        raise StepError("the skeleton's rows are redundant or conflicting in the coupled solve "
-                        f"(among: {', '.join(sorted(set(labels))[:6])})") from None
-    z = z0 - Y @ lm
-    return z, lm[:len(g)], lm[len(g):]

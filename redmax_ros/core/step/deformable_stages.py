@@ -196,8 +196,9 @@ def coupled_velocity(mech, ws, dm, state, ds, cmd, tau, h, timing=None):
                                         cons.g[rows] / coef)
     sol = coupled.solve(cws, buf["data"], buf["b"], n_r, G[rest], cons.g[rest],
                               C, cons.lo if C is not None else None, cons.hi if C is not None else None, contacts,
-                              ws.cache.get("deformable_contacts"), [labs[i] for i in rest] + dm.attach.labels)
-    ws.cache["deformable_contacts"] = sol.contact_state
+                              _warm_contacts(ws, ds), [labs[i] for i in rest] + dm.attach.labels,
+                              stats=timing)
+    ws.cache[_CONTACTS] = (None, sol.contact_state)  # keyed to the DeformState the step ends in, by step()
     lam, violation = np.empty(cons.m), sol.violation
     lam[rest] = sol.lam
     if len(rows):  # A z + G^T lam = b on a held DOF: lam = (b_j - (A z)_j) / c
@@ -218,6 +219,16 @@ def coupled_velocity(mech, ws, dm, state, ds, cmd, tau, h, timing=None):
     vs = VelocitySolve(s, cons.joint_rows, cons.site_rows,
                        cons.G[cons.loop_rows] if len(mech.loop_ab) else None, violation, "coupled", sol.iterations)
     return vs, v_d.reshape(-1, 3)
+
+
+_CONTACTS = "deformable contacts"  # ws.cache: (the DeformState they were found for, contact states by vertex)
+
+
+def _warm_contacts(ws, ds):
+    """The floor contacts' states (coupled.solve's warm start) of the step that ended in ``ds``, or None: after
+    a reset, a set_state or a load a step solves as a fresh run from that state does."""
+    hit = ws.cache.get(_CONTACTS)
+    return hit[1] if hit is not None and hit[0] is ds else None
 
 
 _PREFILLED = "deformable system filled"  # ws.cache: (the DeformState whose A_d, b_d are in the buffers, h)
@@ -323,6 +334,7 @@ def step(mech, ws, dm, state, cmd, h, timing=None):
         raise StepError("non-finite deformable positions after the step")
     ek, ep, es = energies(mech, ws, q_new, v_new)
     ds_new = DeformState.of(x_new, v_d)
+    ws.cache[_CONTACTS] = (ds_new, ws.cache[_CONTACTS][1])
     t1 = time.perf_counter()
     dk, dg, de = dm.energies(ds_new.x, ds_new.v, _prefill(ws, dm, ds_new, h))  # the next step's A_d, b_d
     if timing is not None:
