@@ -18,7 +18,8 @@ from redmax_ros.core.scene.registry import int_param, register_builder, take
 
 DEFAULTS = {"radius": 0.25, "core": 0.05, "width": 0.06, "thickness": 0.04, "cell": 0.028, "layers": 1,
             "young": 5.0e4, "poisson": 0.3, "density": 1000.0, "beta": 0.005, "bone_density": 400.0,
-            "amplitude": 0.35, "frequency": 0.5, "stiffness": 0.3, "damping": 0.02, "mu": 0.8}
+            "amplitude": 0.35, "frequency": 0.5, "stiffness": 0.3, "damping": 0.02, "mu": 0.8,
+            "sweep": 0.0, "lag": math.pi / 2, "heading": 0.0}
 TYPES = ("universal", "revolute", "universal", "revolute")
 
 
@@ -73,8 +74,13 @@ def starfish(params: dict) -> dict:
                 j["axis"] = "y"
             joints.append(j)
             parent, pos, rpy = body, [ls / 2, 0, 0], [0, 0, 0]
+        # sweep (the universal joint's second axis, z): amplitude scaled by the arm's tangent along the heading,
+        # so the strokes push along it and cancel in torque; it leads the lift by ``lag``
+        c = float(p["sweep"]) * -math.sin(phi - float(p["heading"]))
+        sweep = 0.0 if c == 0.0 else {"type": "sine", "amplitude": c, "frequency": p["frequency"],
+                                      "phase": phi + float(p["lag"])}
         gait[f"arm{a}_j0"] = {"position": [{"type": "sine", "amplitude": p["amplitude"], "frequency": p["frequency"],
-                                            "phase": phi}, 0.0], "b": 5.0}
+                                            "phase": phi}, sweep], "b": 5.0}
     attachments = [{"body": b["name"], "inside": True} for b in bodies]
     return {
         "name": "starfish",

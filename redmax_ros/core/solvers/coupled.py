@@ -58,7 +58,8 @@ class CoupledSolution:
     violation: float  # max |G qdot_r - g|
     residual: float  # stationarity |A z + G^T lam + C^T mu - b - F - R| / |b|
     contact_impulse: np.ndarray  # (k,3) floor impulses on the contact vertices (beta_x, beta_y, alpha) [N s]
-    contact_state: dict = field(default_factory=dict)  # vertex -> (normal, stick_x, stick_y, sign_x, sign_y, alpha)
+    # vertex -> (normal, stick_x, stick_y, sign_x, sign_y, alpha, the last step's alpha or None) [N s]
+    contact_state: dict = field(default_factory=dict)
     converged: bool = True
     factorisations: int = 0  # LDL^T factorisations of the reduced matrix this solve
     contact_tol: np.ndarray | None = None  # (k,) [N s] |beta| <= mu alpha + contact_tol: the loop's TOL_V A_jj
@@ -118,50 +119,114 @@ def _held(ws, data, fixed_dofs):
 
 
 class _HeldSystem:
-    """The reduced system with a set of DOFs held at given velocities (identity rows, ``_held``) and the
-    skeleton rows taken by the Schur complement S = W A_H^-1 W^T (W = [G; active limit rows]). The LDL^T of
-    A_H is recomputed only when the held set changes (``factorisations`` counts them); A u (the held
-    velocities' column terms), A_H^-1 W^T and S^-1 are kept while neither the held set nor the limit rows change."""
+    """The reduced system with a set H of DOFs held at given velocities and the skeleton rows W = [G; active
+    limit rows] W z_r = w by multipliers. One LDL^T per *base* held set H0 (identity rows, ``_held``;
+    ``factorisations`` counts them); a held set H that differs from H0 by a few DOFs (added: held now, free in
+    H0; released: free now, held in H0) is solved on the base factor by a small capacitance system instead of a
+    new factorisation (Woodbury / bordered system, Golub & Van Loan §2.1.4): with A~0 the base matrix,
+
+        z = z0 - Y0 lam + sum_a w_a mu_a + sum_j u_j y_j,    z0 = A~0^-1 f0,  Y0 = A~0^-1 W^T,
+        w_a = A~0^-1 e_a (a added, mu_a its reaction),    u_j = e_j - A~0^-1 P0 A e_j (j released, y_j = z_j - v_j),
+
+    P0 the projection off H0, and the multipliers from W z_r = w, z_a = v_a, (A z)_j = rhs_j: one base solve per
+    changed DOF (kept while the base stands). The base is refactorised when more than MAX_CHANGES DOFs differ."""
+
+    MAX_CHANGES = 12
 
     def __init__(self, ws, data, n_r, G, g, labels):
         self.ws, self.data, self.n, self.nf = ws, data, ws.n, ws.n - n_r
         self.G, self.g, self.labels = G, g, labels
         self.A = sp.csr_matrix((data, ws.indices, ws.indptr), shape=(ws.n, ws.n))
-        self.factor, self.key, self.schur_key = None, None, None
+        self.factor = None
         self.factorisations = 0
+        self.rows = np.zeros((0, n_r))
+
+    def _rebase(self, fixed, vals):
+        self.factor = Factor(self.ws, _held(self.ws, self.data, fixed), self.labels)
+        self.factorisations += 1
+        self.H0, self.v0 = fixed, vals
+        self.in_h0 = np.zeros(self.n, dtype=bool)
+        self.in_h0[fixed] = True
+        u = np.zeros(self.n)
+        u[fixed] = vals
+        self.Au = self.A @ u if len(fixed) else None
+        self.cols = {}  # ("add" | "rel", dof) -> column of the bordered system on this base
+        self.key = None
+        self.rows_a = {}  # dof -> dense row of A
+        self.schur_key = None
+
+    def _row(self, j):
+        r = self.rows_a.get(j)
+        if r is None:
+            a, e = self.ws.indptr[j], self.ws.indptr[j + 1]
+            r = np.zeros(self.n)
+            r[self.ws.indices[a:e]] = self.data[a:e]
+            self.rows_a[j] = r
+        return r
+
+    def _col(self, kind, j):
+        c = self.cols.get((kind, j))
+        if c is None:
+            if kind == "add":
+                e = np.zeros(self.n)
+                e[j] = 1.0
+                c = self.factor.solve(e)
+            else:
+                a = self._row(j).copy()  # A e_j (A symmetric), off H0
+                a[self.in_h0] = 0.0
+                c = -self.factor.solve(a)
+                c[j] += 1.0
+            self.cols[(kind, j)] = c
+        return c
 
     def solve(self, fixed, vals, rhs, W, w, wkey):
-        """(z, lam, mu_W): A z + [0; G^T lam + W^T mu_W] = rhs with z[fixed] = vals, G z_r = g, W z_r = w."""
-        key = fixed.tobytes() + vals.tobytes()
-        if self.factor is None or key != self.key:
-            self.factor, self.key = Factor(self.ws, _held(self.ws, self.data, fixed), self.labels), key
-            self.factorisations += 1
-            self.schur_key = None
-            u = np.zeros(self.n)
-            u[fixed] = vals
-            self.Au = self.A @ u if len(fixed) else None
-            self.fixed, self.vals = fixed, vals
+        """(z, lam, mu_W): A z + [0; G^T lam + W^T mu_W] = rhs on the DOFs off ``fixed``, z[fixed] = vals,
+        G z_r = g, W z_r = w. The bordered system is kept while ``fixed`` and ``wkey`` (the limit rows) stand."""
+        key = (fixed.tobytes(), wkey)
+        if self.factor is None:
+            self._rebase(fixed, vals)
+        if key != self.key:
+            in_h = np.zeros(self.n, dtype=bool)
+            in_h[fixed] = True
+            sel = ~self.in_h0[fixed]
+            add, v_add = fixed[sel], vals[sel]
+            rel = self.H0[~in_h[self.H0]]
+            if len(add) + len(rel) > self.MAX_CHANGES:
+                self._rebase(fixed, vals)
+                add, v_add, rel = fixed[:0], vals[:0], fixed[:0]
+            nw = len(self.g) + (0 if W is None else len(W))
+            if self.schur_key != wkey:
+                self.rows = self.G if W is None else np.vstack([self.G, W])
+                Gt = np.zeros((self.n, nw))
+                Gt[self.nf:] = self.rows.T
+                self.Y = self.factor.solve(Gt) if nw else np.zeros((self.n, 0))
+                self.schur_key = wkey
+            self.add, self.v_add, self.rel, self.nw = add, v_add, rel, nw
+            if nw or len(add) or len(rel):
+                self.Z = np.column_stack([-self.Y] + [self._col("add", int(a)) for a in add]
+                                         + [self._col("rel", int(j)) for j in rel])
+                self.R = np.array([self._row(int(j)) for j in rel]).reshape(len(rel), self.n)
+                try:
+                    self.Kinv = np.linalg.inv(self._border(self.Z))
+                except np.linalg.LinAlgError:
+                    raise StepError("the skeleton's rows (or held contact DOFs) are redundant or conflicting in "
+                                    f"the coupled solve (among: {', '.join(sorted(set(self.labels))[:6])})") from None
+            self.key = key
+        f0 = rhs
         if self.Au is not None:
-            rhs = rhs - self.Au
-            rhs[self.fixed] = self.vals
-        z0 = self.factor.solve(rhs)
+            f0 = rhs - self.Au
+            f0[self.H0] = self.v0
+        z0 = self.factor.solve(f0)
         m = len(self.g)
-        if not m and W is None:
+        if not self.nw and not len(self.add) and not len(self.rel):
             return z0, np.zeros(0), np.zeros(0)
-        if self.schur_key != wkey:
-            rows = self.G if W is None else np.vstack([self.G, W])
-            Gt = np.zeros((self.n, len(rows)))
-            Gt[self.nf:] = rows.T
-            Y = self.factor.solve(Gt)
-            try:
-                Sinv = np.linalg.inv(rows @ Y[self.nf:])
-            except np.linalg.LinAlgError:
-                raise StepError("the skeleton's rows are redundant or conflicting in the coupled solve "
-                                f"(among: {', '.join(sorted(set(self.labels))[:6])})") from None
-            self.rows, self.Y, self.Sinv, self.schur_key = rows, Y, Sinv, wkey
-        vals_w = self.g if W is None else np.concatenate([self.g, w])
-        lm = self.Sinv @ (self.rows @ z0[self.nf:] - vals_w)
-        return z0 - self.Y @ lm, lm[:m], lm[m:]
+        beta = np.concatenate([self.g if W is None else np.concatenate([self.g, w]), self.v_add, rhs[self.rel]])
+        c = self.Kinv @ (beta - self._border(z0))
+        return z0 + self.Z @ c, c[:m], c[m:self.nw]
+
+    def _border(self, X):
+        """The bordered rows applied to X: W X_r, X on the added DOFs, A X on the released ones."""
+        return np.concatenate([self.rows @ X[self.nf:], X[self.add], self.R @ X])
 
 
 def solve(ws: Workspace, data, b, n_r, G, g, C=None, lo=None, hi=None, contacts: VertexContacts | None = None,
@@ -181,51 +246,65 @@ def solve(ws: Workspace, data, b, n_r, G, g, C=None, lo=None, hi=None, contacts:
     hs = _HeldSystem(ws, data, n_r, G, g, labels)
     A = hs.A
     fric = 0.0 if contacts is None else float(contacts.mu)
+    # contact state; the tangents are flat, slot 2 i + c for vertex i, world axis c (x, y)
     normal = np.zeros(k, dtype=bool)  # v_z = lo held (alpha >= 0)
-    stick = np.zeros((k, 2), dtype=bool)  # tangent held at 0 (|beta| <= mu alpha)
-    sign = np.zeros((k, 2))  # sign of a sliding tangent's friction impulse (its velocity has the other sign)
+    stick = np.zeros(2 * k, dtype=bool)  # tangent held at 0 (|beta| <= mu alpha)
+    sign = np.zeros(2 * k)  # sign of a sliding tangent's friction impulse (its velocity has the other sign)
     alpha = np.zeros(k)  # the normal impulse the friction bound mu alpha uses [N s]
     known = np.zeros(k, dtype=bool)  # alpha computed (this step or the last): stuck tangents may be released
+    prev = np.full(k, np.nan)  # the last step's normal impulse of the contacts it had
     if k:
-        cdof = contacts.dof[:, None] + np.arange(3)  # (k, 3) the contact vertices' DOFs (world x, y, z)
-        tdof, ndof = cdof[:, :2], cdof[:, 2]
-        A_c = A[cdof.ravel()]  # their rows: the reactions A z - b - F there
+        ndof = contacts.dof + 2
+        tdof = (contacts.dof[:, None] + np.arange(2)).ravel()
+        cdof = (contacts.dof[:, None] + np.arange(3)).ravel()  # the contact vertices' DOFs (x, y, z)
+        a0, a1 = ws.indptr[cdof], ws.indptr[cdof + 1]  # their CSR rows, gathered once: the reactions there
+        lens = a1 - a0
+        c_start = np.concatenate([[0], np.cumsum(lens)[:-1]])
+        pos = np.repeat(a0 - c_start, lens) + np.arange(lens.sum())
+        c_val, c_col = data[pos], ws.indices[pos]
         diag = data[ws.diag][contacts.dof]  # A_xx of each contact vertex: impulse -> velocity
         if warm:
             for i, vtx in enumerate(contacts.vertex):
                 st = warm.get(int(vtx))
-                if st is not None:
-                    normal[i], stick[i, 0], stick[i, 1], sign[i, 0], sign[i, 1], alpha[i] = st
+                if st is not None:  # alpha extrapolated from the last two steps' (when both had the contact)
+                    normal[i], stick[2 * i], stick[2 * i + 1], sign[2 * i], sign[2 * i + 1], a1, a2 = st
+                    alpha[i] = a1 if a2 is None else max(2.0 * a1 - a2, 0.0)
                     known[i] = True
+                    prev[i] = a1
             if fric <= 0:
                 stick[:] = False
 
     def reactions(z, F):  # (k, 3) A z - b - F on the contact vertices' DOFs
-        return (A_c @ z - (b + F)[cdof.ravel()]).reshape(k, 3)
+        return (np.add.reduceat(c_val * z[c_col], c_start) - b[cdof] - F[cdof]).reshape(k, 3)
 
     F = np.zeros(n)
     active = {}  # limit row -> bound it is held at
+    idx, wvals, wkey = np.zeros(0, np.int64), np.zeros(0), b""
     mu_lim = np.zeros(p)
-    z = lam = rc = None
+    z = lam = muW = rc = None
     fixed, vals = np.zeros(0, np.int64), np.zeros(0)
+    slide = n2 = np.zeros(2 * k, dtype=bool)
     dirty = True
+    face = 0  # counts the friction stage's state changes (the Anderson history below is per state)
+    hist = None
     converged = False
     it = 0
     while it < MAX_ITER:
         # friction stage (Eq. 12 with alpha fixed; normal working set and limit rows held): primal active set
         # with descent on min 1/2 z^T A z - (b + N^T alpha)^T z + sum_j mu alpha_j |z_j| over the tangents
+        bound = np.repeat(fric * alpha, 2)
         done = False
         while it < MAX_ITER:
             it += 1
             if k:
                 if dirty:
                     fixed, vals = _fixed(contacts, normal, stick)
+                    n2 = np.repeat(normal, 2)
+                    if fric > 0:
+                        slide = n2 & ~stick
                     dirty = False
-                slide = normal[:, None] & ~stick if fric > 0 else np.zeros((k, 2), dtype=bool)
-                F[tdof] = np.where(slide, sign * (fric * alpha)[:, None], 0.0)  # the sub-problem's linear term
-            idx = np.fromiter(active, dtype=np.int64, count=len(active))
-            zs, lam, muW = hs.solve(fixed, vals, b + F, C[idx] if len(idx) else None,
-                                    np.array([active[i] for i in idx]), idx.tobytes())
+                F[tdof] = np.where(slide, sign * bound, 0.0)  # the sub-problem's linear term
+            zs, lam, muW = hs.solve(fixed, vals, b + F, C[idx] if len(idx) else None, wvals, wkey)
             if not k:
                 z = zs
                 done = True
@@ -238,10 +317,11 @@ def solve(ws: Workspace, data, b, n_r, G, g, C=None, lo=None, hi=None, contacts:
                     stick |= wrong
                     z[tdof[wrong]] = 0.0
                     dirty = True
+                    face += 1
                     continue
             elif wrong.any():  # exact line search to zs, stopping at the first slider that reaches 0
                 zt = z[tdof]
-                tj = np.full((k, 2), np.inf)
+                tj = np.full(2 * k, np.inf)
                 tj[wrong] = np.clip(zt[wrong] / (zt[wrong] - zt_s[wrong]), 0.0, 1.0)  # zt sign <= 0 < zt_s sign
                 tb = float(tj.min())
                 z += tb * (zs - z)
@@ -249,19 +329,22 @@ def solve(ws: Workspace, data, b, n_r, G, g, C=None, lo=None, hi=None, contacts:
                 stick |= hit
                 z[tdof[hit]] = 0.0
                 dirty = True
+                face += 1
                 continue
             else:
                 z = zs
             rc = reactions(z, F)
             if fric > 0:
-                held_t = normal[:, None] & stick & known[:, None]
+                held_t = stick & n2 & np.repeat(known, 2)
                 if held_t.any():  # the stuck tangent whose reaction most exceeds its bound slides
-                    excess = np.where(held_t, np.abs(rc[:, :2]) - (fric * alpha)[:, None], -np.inf)
-                    j = np.unravel_index(int(np.argmax(excess)), excess.shape)
+                    rt = rc[:, :2].ravel()
+                    excess = np.where(held_t, np.abs(rt) - bound, -np.inf)
+                    j = int(np.argmax(excess))
                     if excess[j] > tol_imp:
                         stick[j] = False
-                        sign[j] = np.sign(rc[j[0], j[1]])
+                        sign[j] = np.sign(rt[j])
                         dirty = True
+                        face += 1
                         continue
             done = True
             break
@@ -269,44 +352,68 @@ def solve(ws: Workspace, data, b, n_r, G, g, C=None, lo=None, hi=None, contacts:
             break
         # normal stage (Alg. 2 line 9, the friction impulses fixed): v_z >= lo with alpha >= 0; joint limits
         changed = False
-        mu_lim = np.zeros(p)
-        mu_lim[idx] = muW
-        for j, i in enumerate(idx):  # limits: release rows whose multiplier pulls, hold violated ones
-            lower = active[i] == lo[i]
-            if (lower and muW[j] > tol_imp) or (not lower and muW[j] < -tol_imp):
-                del active[i]
-                mu_lim[i] = 0.0
-                changed = True
         if p:
+            mu_lim = np.zeros(p)
+            mu_lim[idx] = muW
+            for j, i in enumerate(idx):  # limits: release rows whose multiplier pulls, hold violated ones
+                lower = active[i] == lo[i]
+                if (lower and muW[j] > tol_imp) or (not lower and muW[j] < -tol_imp):
+                    del active[i]
+                    mu_lim[i] = 0.0
+                    changed = True
             Cv = C @ z[nf:]
             for i in np.nonzero((Cv < lo - 1e-12) | (Cv > hi + 1e-12))[0]:
                 if i not in active:
                     active[int(i)] = lo[i] if Cv[i] < lo[i] else hi[i]
                     changed = True
+            if changed:
+                idx = np.fromiter(active, dtype=np.int64, count=len(active))
+                wvals, wkey = np.array([active[i] for i in idx]), idx.tobytes()
         moved = 0.0
         if k:
             a_new = rc[:, 2]
             off = normal & (a_new < -tol_imp)  # the floor would pull: released
             on = ~normal & (z[ndof] < contacts.lo - 1e-12)  # below the floor's bound: held
             keep = normal & ~off
-            if fric > 0 and keep.any():  # Alg. 2 line 12: the velocity change the bound's change makes
-                moved = float((fric * np.abs(np.maximum(a_new[keep], 0.0) - alpha[keep]) / diag[keep]).max())
-            alpha[keep] = np.maximum(a_new[keep], 0.0)
+            a_new = np.maximum(a_new, 0.0)
+            if fric > 0:  # Alg. 2 line 12: the velocity change the bound's change makes on the sliding tangents
+                sl = keep & ~(stick[0::2] & stick[1::2])
+                if sl.any():
+                    moved = float((fric * np.abs(a_new[sl] - alpha[sl]) / diag[sl]).max())
+                # a stuck tangent is unaffected by its bound unless the new bound no longer holds it
+                held_t = stick & np.repeat(keep, 2)
+                if held_t.any() and (np.abs(rc[:, :2].ravel()) - np.repeat(fric * a_new, 2))[held_t].max() > tol_imp:
+                    changed = True
+            nxt = a_new.copy()
+            if fric > 0 and not off.any() and not on.any():  # Anderson(1) on the fixed point alpha = G(alpha)
+                res_k = fric * (a_new - alpha) / diag  # its residual as velocities [m/s]
+                if hist is not None and hist[2] == face and hist[3] == keep.tobytes():
+                    dr = res_k - hist[1]
+                    dd = float(dr @ dr)
+                    if dd > 0.0:
+                        nxt = np.maximum(a_new - (float(res_k @ dr) / dd) * (a_new - hist[0]), 0.0)
+                hist = (a_new, res_k, face, keep.tobytes())
+            else:
+                hist = None
+            alpha[keep] = nxt[keep]
             known[keep] = True
             if off.any():
                 normal[off] = False
-                stick[off] = False
-                sign[off] = 0.0
+                off2 = np.repeat(off, 2)
+                stick[off2] = False
+                sign[off2] = 0.0
                 alpha[off] = 0.0
                 known[off] = False
                 changed = True
             if on.any():  # new contacts slide along their tangential velocity (stick if it is ~0)
                 normal[on] = True
                 z[ndof[on]] = contacts.lo[on]
-                zt = z[tdof[on]]
-                stick[on] = (np.abs(zt) <= STICK_V) & (fric > 0)
-                sign[on] = np.where(stick[on], 0.0, -np.sign(zt))
-                z[tdof[on]] = np.where(stick[on], 0.0, zt)
+                on2 = np.repeat(on, 2)
+                zt = z[tdof[on2]]
+                st = (np.abs(zt) <= STICK_V) & (fric > 0)
+                stick[on2] = st
+                sign[on2] = np.where(st, 0.0, -np.sign(zt))
+                z[tdof[on2]] = np.where(st, 0.0, zt)
                 alpha[on] = 0.0
                 known[on] = False
                 changed = True
@@ -325,8 +432,10 @@ def solve(ws: Workspace, data, b, n_r, G, g, C=None, lo=None, hi=None, contacts:
     r = A @ z - b - F
     imp = np.zeros((k, 3))
     if k:
+        stick2 = stick.reshape(k, 2)
         imp[:, 2] = np.where(normal, r[ndof], 0.0)
-        imp[:, :2] = np.where(normal[:, None] & stick, r[tdof], np.where(normal[:, None], F[tdof], 0.0))
+        rt, Ft = r[tdof].reshape(k, 2), F[tdof].reshape(k, 2)
+        imp[:, :2] = np.where(normal[:, None] & stick2, rt, np.where(normal[:, None], Ft, 0.0))
     res = r.copy()
     if k:
         res[_fixed(contacts, normal, stick)[0]] = 0.0
@@ -335,22 +444,19 @@ def solve(ws: Workspace, data, b, n_r, G, g, C=None, lo=None, hi=None, contacts:
         res[nf:] += G.T @ lam
     if p:
         res[nf:] += C.T @ mu_lim
-    state = {int(v): (bool(normal[i]), bool(stick[i, 0]), bool(stick[i, 1]), float(sign[i, 0]), float(sign[i, 1]),
-                      float(alpha[i])) for i, v in enumerate(contacts.vertex) if normal[i]} if k else {}
+    state = {int(v): (True, bool(stick[2 * i]), bool(stick[2 * i + 1]), float(sign[2 * i]), float(sign[2 * i + 1]),
+                      max(float(imp[i, 2]), 0.0), None if np.isnan(prev[i]) else float(prev[i]))
+             for i, v in enumerate(contacts.vertex) if normal[i]} if k else {}
     viol = float(np.abs(G @ z[nf:] - g).max()) if m else 0.0
     return CoupledSolution(z, lam, mu_lim, it, viol, float(np.linalg.norm(res) / max(np.linalg.norm(b), 1e-300)),
                            imp, state, converged, hs.factorisations, TOL_V * diag if k else np.zeros(0))
 
 
 def _fixed(contacts, normal, stick):
-    """(held DOFs (sorted), their velocities): v_z = lo for a held normal, v_x / v_y = 0 for a sticking tangent."""
-    dofs = [contacts.dof[normal] + 2]
-    vals = [contacts.lo[normal]]
-    for c in range(2):
-        s = normal & stick[:, c]
-        dofs.append(contacts.dof[s] + c)
-        vals.append(np.zeros(int(s.sum())))
-    d = np.concatenate(dofs).astype(np.int64)
-    v = np.concatenate(vals)
+    """(held DOFs (sorted), their velocities): v_z = lo for a held normal, v_x / v_y = 0 for a sticking tangent
+    (``stick`` flat, slot 2 i + c)."""
+    st = stick & np.repeat(normal, 2)
+    d = np.concatenate([contacts.dof[normal] + 2, (contacts.dof[:, None] + np.arange(2)).ravel()[st]])
+    v = np.concatenate([contacts.lo[normal], np.zeros(int(st.sum()))])
     o = np.argsort(d)
-    return d[o], v[o]
+    return d[o].astype(np.int64), v[o]
