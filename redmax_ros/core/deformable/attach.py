@@ -9,6 +9,8 @@ from __future__ import annotations
 import numpy as np
 import scipy.sparse as sp
 
+from redmax_ros.core.jit import njit
+
 
 def skew(a):
     return np.array([[0.0, -a[2], a[1]], [a[2], 0.0, -a[0]], [-a[1], a[0], 0.0]])
@@ -17,6 +19,28 @@ def skew(a):
 def body_point(c, R, local):
     """World point of a body-frame offset ``local`` (frame origin c, rotation R)."""
     return c + R @ local
+
+
+def world_points(H, body, local) -> np.ndarray:
+    """(a,3) world points [m] of the attachments: H (J,4,4) the joint placements (homogeneous, world frame),
+    body (a,) the joint of each attachment (-1: a world point), local (a,3) the point in that joint's frame (or
+    in the world)."""
+    out = np.empty((len(body), 3))
+    world_points_kernel(np.ascontiguousarray(H, dtype=float), np.asarray(body, dtype=np.int64),
+                        np.ascontiguousarray(local, dtype=float), out)
+    return out
+
+
+@njit
+def world_points_kernel(H, body, local, out):
+    for k in range(len(body)):
+        j = body[k]
+        if j < 0:
+            for i in range(3):
+                out[k, i] = local[k, i]
+        else:
+            for i in range(3):
+                out[k, i] = H[j, i, 3] + H[j, i, 0] * local[k, 0] + H[j, i, 1] * local[k, 1] + H[j, i, 2] * local[k, 2]
 
 
 def point_jacobian(p, c, J_lin, J_ang):

@@ -14,9 +14,10 @@ with the skeleton's rows (loops, prescriptions, joint limits) on qdot_r unchange
 coupled KKT system's. The attachment rows hold exactly (v_a = E qdot_r + t), and the system is symmetric and
 half the size of the KKT matrix with its 3a attachment rows.
 
-The reduced matrix's pattern is fixed by the mesh topology (a Reduction, built once per A_d pattern): free-free
-entries of A_d; a dense row segment over the n_r skeleton columns for every free DOF next to an attached vertex
-(the "adjacent" DOFs); and the dense skeleton block. ``fill`` writes one step's values into it in one compiled
+The reduced matrix's pattern is fixed by the mesh topology and the skeleton's chains (a Reduction, built once
+per A_d pattern): free-free entries of A_d; for every free DOF next to an attached vertex (the "adjacent" DOFs) a
+row segment over the skeleton DOFs that move those vertices (their bodies' supports); and the dense skeleton
+block. ``fill`` writes one step's values into it in one compiled
 call.
 """
 from __future__ import annotations
@@ -36,9 +37,12 @@ class Reduction:
     ``free``: (n_f,) free vertex indices, in order (free DOF p = 3 k + c of free vertex free[k]);
     ``indptr``, ``indices``: the reduced CSR pattern (n = 3 n_f + n_r, columns sorted, the skeleton last);
     ``pos``: (nnz(A_d),) position in the reduced data of every free-free entry of A_d, -1 otherwise;
-    ``skel_start``: (3 n_f,) position of a free row's first skeleton column, -1 where the row has none;
-    ``adj_rank``: (3 n_f,) rank of a free DOF among the adjacent ones (the free columns of every skeleton
-    row), -1 where not adjacent."""
+    ``adj_rank``: (3 n_f,) rank of a free DOF among the adjacent ones (free DOFs coupled by A_d to an attached
+    vertex), -1 where not adjacent;
+    ``fs_pos``, ``sf_pos``: (n_adj, n_r) positions in the reduced data of the entries (adjacent free DOF,
+    skeleton DOF k) and (skeleton DOF k, adjacent free DOF), -1 where k moves none of the attached vertices
+    next to that free DOF (the entry is structurally zero and not stored);
+    ``sk_start``: (n_r,) position of skeleton row k's first skeleton column (the skeleton block is dense)."""
     n_r: int
     n_free: int  # 3 n_f
     dof: np.ndarray
@@ -46,8 +50,10 @@ class Reduction:
     indptr: np.ndarray
     indices: np.ndarray
     pos: np.ndarray
-    skel_start: np.ndarray
     adj_rank: np.ndarray
+    fs_pos: np.ndarray
+    sf_pos: np.ndarray
+    sk_start: np.ndarray
     att_dof: np.ndarray  # (3a,) the A_d DOF of row r of E
     ad_indptr: np.ndarray  # the A_d pattern it was built for
     ad_indices: np.ndarray
@@ -57,12 +63,17 @@ class Reduction:
         return self.n_free + self.n_r
 
 
-def build(ad_indptr, ad_indices, n_vertices: int, attached, n_r: int) -> Reduction:
+def build(ad_indptr, ad_indices, n_vertices: int, attached, n_r: int, support=None) -> Reduction:
     """The Reduction of an A_d CSR pattern (3N x 3N, sorted column indices) with the ``attached`` vertices
-    (their order = the attachment order: vertex attached[k] is rows 3k..3k+2 of E) and n_r skeleton DOFs."""
+    (their order = the attachment order: vertex attached[k] is rows 3k..3k+2 of E) and n_r skeleton DOFs.
+    ``support`` (a, n_r) bool: the skeleton DOFs that can move each attached vertex (the nonzero columns of its
+    rows of E); a free DOF next to attached vertices then couples to the union of their supports only (the
+    skeleton's chains), which keeps the factor of the reduced system sparse. None: every skeleton DOF."""
     ad_indptr = np.asarray(ad_indptr, dtype=np.int64)
     ad_indices = np.asarray(ad_indices, dtype=np.int64)
     attached = np.asarray(attached, dtype=np.int64)
+    support = (np.ones((len(attached), n_r), dtype=bool) if support is None
+               else np.asarray(support, dtype=bool).reshape(len(attached), n_r))
     dof = np.empty(3 * n_vertices, dtype=np.int64)
     is_att = np.zeros(n_vertices, dtype=bool)
     is_att[attached] = True
@@ -72,6 +83,7 @@ def build(ad_indptr, ad_indices, n_vertices: int, attached, n_r: int) -> Reducti
     for k, v in enumerate(attached):
         dof[3 * v:3 * v + 3] = -(3 * k + np.arange(3) + 1)
     nf3 = 3 * len(free)
+    reach = np.zeros((nf3, n_r), dtype=bool)  # skeleton DOFs coupled to each free DOF through attached ones
     adjacent = np.zeros(nf3, dtype=bool)
     rows = [[] for _ in range(nf3)]
     for i in range(3 * n_vertices):
@@ -82,22 +94,28 @@ def build(ad_indptr, ad_indices, n_vertices: int, attached, n_r: int) -> Reducti
                 rows[p].append(q)
             elif p >= 0 > q:
                 adjacent[p] = True
+                reach[p] |= support[(-q - 1) // 3]
     adj = np.nonzero(adjacent)[0]
     adj_rank = np.full(nf3, -1, dtype=np.int64)
     adj_rank[adj] = np.arange(len(adj))
-    skel = nf3 + np.arange(n_r)
+    fs_pos = np.full((len(adj), n_r), -1, dtype=np.int64)
+    sf_pos = np.full((len(adj), n_r), -1, dtype=np.int64)
+    sk_start = np.zeros(n_r, dtype=np.int64)
     indptr = [0]
     indices = []
-    skel_start = np.full(nf3, -1, dtype=np.int64)
     for p in range(nf3):
-        cols = sorted(set(rows[p]) | {p})
-        indices += cols
+        indices += sorted(set(rows[p]) | {p})
         if adjacent[p]:
-            skel_start[p] = len(indices)
-            indices += list(skel)
+            for k in np.nonzero(reach[p])[0]:
+                fs_pos[adj_rank[p], k] = len(indices)
+                indices.append(nf3 + int(k))
         indptr.append(len(indices))
-    for _ in range(n_r):
-        indices += list(adj) + list(skel)
+    for k in range(n_r):
+        for p in adj[reach[adj, k]]:
+            sf_pos[adj_rank[p], k] = len(indices)
+            indices.append(int(p))
+        sk_start[k] = len(indices)
+        indices += list(nf3 + np.arange(n_r))
         indptr.append(len(indices))
     indptr = np.asarray(indptr, dtype=np.int64)
     indices = np.asarray(indices, dtype=np.int64)
@@ -112,34 +130,39 @@ def build(ad_indptr, ad_indices, n_vertices: int, attached, n_r: int) -> Reducti
             if q >= 0:
                 pos[e] = indptr[p] + int(np.searchsorted(row, q))
     att_dof = (3 * attached[:, None] + np.arange(3)).ravel()
-    return Reduction(int(n_r), nf3, dof, free, indptr, indices, pos, skel_start, adj_rank, att_dof, ad_indptr,
-                     ad_indices)
+    return Reduction(int(n_r), nf3, dof, free, indptr, indices, pos, adj_rank, fs_pos, sf_pos, sk_start, att_dof,
+                     ad_indptr, ad_indices)
 
 
 def fill(red: Reduction, ad_data, b_d, E, t, A_r, b_r, data_out, b_out, work):
     """One step's reduced matrix values (into ``data_out``, red.indptr/indices layout) and right-hand side
-    (into ``b_out``): A_d's CSR values ``ad_data`` and b_d (3N,), E (3a, n_r) the attached points' Jacobians,
-    t (3a,) their offsets (v_a = E qdot_r + t), A_r (n_r, n_r), b_r (n_r,); ``work`` (3a, n_r) scratch."""
+    (into ``b_out``): A_d's CSR values ``ad_data`` and b_d (3N,), E (3a, n_r) the attached points' Jacobians
+    (nonzero only on the support ``build`` was given), t (3a,) their offsets (v_a = E qdot_r + t), A_r (n_r,
+    n_r), b_r (n_r,); ``work`` (3a + n_adj, n_r) scratch (``work_shape``)."""
+    na = len(red.att_dof)
     fill_kernel(red.ad_indptr, red.ad_indices, np.asarray(ad_data, float), np.asarray(b_d, float), red.dof, red.pos,
-                red.skel_start, red.adj_rank, red.att_dof, red.indptr, red.n_free, np.ascontiguousarray(E, dtype=float),
-                np.asarray(t, float), np.ascontiguousarray(A_r, dtype=float), np.asarray(b_r, float), data_out, b_out,
-                work)
+                red.adj_rank, red.fs_pos, red.sf_pos, red.sk_start, red.att_dof, red.n_free,
+                np.ascontiguousarray(E, dtype=float), np.asarray(t, float), np.ascontiguousarray(A_r, dtype=float),
+                np.asarray(b_r, float), data_out, b_out, work[:na], work[na:])
+
+
+def work_shape(red: Reduction) -> tuple:
+    """The shape of ``fill``'s scratch: rows of Y = A_aa E (one per attached DOF) and of A_fa E (one per
+    adjacent free DOF), n_r columns."""
+    return len(red.att_dof) + red.fs_pos.shape[0], red.n_r
 
 
 @njit
-def fill_kernel(ad_indptr, ad_indices, ad_data, b_d, dof, pos, skel_start, adj_rank, att_dof, indptr, nf3, E, t, A_r,
-                b_r, data, b, Y):
+def fill_kernel(ad_indptr, ad_indices, ad_data, b_d, dof, pos, adj_rank, fs_pos, sf_pos, sk_start, att_dof, nf3, E,
+                t, A_r, b_r, data, b, Y, W):
+    """The loops of ``fill``: each A_d entry once; the products with E as contiguous rows over the n_r skeleton
+    columns (Y = A_aa E, W = A_fa E; E's zero columns cost less than indexing the nonzero ones), scattered into
+    the reduced pattern once at the end; E^T A_af = W^T (A_d symmetric); E^T A_aa E symmetrised."""
     n_r = A_r.shape[0]
     na = E.shape[0]
-    ecols = np.empty((na, n_r), dtype=np.int64)  # the nonzero columns of each row of E (a body's supporting DOFs)
-    ecount = np.zeros(na, dtype=np.int64)
-    for r in range(na):
-        for k in range(n_r):
-            if E[r, k] != 0.0:
-                ecols[r, ecount[r]] = k
-                ecount[r] += 1
     data[:] = 0.0
-    Y[:, :] = 0.0  # Y = A_aa E (3a, n_r)
+    Y[:, :] = 0.0
+    W[:, :] = 0.0
     ta = np.zeros(na)  # A_aa t
     for p in range(nf3):
         b[p] = 0.0
@@ -149,46 +172,115 @@ def fill_kernel(ad_indptr, ad_indices, ad_data, b_d, dof, pos, skel_start, adj_r
         p = dof[i]
         if p >= 0:
             b[p] += b_d[i]
-        for e in range(ad_indptr[i], ad_indptr[i + 1]):
-            a = ad_data[e]
-            q = dof[ad_indices[e]]
-            if p >= 0:
+            c = adj_rank[p]
+            for e in range(ad_indptr[i], ad_indptr[i + 1]):
+                a = ad_data[e]
+                q = dof[ad_indices[e]]
                 if q >= 0:
                     data[pos[e]] += a
                 else:  # free row, attached column: A_fa E and -A_fa t
                     r = -q - 1
-                    s = skel_start[p]
-                    for j in range(ecount[r]):
-                        k = ecols[r, j]
-                        data[s + k] += a * E[r, k]
+                    for k in range(n_r):
+                        W[c, k] += a * E[r, k]
                     b[p] -= a * t[r]
-            else:
-                r = -p - 1
-                if q >= 0:  # attached row, free column: E^T A_af (skeleton row k, column q)
-                    c = adj_rank[q]
-                    for j in range(ecount[r]):
-                        k = ecols[r, j]
-                        data[indptr[nf3 + k] + c] += E[r, k] * a
-                else:
+        else:
+            r = -p - 1
+            for e in range(ad_indptr[i], ad_indptr[i + 1]):
+                q = dof[ad_indices[e]]
+                if q < 0:  # attached row and column: Y = A_aa E
+                    a = ad_data[e]
                     s = -q - 1
-                    for j in range(ecount[s]):
-                        k = ecols[s, j]
+                    for k in range(n_r):
                         Y[r, k] += a * E[s, k]
                     ta[r] += a * t[s]
+    for c in range(fs_pos.shape[0]):  # A_fa E and E^T A_af = (A_fa E)^T
+        for k in range(n_r):
+            f = fs_pos[c, k]
+            if f >= 0:
+                data[f] = W[c, k]
+                data[sf_pos[c, k]] = W[c, k]
     for r in range(na):  # b_r + E^T (b_a - A_aa t)
         ba = b_d[att_dof[r]] - ta[r]
-        for j in range(ecount[r]):
-            k = ecols[r, j]
+        for k in range(n_r):
             b[nf3 + k] += E[r, k] * ba
-    n_adj = indptr[nf3 + 1] - indptr[nf3] - n_r if n_r else 0
-    for k in range(n_r):  # A_r into the dense skeleton block
-        s = indptr[nf3 + k] + n_adj
-        for l in range(n_r):
-            data[s + l] += A_r[k, l]
-    for r in range(na):  # + E^T A_aa E = E^T Y
-        for j in range(ecount[r]):
-            k = ecols[r, j]
-            s = indptr[nf3 + k] + n_adj
+    S = np.zeros((n_r, n_r))  # E^T A_aa E = E^T Y
+    for r in range(na):
+        for k in range(n_r):
             erk = E[r, k]
-            for l in range(n_r):
-                data[s + l] += erk * Y[r, l]
+            if erk != 0.0:
+                for l in range(n_r):
+                    S[k, l] += erk * Y[r, l]
+    for k in range(n_r):  # + A_r: the dense skeleton block
+        s = sk_start[k]
+        for l in range(n_r):
+            data[s + l] = 0.5 * (S[k, l] + S[l, k]) + A_r[k, l]
+
+
+def unit_rows(G, C=None):
+    """(rows, columns, coefficients) of the rows of G (m, n_r) with exactly one nonzero c on a column no other
+    row of G or C touches: the prescribed joint velocities of Eq. (7) without couplings, c qdot_j = g_i. Such a
+    row is imposed by holding the DOF (``hold``) instead of by a Schur complement (one solve per row)."""
+    G = np.asarray(G, dtype=float)
+    nz = G != 0.0
+    count = nz.sum(axis=1)
+    touched = nz.sum(axis=0)
+    if C is not None and len(C):
+        touched = touched + (np.asarray(C) != 0.0).sum(axis=0)
+    rows = np.nonzero(count == 1)[0]
+    cols = np.argmax(nz[rows], axis=1) if len(rows) else np.zeros(0, dtype=np.int64)
+    keep = touched[cols] == 1
+    rows, cols = rows[keep], cols[keep]
+    return rows, cols, G[rows, cols]
+
+
+def hold(indptr, indices, diag, tpos, data, b, dofs, vals):
+    """Impose z[dofs] = vals on the symmetric system (CSR values ``data`` in the pattern indptr/indices,
+    right-hand side b, both modified in place): b -= A[:, dofs] vals, then the rows and columns of ``dofs``
+    become identity rows with b[dofs] = vals (the pattern, hence the symbolic factorisation, is unchanged).
+    ``diag`` (n,) is each row's diagonal position, ``tpos`` (nnz,) each entry's transpose position. Returns the
+    held rows' original values (concatenated, in ``dofs`` order) and b[dofs], for their reactions
+    (``reactions``)."""
+    dofs = np.asarray(dofs, dtype=np.int64)
+    lens = indptr[dofs + 1] - indptr[dofs]
+    saved = np.empty(int(lens.sum()))
+    b_saved = b[dofs].copy()
+    hold_kernel(indptr, indices, diag, tpos, data, b, dofs, np.asarray(vals, dtype=float), saved)
+    return saved, b_saved
+
+
+@njit
+def hold_kernel(indptr, indices, diag, tpos, data, b, dofs, vals, saved):
+    k = 0
+    for i in range(len(dofs)):  # b -= A[:, j] v_j, A symmetric: the column is the row
+        j = dofs[i]
+        for e in range(indptr[j], indptr[j + 1]):
+            saved[k] = data[e]
+            k += 1
+            b[indices[e]] -= data[e] * vals[i]
+    for i in range(len(dofs)):
+        j = dofs[i]
+        for e in range(indptr[j], indptr[j + 1]):
+            data[e] = 0.0
+            data[tpos[e]] = 0.0
+        data[diag[j]] = 1.0
+        b[j] = vals[i]
+
+
+def reactions(indptr, indices, dofs, saved, b_saved, z):
+    """(A z - b)[dofs] with the held rows' original values ``saved`` and right-hand sides ``b_saved`` (``hold``):
+    the reaction each held DOF needs (the multiplier of its row, up to the row's coefficient)."""
+    out = np.empty(len(dofs))
+    reactions_kernel(indptr, indices, np.asarray(dofs, dtype=np.int64), saved, b_saved, z, out)
+    return out
+
+
+@njit
+def reactions_kernel(indptr, indices, dofs, saved, b_saved, z, out):
+    k = 0
+    for i in range(len(dofs)):
+        j = dofs[i]
+        acc = -b_saved[i]
+        for e in range(indptr[j], indptr[j + 1]):
+            acc += saved[k] * z[indices[e]]
+            k += 1
+        out[i] = acc

@@ -87,11 +87,12 @@ class Deformables:
         indptr, indices, _ = self._csr
         return indptr, indices
 
-    def fill(self, x, v, h: float, data: np.ndarray, b: np.ndarray) -> None:
+    def fill(self, x, v, h: float, data: np.ndarray, b: np.ndarray) -> float:
         """The step's system in place: data (nnz,) := the CSR values of A_d = M_d + h D_d + h^2 K_d [kg] in
         ``csr_pattern``'s order, b (3N,) := b_d = M_d v + h f_d [N s] (f_d the elastic forces and gravity
         [N]), at positions x (N,3) [m], velocities v (N,3) [m/s], step h [s]. One compiled element loop per
-        deformable (fem_kernels.fem_add, string.string_add), no allocation of the size of A_d."""
+        deformable (fem_kernels.fem_add, string.string_add), no allocation of the size of A_d. Returns the
+        elastic energy at x [J], which the element loop computes on the way."""
         _, indices, at = self._csr
         for a, shape in ((data, indices.shape), (b, (3 * self.n_vertices,))):
             if a.shape != shape or a.dtype != np.float64 or not a.flags.c_contiguous:
@@ -100,12 +101,14 @@ class Deformables:
         x = np.ascontiguousarray(x, dtype=float).reshape(-1, 3)
         v = np.ascontiguousarray(v, dtype=float).reshape(-1, 3)
         g = np.ascontiguousarray(self.gravity, dtype=float)
+        elastic = 0.0
         for i, e in enumerate(self.elements):
             lo, hi = self.offsets[i], self.offsets[i + 1]
             d, be = data[at[i]:at[i + 1]], b[3 * lo:3 * hi]
             p = e.pattern
             start_system(e.mass, v[lo:hi], h, g, 1.0 + h * e.alpha, p.diag, p.stride, d, be)
-            e.add(x[lo:hi], h * e.beta + h * h, h, d, be.reshape(-1, 3))
+            elastic += float(e.add(x[lo:hi], h * e.beta + h * h, h, d, be.reshape(-1, 3)))
+        return elastic
 
     def assemble(self, x, v, h):
         """(A_d sparse CSR (3N,3N) [kg], b_d (3N,) [N s]) of the step (``fill`` on ``csr_pattern``)."""
@@ -115,13 +118,15 @@ class Deformables:
         n = 3 * self.n_vertices
         return sp.csr_matrix((data, indices, indptr), shape=(n, n)), b
 
-    def energies(self, x, v) -> tuple:
-        """(kinetic, gravitational, elastic) [J]; gravity relative to x = 0."""
+    def energies(self, x, v, elastic: float | None = None) -> tuple:
+        """(kinetic, gravitational, elastic) [J]; gravity relative to x = 0; ``elastic`` when already known
+        (``fill`` at x returns it)."""
         m = self.mass
         ek = 0.5 * float(m @ np.sum(v * v, axis=1))
         eg = -float(m @ (x @ self.gravity))
-        ee = sum(e.energy(self.part(i, x)) for i, e in enumerate(self.elements))
-        return ek, eg, float(ee)
+        if elastic is None:
+            elastic = sum(e.energy(self.part(i, x)) for i, e in enumerate(self.elements))
+        return ek, eg, float(elastic)
 
     def momentum(self, x, v) -> tuple:
         """(linear (3,), angular about the origin (3,)) of the deformable vertices."""
