@@ -8,6 +8,7 @@ import copy
 import math
 
 import numpy as np
+import pinocchio as pin
 import pytest
 
 from redmax_ros.core import SceneError, Simulator, StepError
@@ -124,17 +125,44 @@ def test_block_on_incline_sticks_below_and_slides_above_the_friction_angle(tan_t
     assert_in_pyramid(recorded)
 
 
-def test_starfish_with_friction_converges_every_step_in_the_pyramid(recorded):
-    sim = Simulator.load("starfish", overrides=["params.mu=0.8"])
+def centre_of_mass(sim):
+    """The centre of mass of the skeleton and the deformables [m]."""
+    mech = sim.backend.mech
+    data = mech.model.createData()
+    c = pin.centerOfMass(mech.model, data, sim.state.q)
+    m = sim.deformables.mass
+    return (data.mass[0] * c + m @ sim.state.deform.x) / (data.mass[0] + m.sum())
+
+
+def test_starfish_with_friction_crawls_converging_every_step_in_the_pyramid(recorded):
+    """The shipped starfish (floor_mu 0.8, lift and sweep gait) over one gait period (2 s): every contact solve
+    converges with its impulses in the pyramid, and the core crawls along the heading (+x)."""
+    sim = Simulator.load("starfish")
     assert sim.deformables.floor_mu == 0.8
     free = np.setdiff1d(sim.deformables.floor_vertices, sim.deformables.attach.vertex)
-    for _ in range(1000):
+    q0 = sim.state.q.copy()
+    for _ in range(2000):
         sim.step()
         assert sim.backend.timing["contact_converged"]
     assert sim.deformable_positions()["body"][free, 2].min() >= -1e-9
-    assert len(recorded) == 1000 and max(len(rec[0]) for rec in recorded) > 0
+    assert len(recorded) == 2000 and max(len(rec[0]) for rec in recorded) > 0
     worst = assert_in_pyramid(recorded)
-    print(f"starfish 1 s: pyramid excess {worst:.2e} of tol")
+    dx, dy = sim.state.q[:2] - q0[:2]
+    assert dx >= 0.015 and abs(dy) <= 0.5 * dx
+    print(f"starfish 2 s: core moved ({dx:.4f}, {dy:.4f}) m; pyramid excess {worst:.2e} of tol")
+
+
+def test_starfish_on_a_frictionless_floor_keeps_its_centre_of_mass():
+    """No horizontal external impulse on a frictionless floor: the centre of mass stays where it is (but for
+    the post-stabilization of the attached vertices, O(h^2) a step), so the gait cannot crawl."""
+    sim = Simulator.load("starfish", overrides=["params.mu=0"])
+    sim.step(1)
+    c0, q0 = centre_of_mass(sim), sim.state.q.copy()
+    sim.step(2000)
+    drift = np.abs(centre_of_mass(sim)[:2] - c0[:2]).max()
+    assert drift <= 1e-4
+    assert np.abs(sim.state.q[:2] - q0[:2]).max() <= 2e-3
+    print(f"frictionless starfish 2 s: centre of mass drift {drift:.2e} m, core moved {sim.state.q[:2] - q0[:2]} m")
 
 
 def test_failed_contact_solve_leaves_the_state_as_it_was(monkeypatch):
