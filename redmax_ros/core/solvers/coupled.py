@@ -72,7 +72,7 @@ class CoupledSolution:
     violation: float  # max |G qdot_r - g|
     residual: float  # stationarity |A z + G^T lam + C^T mu - b - F - R| / |b|
     contact_impulse: np.ndarray  # (k,3) floor impulses on the contact vertices (beta_x, beta_y, alpha) [N s]
-    # vertex -> (normal, stick_x, stick_y, sign_x, sign_y, alpha, the last step's alpha or None) [N s]
+    # vertex in contact -> (stick_x, stick_y, sign_x, sign_y, alpha, the last step's alpha or NaN) (1/0, signs, N s)
     contact_state: dict = field(default_factory=dict)
     converged: bool = True
     factorisations: int = 0  # LDL^T factorisations of the reduced matrix this solve
@@ -279,13 +279,16 @@ def solve(ws: Workspace, data, b, n_r, G, g, C=None, lo=None, hi=None, contacts:
         c_val, c_col = data[pos], ws.indices[pos]
         diag = data[ws.diag][contacts.dof]  # A_xx of each contact vertex: impulse -> velocity
         if warm:
-            for i, vtx in enumerate(contacts.vertex):
-                st = warm.get(int(vtx))
-                if st is not None:  # alpha extrapolated from the last two steps' (when both had the contact)
-                    normal[i], stick[2 * i], stick[2 * i + 1], sign[2 * i], sign[2 * i + 1], a1, a2 = st
-                    alpha[i] = a1 if a2 is None else max(2.0 * a1 - a2, 0.0)
-                    known[i] = True
-                    prev[i] = a1
+            hit = [(i, warm[v]) for i, v in enumerate(contacts.vertex.tolist()) if v in warm]
+            if hit:
+                ii = np.array([h[0] for h in hit])
+                W = np.array([h[1] for h in hit], dtype=float)  # rows (stick_x, stick_y, sign_x, sign_y, alpha, prev)
+                normal[ii] = known[ii] = True
+                stick[2 * ii], stick[2 * ii + 1] = W[:, 0] > 0, W[:, 1] > 0
+                sign[2 * ii], sign[2 * ii + 1] = W[:, 2], W[:, 3]
+                # alpha extrapolated from the last two steps' (when both had the contact)
+                alpha[ii] = np.where(np.isnan(W[:, 5]), W[:, 4], np.maximum(2.0 * W[:, 4] - W[:, 5], 0.0))
+                prev[ii] = W[:, 4]
             if fric <= 0:
                 stick[:] = False
 
@@ -459,9 +462,11 @@ def solve(ws: Workspace, data, b, n_r, G, g, C=None, lo=None, hi=None, contacts:
         res[nf:] += G.T @ lam
     if p:
         res[nf:] += C.T @ mu_lim
-    state = {int(v): (True, bool(stick[2 * i]), bool(stick[2 * i + 1]), float(sign[2 * i]), float(sign[2 * i + 1]),
-                      max(float(imp[i, 2]), 0.0), None if np.isnan(prev[i]) else float(prev[i]))
-             for i, v in enumerate(contacts.vertex) if normal[i]} if k else {}
+    state = {}
+    if k and normal.any():
+        rows = np.column_stack([stick[0::2], stick[1::2], sign[0::2], sign[1::2], np.maximum(imp[:, 2], 0.0),
+                                prev])[normal]
+        state = dict(zip(contacts.vertex[normal].tolist(), map(tuple, rows.tolist())))
     viol = float(np.abs(G @ z[nf:] - g).max()) if m else 0.0
     return CoupledSolution(z, lam, mu_lim, it, viol, float(np.linalg.norm(res) / max(np.linalg.norm(b), 1e-300)),
                            imp, state, converged, hs.factorisations, TOL_V * diag if k else np.zeros(0))
