@@ -105,6 +105,30 @@ def test_sliding_block_decelerates_at_mu_g_and_stops_after_v0_squared_over_2_mu_
           f"distance {dist:.5f} m (v0^2/(2 mu g) {v0 ** 2 / (2 * mu * G):.5f}); pyramid excess {worst:.2e} of tol")
 
 
+def test_diagonal_slide_follows_the_four_sided_pyramid(recorded):
+    """Sliding along (0.6, -0.8) m/s: with the pyramid |beta_x|, |beta_y| <= mu alpha (the rigid ground
+    contact's law) each component decelerates at mu g while it slides, so x stops first (0.6 / (mu g)) and y
+    later (0.8 / (mu g)); a circular cone would decelerate along the velocity and stop both together."""
+    mu = 0.5
+    sim = block_sim(mu, v0=(0.6, -0.8, 0.0))
+    m = sim.deformables.mass
+    t, vx, vy = [0.0], [0.6], [-0.8]
+    for _ in range(250):
+        sim.step()
+        assert sim.backend.timing["contact_converged"]
+        v = m @ sim.state.deform.v / m.sum()
+        t.append(sim.state.t), vx.append(v[0]), vy.append(v[1])
+    t, vx, vy = np.array(t), np.array(vx), np.array(vy)
+    for comp, v0 in ((vx, 0.6), (vy, -0.8)):
+        sel = (t >= 0.02) & (np.abs(comp) > 0.05)
+        a = -np.sign(v0) * np.polyfit(t[sel], comp[sel], 1)[0]
+        assert abs(a - mu * G) <= 0.01 * mu * G, a
+        stop = t[np.argmax(np.sign(v0) * comp <= 1e-3)]  # (then the block rings elastically about 0)
+        assert abs(stop - abs(v0) / (mu * G)) <= 0.02 * abs(v0) / (mu * G), stop
+        print(f"v0 {v0}: deceleration {a:.5f} m/s^2, stop at {stop:.4f} s (|v0|/(mu g) {abs(v0) / (mu * G):.4f})")
+    assert_in_pyramid(recorded)
+
+
 @pytest.mark.parametrize("tan_theta", [0.3, 0.7])
 def test_block_on_incline_sticks_below_and_slides_above_the_friction_angle(tan_theta, recorded):
     mu = 0.5
