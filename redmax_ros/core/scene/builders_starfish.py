@@ -2,10 +2,14 @@
 221 vertices", fully two-way coupled, hybrid dynamics): a free core and five arms, each a chain of
 universal / revolute / universal / revolute joints (20 joints, 30 + 6 DOFs), inside a star-shaped
 tetrahedral mesh built procedurally (deformable/meshes.box_tets on a grid, cells kept inside the star).
-The first joint of every arm follows a periodic gait (a joint trajectory, sine in the lift axis with a phase
-of 2 pi / 5 per arm); the rest of the skeleton and the mesh are passive. Mesh vertices inside each bone's
-box (and the core's cylinder) are attached to it; the others are free FEM DOFs kept above the floor by
-unilateral rows (docs/deformables.md). Parameters: docs/deformables.md "starfish".
+The first (universal) joint of every arm follows a periodic gait (a joint trajectory): a sine in its lift axis
+(y, amplitude ``amplitude``, phase 2 pi a / 5 for arm a) and a sine in its sweep axis (z) leading the lift by
+``lag`` [rad], of amplitude ``sweep`` times -sin(phi_a - heading) (the arm's tangent along the heading), so
+that the arms push along ``heading`` in stance and their torques about the core cancel; ``sweep: 0`` is the
+lift-only gait, which gaits in place. The rest of the skeleton and the mesh are passive. Mesh vertices inside
+each bone's box (and the core's cylinder) are attached to it; the others are free FEM DOFs kept above the
+floor by contacts with Coulomb friction ``mu`` (docs/deformables.md). Parameters: docs/deformables.md
+"starfish".
 """
 from __future__ import annotations
 
@@ -19,7 +23,7 @@ from redmax_ros.core.scene.registry import int_param, register_builder, take
 DEFAULTS = {"radius": 0.25, "core": 0.05, "width": 0.06, "thickness": 0.04, "cell": 0.028, "layers": 1,
             "young": 5.0e4, "poisson": 0.3, "density": 1000.0, "beta": 0.005, "bone_density": 400.0,
             "amplitude": 0.35, "frequency": 0.5, "stiffness": 0.3, "damping": 0.02, "mu": 0.8,
-            "sweep": 0.0, "lag": math.pi / 2, "heading": 0.0}
+            "sweep": 0.6, "lag": 0.75 * math.pi, "heading": 0.0}
 TYPES = ("universal", "revolute", "universal", "revolute")
 
 

@@ -3,25 +3,38 @@ on the reduced system of deformable/reduction.py (attached vertices eliminated):
 
     A z = b + F + R,     G qdot_r = g (multipliers lam),     lo <= C qdot_r <= hi (joint limits, Eq. 5),
 
-A the reduced symmetric matrix (one sparse LDL^T factorisation per working set, solvers/sparse_ldl.py, on a
+A the reduced symmetric matrix (one sparse LDL^T factorisation per step, solvers/sparse_ldl.py, on a
 pattern analysed once), G the skeleton's bilateral rows
 (loops, prescriptions; sign convention of solvers/problem.py: A z + G^T lam = b), F the friction impulses of
 sliding floor contacts, R the reactions on the DOFs held fixed (floor contacts). The bilateral and the active
-limit rows are taken by the Schur complement S = G A^-1 G^T (one A solve per row; the skeleton has few).
+limit rows are taken by the Schur complement S = G A^-1 G^T (one A solve per row; the skeleton has few), in the
+same bordered system as the held-set changes below.
 
-Floor contact of the free vertices (Staggered Projections, paper Alg. 2 / Eq. 11-12, Kaufman et al. 2008, as
-the rigid ground contact of friction/staggered.py, with the same four-sided pyramid |beta_x|, |beta_y| <= mu alpha
-on the world tangents x, y): a vertex's contact rows are unit rows on its own DOFs, so each projection is a primal
-active set on the vertex DOFs (Nocedal & Wright §16.5):
-  * normal (Alg. 2 line 9): v_z >= lo (lo = (floor - z)/h, speculative); an active row holds v_z = lo and its
-    impulse is alpha = (A z - b - F)_z >= 0; a row whose alpha pulls (< 0) is released, a violated one held;
-  * friction (Eq. 12, bound mu alpha from the current normal impulse): a tangent DOF sticks (v = 0, reaction
-    beta = (A z - b - F)_c, kept while |beta| <= mu alpha) or slides (impulse F_c = s mu alpha, s the sign of the
-    reaction that failed to hold it; back to sticking when the velocity turns along F).
-A held DOF is imposed by overwriting its row and column with the identity (the pattern, hence the symbolic
-factorisation, is unchanged) and moving its known velocity to the right-hand side. The staggered fixed point
-(the sliding impulses follow alpha) reuses the factorisation; the loop ends when no state changes and the
-sliding impulses move the velocity by less than ``tol_v`` (Alg. 2 line 12), and reports non-convergence.
+Floor contact of the free vertices: Staggered Projections (paper Alg. 2, Eq. 11-12; Kaufman et al. 2008), with
+the rigid ground contact's four-sided pyramid |beta_x|, |beta_y| <= mu alpha on the world tangents x, y
+(friction/staggered.py). A vertex's contact rows are unit rows on its own DOFs, so both projections are primal
+active sets on vertex DOFs (Nocedal & Wright §16.5), alternated with the other's impulses fixed:
+  * normal stage (Alg. 2 line 9, Eq. 11): v_z >= lo (lo = (floor - z)/h, speculative); a held row v_z = lo has
+    the impulse alpha = (A z - b - F)_z >= 0; a row whose alpha pulls (< 0) is released, a violated one held
+    (sliding along its tangential velocity, or stuck if it is below STICK_V). The working set is carried into
+    the friction stage (the normal velocities stay held there), so one factorisation serves both stages.
+  * friction stage (Eq. 12 with alpha fixed): the convex piecewise-quadratic problem
+        min_z 1/2 z^T A z - b^T z + sum_j mu alpha_j |z_j|     (j over the contact tangents)
+    by a primal active set with descent: a state (stuck set S with z_S = 0, the signs s of the sliding impulses
+    F_j = s_j mu alpha_j) gives a linear sub-problem with solution zs; from the current z (in the state's
+    face) an exact line search along zs - z stops at the first sliding tangent whose velocity reaches 0, which
+    sticks; when zs is sign-consistent, the one stuck tangent whose reaction most exceeds mu alpha slides
+    (with the sign of its reaction). The objective never increases, so the state cannot cycle.
+  * convergence (Alg. 2 line 12): no working-set change and max mu |delta alpha| / A_jj <= TOL_V [m/s] over
+    the sliding contacts; the bound's fixed point is accelerated by Anderson(1), and the warm alpha of a
+    contact is extrapolated from its last two steps. Not converged within MAX_ITER sub-problem solves is a
+    StepError (the step leaves the state as it was). The reported friction impulses lie in the pyramid to
+    ``contact_tol`` = TOL_V A_jj (a sliding impulse uses the bound of the last normal stage).
+Held DOFs are imposed by overwriting their rows and columns with the identity (the pattern, hence the symbolic
+analysis, is unchanged). Per step the held set of the warm start is factorised once; later changes of the held
+set (a contact sticks, slides, lands or lifts off) are solved on that factor by a bordered (capacitance)
+system with one solve per changed DOF (_HeldSystem), refactorised only past MAX_CHANGES changes (with mu > 0;
+a frictionless floor refactorises on each change, as before, which keeps restarts bit for bit).
 """
 from __future__ import annotations
 
@@ -36,6 +49,7 @@ from redmax_ros.core.solvers import sparse_ldl
 MAX_ITER = 200  # cap of sub-problem solves per step (friction and normal stages together)
 TOL_V = 1e-6  # [m/s] the staggered loop's tolerance on the velocity change of a friction bound update (as friction.tol)
 STICK_V = 1e-9  # [m/s] a new contact slower than this along a tangent starts stuck on it
+MAX_CHANGES = 12  # held-set changes solved on the step's factorisation (bordered system) before refactorising
 
 
 @dataclass(frozen=True)
@@ -58,7 +72,7 @@ class CoupledSolution:
     violation: float  # max |G qdot_r - g|
     residual: float  # stationarity |A z + G^T lam + C^T mu - b - F - R| / |b|
     contact_impulse: np.ndarray  # (k,3) floor impulses on the contact vertices (beta_x, beta_y, alpha) [N s]
-    # vertex -> (normal, stick_x, stick_y, sign_x, sign_y, alpha, the last step's alpha or None) [N s]
+    # vertex in contact -> (stick_x, stick_y, sign_x, sign_y, alpha, the last step's alpha or NaN) (1/0, signs, N s)
     contact_state: dict = field(default_factory=dict)
     converged: bool = True
     factorisations: int = 0  # LDL^T factorisations of the reduced matrix this solve
@@ -129,11 +143,12 @@ class _HeldSystem:
         w_a = A~0^-1 e_a (a added, mu_a its reaction),    u_j = e_j - A~0^-1 P0 A e_j (j released, y_j = z_j - v_j),
 
     P0 the projection off H0, and the multipliers from W z_r = w, z_a = v_a, (A z)_j = rhs_j: one base solve per
-    changed DOF (kept while the base stands). The base is refactorised when more than MAX_CHANGES DOFs differ."""
+    changed DOF (kept while the base stands). The base is refactorised when more than ``max_changes`` DOFs
+    differ (0: on every change, so the solution is that of the final held set's own factorisation whatever the
+    path, as on a frictionless floor, where a restarted run then equals a continuing one bit for bit)."""
 
-    MAX_CHANGES = 12
-
-    def __init__(self, ws, data, n_r, G, g, labels):
+    def __init__(self, ws, data, n_r, G, g, labels, max_changes=MAX_CHANGES):
+        self.max_changes = max_changes
         self.ws, self.data, self.n, self.nf = ws, data, ws.n, ws.n - n_r
         self.G, self.g, self.labels = G, g, labels
         self.A = sp.csr_matrix((data, ws.indices, ws.indptr), shape=(ws.n, ws.n))
@@ -191,7 +206,7 @@ class _HeldSystem:
             sel = ~self.in_h0[fixed]
             add, v_add = fixed[sel], vals[sel]
             rel = self.H0[~in_h[self.H0]]
-            if len(add) + len(rel) > self.MAX_CHANGES:
+            if len(add) + len(rel) > self.max_changes:
                 self._rebase(fixed, vals)
                 add, v_add, rel = fixed[:0], vals[:0], fixed[:0]
             nw = len(self.g) + (0 if W is None else len(W))
@@ -243,9 +258,9 @@ def solve(ws: Workspace, data, b, n_r, G, g, C=None, lo=None, hi=None, contacts:
     k = 0 if contacts is None else len(contacts.dof)
     scale = 1.0 + float(np.abs(b).max()) if n else 1.0
     tol_imp = tol * scale
-    hs = _HeldSystem(ws, data, n_r, G, g, labels)
-    A = hs.A
     fric = 0.0 if contacts is None else float(contacts.mu)
+    hs = _HeldSystem(ws, data, n_r, G, g, labels, MAX_CHANGES if fric > 0 else 0)
+    A = hs.A
     # contact state; the tangents are flat, slot 2 i + c for vertex i, world axis c (x, y)
     normal = np.zeros(k, dtype=bool)  # v_z = lo held (alpha >= 0)
     stick = np.zeros(2 * k, dtype=bool)  # tangent held at 0 (|beta| <= mu alpha)
@@ -264,13 +279,16 @@ def solve(ws: Workspace, data, b, n_r, G, g, C=None, lo=None, hi=None, contacts:
         c_val, c_col = data[pos], ws.indices[pos]
         diag = data[ws.diag][contacts.dof]  # A_xx of each contact vertex: impulse -> velocity
         if warm:
-            for i, vtx in enumerate(contacts.vertex):
-                st = warm.get(int(vtx))
-                if st is not None:  # alpha extrapolated from the last two steps' (when both had the contact)
-                    normal[i], stick[2 * i], stick[2 * i + 1], sign[2 * i], sign[2 * i + 1], a1, a2 = st
-                    alpha[i] = a1 if a2 is None else max(2.0 * a1 - a2, 0.0)
-                    known[i] = True
-                    prev[i] = a1
+            hit = [(i, warm[v]) for i, v in enumerate(contacts.vertex.tolist()) if v in warm]
+            if hit:
+                ii = np.array([h[0] for h in hit])
+                W = np.array([h[1] for h in hit], dtype=float)  # rows (stick_x, stick_y, sign_x, sign_y, alpha, prev)
+                normal[ii] = known[ii] = True
+                stick[2 * ii], stick[2 * ii + 1] = W[:, 0] > 0, W[:, 1] > 0
+                sign[2 * ii], sign[2 * ii + 1] = W[:, 2], W[:, 3]
+                # alpha extrapolated from the last two steps' (when both had the contact)
+                alpha[ii] = np.where(np.isnan(W[:, 5]), W[:, 4], np.maximum(2.0 * W[:, 4] - W[:, 5], 0.0))
+                prev[ii] = W[:, 4]
             if fric <= 0:
                 stick[:] = False
 
@@ -444,9 +462,11 @@ def solve(ws: Workspace, data, b, n_r, G, g, C=None, lo=None, hi=None, contacts:
         res[nf:] += G.T @ lam
     if p:
         res[nf:] += C.T @ mu_lim
-    state = {int(v): (True, bool(stick[2 * i]), bool(stick[2 * i + 1]), float(sign[2 * i]), float(sign[2 * i + 1]),
-                      max(float(imp[i, 2]), 0.0), None if np.isnan(prev[i]) else float(prev[i]))
-             for i, v in enumerate(contacts.vertex) if normal[i]} if k else {}
+    state = {}
+    if k and normal.any():
+        rows = np.column_stack([stick[0::2], stick[1::2], sign[0::2], sign[1::2], np.maximum(imp[:, 2], 0.0),
+                                prev])[normal]
+        state = dict(zip(contacts.vertex[normal].tolist(), map(tuple, rows.tolist())))
     viol = float(np.abs(G @ z[nf:] - g).max()) if m else 0.0
     return CoupledSolution(z, lam, mu_lim, it, viol, float(np.linalg.norm(res) / max(np.linalg.norm(b), 1e-300)),
                            imp, state, converged, hs.factorisations, TOL_V * diag if k else np.zeros(0))

@@ -8,6 +8,7 @@ import copy
 import math
 
 import numpy as np
+import pinocchio as pin
 import pytest
 
 from redmax_ros.core import SceneError, Simulator, StepError
@@ -104,6 +105,30 @@ def test_sliding_block_decelerates_at_mu_g_and_stops_after_v0_squared_over_2_mu_
           f"distance {dist:.5f} m (v0^2/(2 mu g) {v0 ** 2 / (2 * mu * G):.5f}); pyramid excess {worst:.2e} of tol")
 
 
+def test_diagonal_slide_follows_the_four_sided_pyramid(recorded):
+    """Sliding along (0.6, -0.8) m/s: with the pyramid |beta_x|, |beta_y| <= mu alpha (the rigid ground
+    contact's law) each component decelerates at mu g while it slides, so x stops first (0.6 / (mu g)) and y
+    later (0.8 / (mu g)); a circular cone would decelerate along the velocity and stop both together."""
+    mu = 0.5
+    sim = block_sim(mu, v0=(0.6, -0.8, 0.0))
+    m = sim.deformables.mass
+    t, vx, vy = [0.0], [0.6], [-0.8]
+    for _ in range(250):
+        sim.step()
+        assert sim.backend.timing["contact_converged"]
+        v = m @ sim.state.deform.v / m.sum()
+        t.append(sim.state.t), vx.append(v[0]), vy.append(v[1])
+    t, vx, vy = np.array(t), np.array(vx), np.array(vy)
+    for comp, v0 in ((vx, 0.6), (vy, -0.8)):
+        sel = (t >= 0.02) & (np.abs(comp) > 0.05)
+        a = -np.sign(v0) * np.polyfit(t[sel], comp[sel], 1)[0]
+        assert abs(a - mu * G) <= 0.01 * mu * G, a
+        stop = t[np.argmax(np.sign(v0) * comp <= 1e-3)]  # (then the block rings elastically about 0)
+        assert abs(stop - abs(v0) / (mu * G)) <= 0.02 * abs(v0) / (mu * G), stop
+        print(f"v0 {v0}: deceleration {a:.5f} m/s^2, stop at {stop:.4f} s (|v0|/(mu g) {abs(v0) / (mu * G):.4f})")
+    assert_in_pyramid(recorded)
+
+
 @pytest.mark.parametrize("tan_theta", [0.3, 0.7])
 def test_block_on_incline_sticks_below_and_slides_above_the_friction_angle(tan_theta, recorded):
     mu = 0.5
@@ -124,17 +149,44 @@ def test_block_on_incline_sticks_below_and_slides_above_the_friction_angle(tan_t
     assert_in_pyramid(recorded)
 
 
-def test_starfish_with_friction_converges_every_step_in_the_pyramid(recorded):
-    sim = Simulator.load("starfish", overrides=["params.mu=0.8"])
+def centre_of_mass(sim):
+    """The centre of mass of the skeleton and the deformables [m]."""
+    mech = sim.backend.mech
+    data = mech.model.createData()
+    c = pin.centerOfMass(mech.model, data, sim.state.q)
+    m = sim.deformables.mass
+    return (data.mass[0] * c + m @ sim.state.deform.x) / (data.mass[0] + m.sum())
+
+
+def test_starfish_with_friction_crawls_converging_every_step_in_the_pyramid(recorded):
+    """The shipped starfish (floor_mu 0.8, lift and sweep gait) over one gait period (2 s): every contact solve
+    converges with its impulses in the pyramid, and the core crawls along the heading (+x)."""
+    sim = Simulator.load("starfish")
     assert sim.deformables.floor_mu == 0.8
     free = np.setdiff1d(sim.deformables.floor_vertices, sim.deformables.attach.vertex)
-    for _ in range(1000):
+    q0 = sim.state.q.copy()
+    for _ in range(2000):
         sim.step()
         assert sim.backend.timing["contact_converged"]
     assert sim.deformable_positions()["body"][free, 2].min() >= -1e-9
-    assert len(recorded) == 1000 and max(len(rec[0]) for rec in recorded) > 0
+    assert len(recorded) == 2000 and max(len(rec[0]) for rec in recorded) > 0
     worst = assert_in_pyramid(recorded)
-    print(f"starfish 1 s: pyramid excess {worst:.2e} of tol")
+    dx, dy = sim.state.q[:2] - q0[:2]
+    assert dx >= 0.015 and abs(dy) <= 0.5 * dx
+    print(f"starfish 2 s: core moved ({dx:.4f}, {dy:.4f}) m; pyramid excess {worst:.2e} of tol")
+
+
+def test_starfish_on_a_frictionless_floor_keeps_its_centre_of_mass():
+    """No horizontal external impulse on a frictionless floor: the centre of mass stays where it is (but for
+    the post-stabilization of the attached vertices, O(h^2) a step), so the gait cannot crawl."""
+    sim = Simulator.load("starfish", overrides=["params.mu=0"])
+    sim.step(1)
+    c0, q0 = centre_of_mass(sim), sim.state.q.copy()
+    sim.step(2000)
+    drift = np.abs(centre_of_mass(sim)[:2] - c0[:2]).max()
+    assert drift <= 1e-4
+    assert np.abs(sim.state.q[:2] - q0[:2]).max() <= 2e-3
+    print(f"frictionless starfish 2 s: centre of mass drift {drift:.2e} m, core moved {sim.state.q[:2] - q0[:2]} m")
 
 
 def test_failed_contact_solve_leaves_the_state_as_it_was(monkeypatch):
