@@ -181,6 +181,7 @@ def coupled_velocity(mech, ws, dm, state, ds, cmd, tau, h, timing=None):
     t2 = time.perf_counter()
     E, t = _attached_velocity_map(mech, ws, dm, ds, n_r)
     reduction.fill(red, buf["ad"], buf["bd"], E, t, system.A, system.b, buf["data"], buf["b"], buf["work"])
+    t_red = time.perf_counter()
     contacts = _floor_contacts(dm, ds, red, h)
     C = cons.C if cons.C is not None and len(cons.lo) else None
     G = np.asarray(cons.G).reshape(cons.m, n_r)
@@ -196,9 +197,9 @@ def coupled_velocity(mech, ws, dm, state, ds, cmd, tau, h, timing=None):
                                         cons.g[rows] / coef)
     sol = coupled.solve(cws, buf["data"], buf["b"], n_r, G[rest], cons.g[rest],
                               C, cons.lo if C is not None else None, cons.hi if C is not None else None, contacts,
-                              ws.cache.get("deformable_contacts"), [labs[i] for i in rest] + dm.attach.labels,
+                              _warm_contacts(ws, ds), [labs[i] for i in rest] + dm.attach.labels,
                               stats=timing)
-    ws.cache["deformable_contacts"] = sol.contact_state
+    ws.cache[_CONTACTS] = (None, sol.contact_state)  # keyed to the DeformState the step ends in, by step()
     lam, violation = np.empty(cons.m), sol.violation
     lam[rest] = sol.lam
     if len(rows):  # A z + G^T lam = b on a held DOF: lam = (b_j - (A z)_j) / c
@@ -212,13 +213,24 @@ def coupled_velocity(mech, ws, dm, state, ds, cmd, tau, h, timing=None):
     if timing is not None:
         timing["skeleton"] += t1 - t0
         timing["mesh_assembly"] += t2 - t1
-        timing["coupled_solve"] += t3 - t2
+        timing["reduction"] += t_red - t2
+        timing["coupled_solve"] += t3 - t_red
         timing["contact_iterations"] = sol.iterations
         timing["contact_converged"] = sol.converged
     s = Solution(v_r, lam, sol.mu, sol.iterations, "coupled", None, None, violation, given_residual=sol.residual)
     vs = VelocitySolve(s, cons.joint_rows, cons.site_rows,
                        cons.G[cons.loop_rows] if len(mech.loop_ab) else None, violation, "coupled", sol.iterations)
     return vs, v_d.reshape(-1, 3)
+
+
+_CONTACTS = "deformable contacts"  # ws.cache: (the DeformState they were found for, contact states by vertex)
+
+
+def _warm_contacts(ws, ds):
+    """The floor contacts' states (coupled.solve's warm start) of the step that ended in ``ds``, or None: after
+    a reset, a set_state or a load a step solves as a fresh run from that state does."""
+    hit = ws.cache.get(_CONTACTS)
+    return hit[1] if hit is not None and hit[0] is ds else None
 
 
 _PREFILLED = "deformable system filled"  # ws.cache: (the DeformState whose A_d, b_d are in the buffers, h)
@@ -324,6 +336,7 @@ def step(mech, ws, dm, state, cmd, h, timing=None):
         raise StepError("non-finite deformable positions after the step")
     ek, ep, es = energies(mech, ws, q_new, v_new)
     ds_new = DeformState.of(x_new, v_d)
+    ws.cache[_CONTACTS] = (ds_new, ws.cache[_CONTACTS][1])
     t1 = time.perf_counter()
     dk, dg, de = dm.energies(ds_new.x, ds_new.v, _prefill(ws, dm, ds_new, h))  # the next step's A_d, b_d
     if timing is not None:
@@ -351,7 +364,8 @@ class DeformableBackend:
                              "and scheme euler)")
         self.mech, self.deformables = mech, dm
         self.workspace = Workspace(mech, pin_data=True)
-        self.timing = {"skeleton": 0.0, "mesh_assembly": 0.0, "coupled_solve": 0.0, "attachment_drift": 0.0}
+        self.timing = {"skeleton": 0.0, "mesh_assembly": 0.0, "reduction": 0.0, "coupled_solve": 0.0,
+                       "attachment_drift": 0.0}
 
     def step(self, state, cmd, h, budget=None):
         return step(self.mech, self.workspace, self.deformables, state, cmd, h, self.timing)
