@@ -311,6 +311,7 @@ def solve(ws: Workspace, data, b, n_r, G, g, C=None, lo=None, hi=None, contacts:
         # friction stage (Eq. 12 with alpha fixed; normal working set and limit rows held): primal active set
         # with descent on min 1/2 z^T A z - (b + N^T alpha)^T z + sum_j mu alpha_j |z_j| over the tangents
         bound = np.repeat(fric * alpha, 2)
+        releasable = np.repeat(normal & known, 2)  # stuck tangents whose bound is known (normal, known change below)
         done = False
         while it < MAX_ITER:
             it += 1
@@ -353,7 +354,7 @@ def solve(ws: Workspace, data, b, n_r, G, g, C=None, lo=None, hi=None, contacts:
                 z = zs
             rc = reactions(z, F)
             if fric > 0:
-                held_t = stick & n2 & np.repeat(known, 2)
+                held_t = stick & releasable
                 if held_t.any():  # the stuck tangent whose reaction most exceeds its bound slides
                     rt = rc[:, :2].ravel()
                     excess = np.where(held_t, np.abs(rt) - bound, -np.inf)
@@ -456,7 +457,7 @@ def solve(ws: Workspace, data, b, n_r, G, g, C=None, lo=None, hi=None, contacts:
         imp[:, :2] = np.where(normal[:, None] & stick2, rt, np.where(normal[:, None], Ft, 0.0))
     res = r.copy()
     if k:
-        res[_fixed(contacts, normal, stick)[0]] = 0.0
+        res[(fixed if not dirty else _fixed(contacts, normal, stick)[0])] = 0.0
     m = len(g)
     if m:
         res[nf:] += G.T @ lam
