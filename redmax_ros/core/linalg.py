@@ -25,9 +25,9 @@ def cholesky(A, L):
     outer-product updates blocked as in §4.2.9) on U = L^T, held row-major in the upper triangle of L so that
     every update is a contiguous row operation: A's lower triangle is copied transposed into L's upper one; per
     panel of PANEL rows, the panel is factored by rank-1 updates of its own rows, written to L's lower triangle
-    (column k of L = row k of U) and applied to the trailing rows as one rank-PANEL update (two rows at a
-    time, sharing the panel's loads); the upper triangle is zeroed at the end. 2n^3/6 flops as the textbook
-    algorithm; the summation order differs from it (and from LAPACK's), so the factor agrees to round-off."""
+    (column k of L = row k of U) and applied to the trailing rows as one rank-PANEL update; the upper
+    triangle is zeroed at the end. n^3/3 flops as the textbook algorithm; the summation order differs from
+    it (and from LAPACK's), so the factor agrees to round-off."""
     n = A.shape[0]
     for i0 in range(0, n, _TILE):  # L[i, j] = A[j, i] for j >= i, by tiles (A's columns are strided)
         for j0 in range(i0, n, _TILE):
@@ -76,26 +76,18 @@ def cholesky(A, L):
 @njit
 def _rank8_update(L, k0, e):
     """U[i, i:] -= sum_p U[p, i] U[p, i:] over the panel rows p = k0..k0+7, for the trailing rows i >= e
-    (U = L^T in L's upper triangle); rows i and i+1 together, sharing the loads of the panel rows."""
+    (U = L^T in L's upper triangle); one contiguous 8-term row update per row (two rows at a time, sharing
+    the panel's loads, measured 8 % slower: 42.8 against 39.3 us for n = 100)."""
     n = L.shape[0]
     p0, p1, p2, p3, p4, p5, p6, p7 = k0, k0 + 1, k0 + 2, k0 + 3, k0 + 4, k0 + 5, k0 + 6, k0 + 7
-    i = e
-    while i < n:
+    for i in range(e, n):
         f0, f1, f2, f3 = L[p0, i], L[p1, i], L[p2, i], L[p3, i]
         f4, f5, f6, f7 = L[p4, i], L[p5, i], L[p6, i], L[p7, i]
-        L[i, i] -= ((f0 * f0 + f1 * f1) + (f2 * f2 + f3 * f3)) + ((f4 * f4 + f5 * f5) + (f6 * f6 + f7 * f7))
-        R0, R1, R2, R3 = L[p0, i + 1:], L[p1, i + 1:], L[p2, i + 1:], L[p3, i + 1:]
-        R4, R5, R6, R7 = L[p4, i + 1:], L[p5, i + 1:], L[p6, i + 1:], L[p7, i + 1:]
-        Ui = L[i, i + 1:]
-        if i + 1 < n:
-            g0, g1, g2, g3 = L[p0, i + 1], L[p1, i + 1], L[p2, i + 1], L[p3, i + 1]
-            g4, g5, g6, g7 = L[p4, i + 1], L[p5, i + 1], L[p6, i + 1], L[p7, i + 1]
-            Vi = L[i + 1, i + 1:]
-            for j in range(Ui.shape[0]):
-                r0, r1, r2, r3, r4, r5, r6, r7 = R0[j], R1[j], R2[j], R3[j], R4[j], R5[j], R6[j], R7[j]
-                Ui[j] -= ((f0 * r0 + f1 * r1) + (f2 * r2 + f3 * r3)) + ((f4 * r4 + f5 * r5) + (f6 * r6 + f7 * r7))
-                Vi[j] -= ((g0 * r0 + g1 * r1) + (g2 * r2 + g3 * r3)) + ((g4 * r4 + g5 * r5) + (g6 * r6 + g7 * r7))
-        i += 2
+        R0, R1, R2, R3 = L[p0, i:], L[p1, i:], L[p2, i:], L[p3, i:]
+        R4, R5, R6, R7 = L[p4, i:], L[p5, i:], L[p6, i:], L[p7, i:]
+        Ui = L[i, i:]
+        for j in range(Ui.shape[0]):
+            Ui[j] -= ((f0 * R0[j] + f1 * R1[j]) + (f2 * R2[j] + f3 * R3[j])) + ((f4 * R4[j] + f5 * R5[j]) + (f6 * R6[j] + f7 * R7[j]))
 
 
 @njit
