@@ -8,7 +8,8 @@ data-free direct solver):
   for solvers.pcg.MatrixFreeSystem;
 * a dense LHS (:func:`dense_lhs`) for the data-free direct solver: a CRBA-style pass over composite
   inertias (M_m plus the 6x6 diagonal blocks of the maximal stiffness/damping) plus the cross-body
-  spring terms, O(n d + sum_s d_a d_b) for tree depth d.
+  spring terms by composites of the spring ends' wrenches, O(n d + sum_s (d_a + d_b) + n nv) for tree
+  depth d; both lower-triangle kernels (the compiled step's) whose rows are contiguous, vectorised loops.
 
 Conventions match the Pinocchio pipeline (forces.py); test/core/step/test_matrix_free.py checks each piece.
 """
@@ -20,6 +21,7 @@ import pinocchio as pin
 from redmax_ros.core.dynamics.springs import clamp_lever_blocks, geometric_blocks_kernel, joint_displacement
 from redmax_ros.core.dynamics.tree_kinematics import Context
 from redmax_ros.core.jit import njit
+from redmax_ros.core.linalg import add_lower_symmetric
 from redmax_ros.core.solvers import recursive as rc
 
 
@@ -51,17 +53,58 @@ def nle_wrench_kernel(I, ov, acc, g, W):
 
 
 @njit
-def dense_crba_kernel(parents, idx_v, nv_j, St, Ic, A):
-    """A += J^T blkdiag(Ic) J by the composite-rigid-body algorithm in the world frame.
-    Ic (njoints,6,6) holds each body's 6x6 block on entry and is overwritten by the composites.
-    Every column pair (c of joint j, c2 of an ancestor-or-self joint k) gets S_c2^T Ic_j S_c."""
+def all_support_runs(parents, idx_v, nv_j):
+    """The DOFs that move each joint's body (its own and its ancestors') as maximal runs of consecutive
+    indices: (ptr (njoints+1,), runs (R, 2)), joint j's runs (lo, hi) in runs[ptr[j]:ptr[j+1]], from j towards
+    the root (decreasing indices; j's own DOFs end the first). In Pinocchio's depth-first order a serial chain
+    is one run per joint, and a path through a branch point starts a new run at each child that is not the
+    first. O(total runs): j's from its parent's, merged when the parent's DOFs end where j's start."""
     nj = parents.shape[0]
+    ptr = np.zeros(nj + 1, np.int64)
+    for j in range(1, nj):
+        p = parents[j]
+        n = ptr[p + 1] if p > 0 else 0  # the parent's count (ptr holds counts until the prefix sum)
+        if not (p > 0 and idx_v[p] + nv_j[p] == idx_v[j]):
+            n += 1
+        ptr[j + 1] = n
+    for j in range(nj):
+        ptr[j + 1] += ptr[j]
+    runs = np.empty((ptr[nj], 2), np.int64)
+    for j in range(1, nj):
+        p = parents[j]
+        o = ptr[j]
+        lo, hi = idx_v[j], idx_v[j] + nv_j[j]
+        q0 = ptr[p] if p > 0 else 0
+        q1 = ptr[p + 1] if p > 0 else 0
+        if p > 0 and idx_v[p] + nv_j[p] == lo:
+            lo = runs[q0, 0]
+            q0 += 1
+        runs[o, 0], runs[o, 1] = lo, hi
+        for q in range(q0, q1):
+            runs[o + 1 + q - q0, 0], runs[o + 1 + q - q0, 1] = runs[q, 0], runs[q, 1]
+    return ptr, runs
+
+
+@njit
+def crba_lower_kernel(parents, idx_v, nv_j, St, Ic, A):
+    """A's lower triangle (diagonal included) += that of J^T blkdiag(Ic) J, by the composite-rigid-body
+    algorithm in the world frame (Featherstone, Rigid Body Dynamics Algorithms, §6.2). Ic (njoints,6,6) holds
+    each body's 6x6 block on entry and is overwritten by the composites. Column c of joint j gives row c of the
+    lower triangle: A[c, c2] += S_c2^T (Ic_j S_c) for c2 <= c on the DOFs supporting j (:func:`all_support_runs`),
+    each run as one contiguous (vectorised) row update."""
+    nj = parents.shape[0]
+    nv = St.shape[0]
     for j in range(nj - 1, 0, -1):
         p = parents[j]
         if p > 0:
             for a in range(6):
                 for b in range(6):
                     Ic[p, a, b] += Ic[j, a, b]
+    StT = np.empty((6, nv))
+    for c in range(nv):
+        for a in range(6):
+            StT[a, c] = St[c, a]
+    ptr, runs = all_support_runs(parents, idx_v, nv_j)
     F = np.empty(6)
     for j in range(1, nj):
         for c in range(idx_v[j], idx_v[j] + nv_j[j]):
@@ -70,68 +113,184 @@ def dense_crba_kernel(parents, idx_v, nv_j, St, Ic, A):
                 for b in range(6):
                     s += Ic[j, a, b] * St[c, b]
                 F[a] = s
-            k = j
-            while k > 0:
-                for c2 in range(idx_v[k], idx_v[k] + nv_j[k]):
-                    s = 0.0
-                    for a in range(6):
-                        s += St[c2, a] * F[a]
-                    if c2 == c:
-                        A[c, c] += s
-                    elif c2 < c or k != j:
-                        A[c2, c] += s
-                        A[c, c2] += s
-                k = parents[k]
+            f0, f1, f2, f3, f4, f5 = F[0], F[1], F[2], F[3], F[4], F[5]
+            for r in range(ptr[j], ptr[j + 1]):
+                lo, hi = runs[r, 0], (c + 1 if r == ptr[j] else runs[r, 1])
+                Ar = A[c, lo:hi]
+                S0, S1, S2 = StT[0, lo:hi], StT[1, lo:hi], StT[2, lo:hi]
+                S3, S4, S5 = StT[3, lo:hi], StT[4, lo:hi], StT[5, lo:hi]
+                for t in range(Ar.shape[0]):
+                    Ar[t] += ((f0 * S0[t] + f1 * S1[t]) + (f2 * S2[t] + f3 * S3[t])) + (f4 * S4[t] + f5 * S5[t])
+
+
+@njit
+def dense_crba_kernel(parents, idx_v, nv_j, St, Ic, A):
+    """A += J^T blkdiag(Ic) J (both triangles): :func:`crba_lower_kernel` into a scratch matrix, added to A
+    symmetrically. Ic is overwritten by the composites."""
+    M = np.zeros(A.shape)
+    crba_lower_kernel(parents, idx_v, nv_j, St, Ic, M)
+    add_lower_symmetric(M, A)
+
+
+@njit
+def _add_end_wrenches(StT, x, y, C, transpose, runs, r0, r1, Q, W):
+    """W[:, c] += X_x^T C' X_y S_c (6 x nv) over the runs runs[r0:r1] (the support of the other end): the
+    wrench at the world origin of the force C' J_y[:, c] at the end x, J_y[:, c] = X_y S_c the point Jacobian
+    of the other end y, X_y = [I, -[y]] (Eq. S2.4), X_x^T f = (f, x x f); C' = C, or C^T with ``transpose``.
+    Q (6, 6) scratch: X_x^T C' X_y, then one contiguous 6-term row update per row of W."""
+    x0, x1, x2 = x[0], x[1], x[2]
+    y0, y1, y2 = y[0], y[1], y[2]
+    for a in range(3):
+        if transpose:
+            c0, c1, c2 = C[0, a], C[1, a], C[2, a]
+        else:
+            c0, c1, c2 = C[a, 0], C[a, 1], C[a, 2]
+        Q[a, 0], Q[a, 1], Q[a, 2] = c0, c1, c2
+        Q[a, 3] = c2 * y1 - c1 * y2
+        Q[a, 4] = c0 * y2 - c2 * y0
+        Q[a, 5] = c1 * y0 - c0 * y1
+    for b in range(6):
+        Q[3, b] = x1 * Q[2, b] - x2 * Q[1, b]
+        Q[4, b] = x2 * Q[0, b] - x0 * Q[2, b]
+        Q[5, b] = x0 * Q[1, b] - x1 * Q[0, b]
+    for r in range(r0, r1):
+        lo, hi = runs[r, 0], runs[r, 1]
+        S0, S1, S2 = StT[0, lo:hi], StT[1, lo:hi], StT[2, lo:hi]
+        S3, S4, S5 = StT[3, lo:hi], StT[4, lo:hi], StT[5, lo:hi]
+        for a in range(6):
+            q0, q1, q2, q3, q4, q5 = Q[a, 0], Q[a, 1], Q[a, 2], Q[a, 3], Q[a, 4], Q[a, 5]
+            Wa = W[a, lo:hi]
+            for t in range(Wa.shape[0]):
+                Wa[t] += ((q0 * S0[t] + q1 * S1[t]) + (q2 * S2[t] + q3 * S3[t])) + (q4 * S4[t] + q5 * S5[t])
+
+
+@njit
+def _clear_columns(W, lo, hi):
+    for a in range(6):
+        Wa = W[a, lo:hi]
+        for t in range(Wa.shape[0]):
+            Wa[t] = 0.0
+
+
+@njit
+def spring_cross_lower_kernel(parents, idx_v, nv_j, St, ja, pa, jb, pb, C, A):
+    """A's lower triangle (diagonal included) -= that of N = sum_s J_a^T C J_b + J_b^T C^T J_a, over the
+    springs between two different moving bodies (the off-diagonal body blocks of sum_s J_s^T C_s J_s; the
+    diagonal ones are in the composite inertias).
+
+    By composites, as the CRBA (Featherstone, Rigid Body Dynamics Algorithms, §6.2) treats the inertias: row r
+    of joint j is N[r, :] = S_r^T Wbar_j, where Wbar_j (6 x nv) = sum over the spring ends on the bodies of j's
+    subtree of X_e^T C' J_o, the world-origin wrench of the end's force per unit velocity of each DOF moving the
+    spring's other end (J_o its point Jacobian, X_e^T f = (f, x_e x f), C' = C at end a and C^T at end b). The
+    joints are visited leaves first (reverse depth-first order) with a stack of the finished subtrees'
+    accumulators, a joint's Wbar accumulated in place of its first child's, each over the column range [lo, hi)
+    its ends touched: each spring end adds O(d_o) (d_o DOFs support the other end), each row costs O(hi - lo),
+    instead of O(d_a d_b) per spring pair by pair; every loop is a contiguous (vectorised) row."""
+    nv = St.shape[0]
+    nj = parents.shape[0]
+    P = ja.shape[0]
+    head = np.full(nj, -1, np.int64)  # spring ends per joint (e = 2 s + end), linked through nxt
+    nxt = np.empty(2 * P, np.int64)
+    nends = 0
+    for s in range(P):
+        i, k = ja[s], jb[s]
+        if i == 0 or k == 0 or i == k:
+            continue
+        nxt[2 * s] = head[i]
+        head[i] = 2 * s
+        nxt[2 * s + 1] = head[k]
+        head[k] = 2 * s + 1
+        nends += 2
+    if nends == 0:
+        return
+    nchild = np.zeros(nj, np.int64)
+    for j in range(1, nj):
+        if parents[j] > 0:
+            nchild[parents[j]] += 1
+    pending = 0  # accumulators alive at once: the finished subtrees not yet merged into their parent's
+    cap = 1
+    for j in range(nj - 1, 0, -1):
+        pending += 1 - nchild[j]
+        cap = max(cap, pending)
+        if parents[j] == 0:
+            pending -= 1
+    W = np.zeros((cap, 6, nv))
+    lo = np.full(cap, nv, np.int64)
+    hi = np.zeros(cap, np.int64)
+    free = np.arange(cap)
+    nfree = cap
+    st_joint = np.empty(nj, np.int64)
+    st_slot = np.empty(nj, np.int64)
+    sp = 0
+    StT = np.empty((6, nv))
+    for c in range(nv):
+        for a in range(6):
+            StT[a, c] = St[c, a]
+    ptr, runs = all_support_runs(parents, idx_v, nv_j)
+    Q = np.empty((6, 6))
+    for j in range(nj - 1, 0, -1):
+        w = -1
+        while sp > 0 and parents[st_joint[sp - 1]] == j:  # j's children, finished just before it
+            sp -= 1
+            c = st_slot[sp]
+            if w < 0:
+                w = c
+                continue
+            if hi[c] > lo[c]:
+                Wc, Ww = W[c], W[w]
+                for a in range(6):
+                    src, dst = Wc[a, lo[c]:hi[c]], Ww[a, lo[c]:hi[c]]
+                    for t in range(src.shape[0]):
+                        dst[t] += src[t]
+                _clear_columns(Wc, lo[c], hi[c])
+                lo[w] = min(lo[w], lo[c])
+                hi[w] = max(hi[w], hi[c])
+            lo[c], hi[c] = nv, 0
+            free[nfree] = c
+            nfree += 1
+        if w < 0:
+            nfree -= 1
+            w = free[nfree]
+        Ww = W[w]
+        e = head[j]
+        while e >= 0:
+            s = e // 2
+            o = jb[s] if e % 2 == 0 else ja[s]
+            if e % 2 == 0:
+                _add_end_wrenches(StT, pa[s], pb[s], C[s], False, runs, ptr[o], ptr[o + 1], Q, Ww)
+            else:
+                _add_end_wrenches(StT, pb[s], pa[s], C[s], True, runs, ptr[o], ptr[o + 1], Q, Ww)
+            lo[w] = min(lo[w], runs[ptr[o + 1] - 1, 0])
+            hi[w] = max(hi[w], runs[ptr[o], 1])
+            e = nxt[e]
+        if hi[w] > lo[w]:
+            l0 = lo[w]
+            for r in range(max(idx_v[j], l0), idx_v[j] + nv_j[j]):
+                s0, s1, s2, s3, s4, s5 = St[r, 0], St[r, 1], St[r, 2], St[r, 3], St[r, 4], St[r, 5]
+                m = min(r + 1, hi[w])
+                Ar = A[r, l0:m]
+                W0, W1, W2, W3, W4, W5 = Ww[0, l0:m], Ww[1, l0:m], Ww[2, l0:m], Ww[3, l0:m], Ww[4, l0:m], Ww[5, l0:m]
+                for t in range(Ar.shape[0]):
+                    Ar[t] -= ((s0 * W0[t] + s1 * W1[t]) + (s2 * W2[t] + s3 * W3[t])) + (s4 * W4[t] + s5 * W5[t])
+        if parents[j] == 0:  # a subtree of the world: nothing to merge into
+            if hi[w] > lo[w]:
+                _clear_columns(Ww, lo[w], hi[w])
+            lo[w], hi[w] = nv, 0
+            free[nfree] = w
+            nfree += 1
+        else:
+            st_joint[sp] = j
+            st_slot[sp] = w
+            sp += 1
 
 
 @njit
 def spring_cross_kernel(parents, idx_v, nv_j, St, ja, pa, jb, pb, C, A):
-    """A -= J_a^T C J_b + J_b^T C J_a for springs between two different moving bodies (the
-    off-diagonal blocks of sum_s J_s^T C_s J_s; the diagonal blocks are in the composite inertias)."""
-    nv = St.shape[0]
-    cols_a = np.empty(nv, np.int64)
-    cols_b = np.empty(nv, np.int64)
-    Pa = np.empty((nv, 3))
-    Pb = np.empty((nv, 3))
-    CPb = np.empty((nv, 3))
-    for s in range(ja.shape[0]):
-        i, k = ja[s], jb[s]
-        if i == 0 or k == 0 or i == k:
-            continue
-        na = 0
-        j = i
-        while j > 0:
-            for c in range(idx_v[j], idx_v[j] + nv_j[j]):
-                w0, w1, w2 = St[c, 3], St[c, 4], St[c, 5]
-                x = pa[s]
-                Pa[na, 0] = St[c, 0] + w1 * x[2] - w2 * x[1]
-                Pa[na, 1] = St[c, 1] + w2 * x[0] - w0 * x[2]
-                Pa[na, 2] = St[c, 2] + w0 * x[1] - w1 * x[0]
-                cols_a[na] = c
-                na += 1
-            j = parents[j]
-        nb = 0
-        j = k
-        while j > 0:
-            for c in range(idx_v[j], idx_v[j] + nv_j[j]):
-                w0, w1, w2 = St[c, 3], St[c, 4], St[c, 5]
-                x = pb[s]
-                Pb[nb, 0] = St[c, 0] + w1 * x[2] - w2 * x[1]
-                Pb[nb, 1] = St[c, 1] + w2 * x[0] - w0 * x[2]
-                Pb[nb, 2] = St[c, 2] + w0 * x[1] - w1 * x[0]
-                cols_b[nb] = c
-                nb += 1
-            j = parents[j]
-        for m in range(nb):
-            for a in range(3):
-                CPb[m, a] = C[s, a, 0] * Pb[m, 0] + C[s, a, 1] * Pb[m, 1] + C[s, a, 2] * Pb[m, 2]
-        for l in range(na):
-            ca = cols_a[l]
-            for m in range(nb):
-                cb = cols_b[m]
-                val = Pa[l, 0] * CPb[m, 0] + Pa[l, 1] * CPb[m, 1] + Pa[l, 2] * CPb[m, 2]
-                A[ca, cb] -= val
-                A[cb, ca] -= val
+    """A -= J_a^T C J_b + J_b^T C^T J_a (both triangles) for springs between two different moving bodies:
+    :func:`spring_cross_lower_kernel` into a scratch matrix, subtracted from A symmetrically."""
+    M = np.zeros(A.shape)
+    spring_cross_lower_kernel(parents, idx_v, nv_j, St, ja, pa, jb, pb, C, M)
+    add_lower_symmetric(M, A)
 
 
 def body_damping_blocks(ctx: Context, h: float) -> np.ndarray | None:

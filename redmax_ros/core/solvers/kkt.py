@@ -19,7 +19,7 @@ from __future__ import annotations
 import numpy as np
 
 from redmax_ros.core.jit import njit
-from redmax_ros.core.linalg import chol_solve, cholesky
+from redmax_ros.core.linalg import chol_solve, cholesky, dot
 
 SMALL_N = 64  # DOFs at or below which solve.solve_direct uses this kernel
 
@@ -230,10 +230,7 @@ def kkt_residual(A, b, v, G, lam, C, mu):
     n = A.shape[0]
     r = -b.copy()
     for i in range(n):
-        s = 0.0
-        for k in range(n):
-            s += A[i, k] * v[k]
-        r[i] += s
+        r[i] += dot(A[i], v)
     for j in range(G.shape[0]):
         for i in range(n):
             r[i] += G[j, i] * lam[j]

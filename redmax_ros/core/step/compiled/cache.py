@@ -2,9 +2,10 @@
 
 numba keys a cached kernel on its own source file only, but the compiled step's kernels (kernel.py) contain
 the code of every function they call, inlined or linked at compile time (the stages here and the kernels
-of solvers/, dynamics/ and step/state.py). After an edit of any of those files the cached kernel would
-silently be the old one. :func:`drop_stale` hashes all of those sources and, when the hash differs from
-the one stored beside the cache, deletes the cached kernels of kernel.py so numba compiles them afresh.
+of solvers/, dynamics/ and step/state.py), and so does every cached callee in those modules (kkt_solve_into
+carries the Cholesky of linalg.py). After an edit of any of those files a cached kernel would silently be
+the old one. :func:`drop_stale` hashes all of those sources and, when the hash differs from the one stored
+beside the cache, deletes the cached functions of every one of those modules so numba compiles them afresh.
 """
 from __future__ import annotations
 
@@ -29,27 +30,37 @@ def sources_digest() -> str:
     return h.hexdigest()
 
 
-def _cache_dirs() -> list:
-    dirs = [_CORE / "step" / "compiled" / "__pycache__"]
-    env = os.environ.get("NUMBA_CACHE_DIR")
+def _cache_dir(source: Path, env) -> Path:
+    """Where numba caches the functions of ``source``: its __pycache__, or NUMBA_CACHE_DIR + its directory."""
     if env:
-        dirs += [p for p in Path(env).rglob("compiled") if p.is_dir()]
-    return [d for d in dirs if d.is_dir()]
+        return Path(env).joinpath(*source.parent.parts[1:])
+    return source.parent / "__pycache__"
 
 
 def drop_stale() -> bool:
-    """Delete the cached step kernels if any source they contain changed; True if something was deleted."""
+    """Delete the cached functions of every module in SOURCES if any of those sources changed (the stamp in
+    kernel.py's cache directory); True if something was deleted."""
     digest = sources_digest()
-    dropped = False
-    for d in _cache_dirs():
-        stamp = d / "step-kernels.sha256"
-        try:
-            if stamp.exists() and stamp.read_text() == digest:
+    env = os.environ.get("NUMBA_CACHE_DIR")
+    stamp_dir = _cache_dir(_CORE / "step" / "compiled" / "kernel.py", env)
+    stamp = stamp_dir / "step-kernels.sha256"
+    try:
+        if not stamp_dir.is_dir():  # nothing of the step cached yet
+            stamp_dir.mkdir(parents=True, exist_ok=True)
+            stamp.write_text(digest)
+            return False
+        if stamp.exists() and stamp.read_text() == digest:
+            return False
+        dropped = False
+        for rel in SOURCES:
+            src = _CORE / rel
+            d = _cache_dir(src, env)
+            if not d.is_dir():
                 continue
-            for f in list(d.glob("kernel.*.nbi")) + list(d.glob("kernel.*.nbc")):
+            for f in list(d.glob(src.stem + ".*.nbi")) + list(d.glob(src.stem + ".*.nbc")):
                 f.unlink(missing_ok=True)
                 dropped = True
-            stamp.write_text(digest)
-        except OSError:  # a read-only install: numba then caches elsewhere or not at all
-            continue
-    return dropped
+        stamp.write_text(digest)
+        return dropped
+    except OSError:  # a read-only install: numba then caches elsewhere or not at all
+        return False

@@ -16,8 +16,9 @@ from __future__ import annotations
 import numpy as np
 
 from redmax_ros.core.dynamics.springs import clamp_lever_blocks, geometric_blocks_kernel, spring_kernel
-from redmax_ros.core.dynamics.tree_forces import dense_crba_kernel, nle_wrench_kernel, spring_cross_kernel
+from redmax_ros.core.dynamics.tree_forces import crba_lower_kernel, nle_wrench_kernel, spring_cross_lower_kernel
 from redmax_ros.core.jit import njit, njit_inline
+from redmax_ros.core.linalg import mirror_lower
 from redmax_ros.core.solvers.pcg import add_point_block, spring_blocks_kernel
 from redmax_ros.core.solvers.recursive import bias_kernel, jtw_kernel, jv_kernel
 from redmax_ros.core.step.compiled.manifold import difference
@@ -125,9 +126,10 @@ def rhs(m, d, q, v, vm, ovm, tau, h):
 
 
 @njit_inline
-def lhs(m, d, h):
+def lhs(m, d, h, A):
     """A of Eq. (2), reduced coordinates (tree_forces.dense_lhs): composite inertias of I + blocks, minus the
-    springs' cross-body terms, plus armature + h D_r + h^2 K_r. Needs kinematics and spring_terms."""
+    springs' cross-body terms, plus armature + h D_r + h^2 K_r, into A (nv, nv); the lower triangle by the
+    vectorised row kernels of tree_forces, then mirrored. Needs kinematics and spring_terms."""
     nj = m.parents.shape[0]
     d.blocks[:, :, :] = 0.0
     if m.spring_a.shape[0] and m.scalars[4] != 0.0:  # integrator.spring_stiffness: full: the lever-arm blocks of K_m
@@ -159,13 +161,15 @@ def lhs(m, d, h):
             for b in range(6):
                 d.blocks[j, a, b] += d.I[j, a, b]
     d.blocks[0] = 0.0
-    d.A[:, :] = 0.0
-    dense_crba_kernel(m.parents, m.idx_v, m.nv_j, d.St, d.blocks, d.A)
+    A[:, :] = 0.0
+    crba_lower_kernel(m.parents, m.idx_v, m.nv_j, d.St, d.blocks, A)
     if m.spring_a.shape[0]:
-        spring_cross_kernel(m.parents, m.idx_v, m.nv_j, d.St, m.spring_ja, d.pa, m.spring_jb, d.pb, d.spring_C, d.A)
+        spring_cross_lower_kernel(m.parents, m.idx_v, m.nv_j, d.St, m.spring_ja, d.pa, m.spring_jb, d.pb,
+                                  d.spring_C, A)
     hh = h * h
-    for i in range(d.A.shape[0]):
-        d.A[i, i] += m.armature[i] + (h * m.damping[i] + hh * m.stiffness[i])
+    for i in range(A.shape[0]):
+        A[i, i] += m.armature[i] + (h * m.damping[i] + hh * m.stiffness[i])
+    mirror_lower(A)
 
 
 @njit_inline
@@ -193,5 +197,9 @@ def assemble(m, d, q, v, vm, ovm, tau, h, shifted):
     :func:`spring_terms`)."""
     spring_terms(m, d, h, shifted)
     rhs(m, d, q, v, vm, ovm, tau, h)
-    lhs(m, d, h)
-    hyper_reduce(m.T_col, m.T_ratio, d.A, d.b, d.AR, d.bR)
+    coupled = m.T_col.shape[0] != 0
+    lhs(m, d, h, d.A if coupled else d.AR)  # without couplings (T = I) straight into A_R
+    if coupled:
+        hyper_reduce(m.T_col, m.T_ratio, d.A, d.b, d.AR, d.bR)
+    else:
+        d.bR[:] = d.b
