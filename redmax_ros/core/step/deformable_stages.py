@@ -199,7 +199,7 @@ def coupled_velocity(mech, ws, dm, state, ds, cmd, tau, h, timing=None):
                               C, cons.lo if C is not None else None, cons.hi if C is not None else None, contacts,
                               _warm_contacts(ws, ds), [labs[i] for i in rest] + dm.attach.labels,
                               stats=timing)
-    ws.cache[_CONTACTS] = (None, sol.contact_state)  # keyed to the DeformState the step ends in, by step()
+    ws.cache[_CONTACTS_FOUND] = sol.contact_state  # step() keys them to the DeformState it ends in, on success
     lam, violation = np.empty(cons.m), sol.violation
     lam[rest] = sol.lam
     if len(rows):  # A z + G^T lam = b on a held DOF: lam = (b_j - (A z)_j) / c
@@ -224,6 +224,7 @@ def coupled_velocity(mech, ws, dm, state, ds, cmd, tau, h, timing=None):
 
 
 _CONTACTS = "deformable contacts"  # ws.cache: (the DeformState they were found for, contact states by vertex)
+_CONTACTS_FOUND = "deformable contacts found"  # ws.cache: the running step's, until it succeeds
 
 
 def _warm_contacts(ws, ds):
@@ -336,7 +337,6 @@ def step(mech, ws, dm, state, cmd, h, timing=None):
         raise StepError("non-finite deformable positions after the step")
     ek, ep, es = energies(mech, ws, q_new, v_new)
     ds_new = DeformState.of(x_new, v_d)
-    ws.cache[_CONTACTS] = (ds_new, ws.cache[_CONTACTS][1])
     t1 = time.perf_counter()
     dk, dg, de = dm.energies(ds_new.x, ds_new.v, _prefill(ws, dm, ds_new, h))  # the next step's A_d, b_d
     if timing is not None:
@@ -347,6 +347,7 @@ def step(mech, ws, dm, state, cmd, h, timing=None):
     diag = Diagnostics(ek, ep, es, ek + ep + es, max(viol_loop or 0.0, resid), vs.violation_vel, vs.iterations,
                        vs.solver, time.perf_counter() - t0, vs.sol, None)
     new = state.advanced(h, q_new, v_hyper, None, deform=ds_new)
+    ws.cache[_CONTACTS] = (ds_new, ws.cache.pop(_CONTACTS_FOUND))  # a failed step leaves the last warm start
     return new, StepResult(new.t, q_new, v_new, effort, site_forces, diag)
 
 

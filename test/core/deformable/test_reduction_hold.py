@@ -1,6 +1,7 @@
 """Prescribed DOFs held in the reduced system (deformable/reduction.py: unit_rows, hold, reactions) give the
 KKT solution of A z + G^T lam = b, G z = g exactly: the same z and multipliers as the dense KKT solve."""
 import numpy as np
+import pytest
 import scipy.sparse as sp
 
 from redmax_ros.core.deformable import reduction
@@ -102,3 +103,30 @@ def test_a_run_set_back_to_a_state_replays_a_fresh_run_from_it_bitwise_with_floo
     assert np.array_equal(sim.state.q, fresh.state.q)
     assert np.array_equal(sim.state.deform.x, fresh.state.deform.x)
     assert np.array_equal(sim.state.deform.v, fresh.state.deform.v)
+
+
+def test_a_step_that_fails_after_its_solve_leaves_the_warm_start_as_it_was(monkeypatch):
+    """A step that raises after the coupled solve (here: a StepError injected into the required forces) changes
+    neither the state nor what the next step starts from: the retry and the steps after it equal a run that
+    never failed, bit for bit, with floor friction (whose solve depends on its warm start)."""
+    from redmax_ros.core import Simulator, StepError
+    from redmax_ros.core.step import deformable_stages
+
+    ref = Simulator.load("starfish")
+    ref.step(35)
+    sim = Simulator.load("starfish")
+    sim.step(30)
+    before = sim.state
+    real = deformable_stages.required_forces
+
+    def failing(*a, **k):
+        raise StepError("injected")
+
+    monkeypatch.setattr(deformable_stages, "required_forces", failing)
+    with pytest.raises(StepError, match="injected"):
+        sim.step()
+    assert sim.state is before
+    monkeypatch.setattr(deformable_stages, "required_forces", real)
+    sim.step(5)
+    assert np.array_equal(sim.state.q, ref.state.q)
+    assert np.array_equal(sim.state.deform.x, ref.state.deform.x)
