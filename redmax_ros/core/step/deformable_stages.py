@@ -3,10 +3,12 @@ pipeline's skeleton stages (kinematics.compute, forces.assemble, constraints.bui
 pipeline.pinocchio_velocity) with the deformable DOFs joined to the velocity solve.
 
     A_r, b_r, G_r, C_r            = skeleton stages 1-3 (Eq. 2, Eq. 5-7)
-    A_d, b_d                      = deformable.system.Deformables.assemble (M_d + h D_d + h^2 K_d, M_d v_d + h f_d)
-    [J_p, -S_i] z = 0             = attachments (deformable/attach.py), after the skeleton's rows
-    z_floor >= (floor - z_i) / h  = unilateral row per vertex near the floor (frictionless, no penalty)
-    z = (qdot_R+, v_d+)           = solvers.coupled.solve (attached vertices eliminated, sparse LDL^T, active set)
+    A_d, b_d                      = Deformables.fill (M_d + h D_d + h^2 K_d, M_d v_d + h f_d; filled when the
+                                    step before ended in this DeformState, else here)
+    [J_p, -S_i] z = 0             = attachments (deformable/attach.py): attached vertices eliminated
+                                    (deformable/reduction.py); prescribed joint rows held as DOFs
+    z_floor >= (floor - z_i) / h  = floor contact per free vertex near the floor, Coulomb friction floor_mu
+    z = (qdot_R+, v_d+)           = solvers.coupled.solve (sparse LDL^T, staggered contact loop, Alg. 2)
     q+ = q (+) h qdot_r+          = pipeline.update_configuration (manifold, loops)
     x+ = x + h v_d+, then attached vertices projected onto their points at q+ (post-stabilization)
 
