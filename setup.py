@@ -72,7 +72,7 @@ setup(
     extras_require={
         # Benchmarks (redmax_bench): MuJoCo and Exudyn as comparators, matplotlib for the charts.
         "bench": ["mujoco", "matplotlib", "exudyn>=1.9"],
-        "test": ["pytest", "rosbags", "mcap", "mcap-ros2-support"],
+        "test": ["pytest", "pytest-xdist", "rosbags", "mcap", "mcap-ros2-support"],
         # redmax_sweep --ray and redmax_bench --ray: sweeps on a Ray cluster (docs/sweeps.md)
         "cluster": ["ray[default]>=2.40,<3"],
     },

@@ -14,6 +14,9 @@ Environment (``pytest_configure``, before any test module is imported):
 * A private ROS 2 graph, as scripts/test.sh sets it: ROS_DOMAIN_ID (derived from the process id
   unless set), ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST and RMW_IMPLEMENTATION=rmw_fastrtps_cpp
   unless set. A node started by a test as a subprocess inherits them.
+* Under pytest-xdist (scripts/test.sh runs ``-n 2 --dist loadfile``), each worker gets a graph of its
+  own: worker ``gwN`` moves the run's domain by N * DOMAIN_STRIDE (wrapping in 1..232), so two workers'
+  nodes, services and topics never see each other.
 
 Fixtures: ``ros_domain`` (session: the domain id, checked private), ``ros`` (module: rclpy.init and
 rclpy.shutdown around a test module's ROS tests), ``load_sim`` (Simulator.load as a factory) and ``rk4_aba``
@@ -28,12 +31,23 @@ import pytest
 BLAS_THREADS = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")
 ROS_DISCOVERY = "LOCALHOST"
 ROS_DOMAIN_MAX = 232  # the largest domain id Fast DDS maps to valid ports on Linux
+DOMAIN_STRIDE = 101  # domain offset between pytest-xdist workers (scripts/test.sh draws the base from 1..101)
+
+
+def worker_domain(base: int, worker: str) -> int:
+    """The ROS_DOMAIN_ID of pytest-xdist worker ``worker`` ("gw0", "gw1", ...) in a run whose domain is
+    ``base``: base + N * DOMAIN_STRIDE, wrapped into 1..ROS_DOMAIN_MAX (gw0 keeps the base)."""
+    n = int(worker.removeprefix("gw"))
+    return (base - 1 + n * DOMAIN_STRIDE) % ROS_DOMAIN_MAX + 1
 
 
 def pytest_configure(config):
     for var in BLAS_THREADS:
         os.environ.setdefault(var, "1")
     os.environ.setdefault("ROS_DOMAIN_ID", str(20 + os.getpid() % 80))
+    worker = os.environ.get("PYTEST_XDIST_WORKER")
+    if worker and os.environ["ROS_DOMAIN_ID"].isdigit():
+        os.environ["ROS_DOMAIN_ID"] = str(worker_domain(int(os.environ["ROS_DOMAIN_ID"]), worker))
     os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", ROS_DISCOVERY)
     os.environ.setdefault("RMW_IMPLEMENTATION", "rmw_fastrtps_cpp")
 
