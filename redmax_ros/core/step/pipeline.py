@@ -44,7 +44,7 @@ from redmax_ros.core.friction import staggered
 from redmax_ros.core.solvers.direct import solve_direct
 from redmax_ros.core.solvers.kkt import max_row_residual
 from redmax_ros.core.step import body_twist, trajectory
-from redmax_ros.core.step.scheme import bdf2_point, next_history
+from redmax_ros.core.step.scheme import accepts, bdf2_point, next_history
 from redmax_ros.core.step.state import (Diagnostics, State, StepResult, applied_torques, check_applied, check_inputs,
                                         check_rows, check_speed)
 
@@ -69,13 +69,21 @@ def step(mech, ws, state: State, cmd, h: float, velocity, budget=None) -> tuple:
     """Advance one step of Eq. (2) with the backend's ``velocity`` stages. Returns (State, StepResult);
     raises StepError on failure (the input state is never modified). ``budget``: a StepBudget (CPU time of
     the step's iterative solvers, QP iteration caps) or None (unlimited). With integrator.scheme bdf2 the
-    step is the linearly implicit BDF2 of step/scheme.py (BDF1 when the state has no history for h)."""
+    step is the linearly implicit BDF2 of step/scheme.py (BDF1 when the state has no history for h, or when
+    the order control of step/scheme.accepts rejects the BDF2 step: then it is redone as BDF1)."""
     t0 = time.perf_counter()
     ws.deadline = None if budget is None else budget.start()
     try:
         if mech.scheme == "bdf2":
             ws.bdf2 = bdf2_point(mech.model, ws.to_reduced, state.q, state.v, state.history, h)
-        return _step(mech, ws, state, cmd, h, velocity, t0)
+        warm = ws.cache.get(_ACTIVE_KEY)
+        new, res = _step(mech, ws, state, cmd, h, velocity, t0)
+        if ws.bdf2 is not None and not accepts(mech.model, state.q, ws.bdf2.q_lin, new.q):
+            ws.bdf2 = None  # order control (step/scheme.py): the step again, as BDF1 (Eq. 2), from the same warm start
+            if warm is not None:
+                ws.cache[_ACTIVE_KEY] = warm
+            new, res = _step(mech, ws, state, cmd, h, velocity, t0)
+        return new, res
     finally:
         ws.deadline = None
         ws.bdf2 = None

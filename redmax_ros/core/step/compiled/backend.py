@@ -22,7 +22,7 @@ import numpy as np
 
 from redmax_ros.core.errors import SceneError, StepError
 from redmax_ros.core.step import trajectory
-from redmax_ros.core.step.compiled.data import (OUT_ITERS, OUT_E_KIN, OUT_E_POT, OUT_E_SPRING, OUT_RESIDUAL, OUT_STAGE,
+from redmax_ros.core.step.compiled.data import (OUT_ITERS, OUT_E_KIN, OUT_E_POT, OUT_E_SPRING, OUT_ORDER, OUT_RESIDUAL, OUT_STAGE,
                                                 OUT_VIOL_POS, OUT_VIOL_VEL, build_data)
 from redmax_ros.core.step.compiled.kernel import STAGE_NAMES, step_kernel, step_n_kernel
 from redmax_ros.core.step.compiled.model import build_model, unsupported
@@ -123,6 +123,10 @@ class CompiledBackend:
         qp, vp, hist = self._history_args(state, h)
         if step_kernel(*self.model.args, *d.args, state.q, state.v, tau, float(h), gj, sv, qp, vp, hist):
             self._handed_back(d)
+            return self.reference_step(state, cmd, h, budget)
+        if hist and cmd.joint_trajectories and d["out"][OUT_ORDER] == 1.0:
+            # the order control redid the step as BDF1, whose trajectories aim from q_k, not q^ (resolved above)
+            self.handoffs["BDF2 step redone as BDF1 with trajectories"] += 1
             return self.reference_step(state, cmd, h, budget)
         q_new, v_hyper = d["q_new"].copy(), d["v_hyper"].copy()
         new = self._advanced(state, h, q_new, v_hyper, state.q, state.v)

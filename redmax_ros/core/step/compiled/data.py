@@ -59,8 +59,9 @@ DATA_SPEC = (
 Data = namedtuple("Data", [n for n, _, _ in DATA_SPEC])
 
 # indices of Data.out
-OUT_E_KIN, OUT_E_POT, OUT_E_SPRING, OUT_VIOL_POS, OUT_VIOL_VEL, OUT_RESIDUAL, OUT_STAGE, OUT_ITERS = range(8)
-N_OUT = 8
+# OUT_ORDER: the order of the step taken, 1 (BDF1, Eq. 2) or 2 (BDF2 kept by the order control, step/scheme.py)
+OUT_E_KIN, OUT_E_POT, OUT_E_SPRING, OUT_VIOL_POS, OUT_VIOL_VEL, OUT_RESIDUAL, OUT_STAGE, OUT_ITERS, OUT_ORDER = range(9)
+N_OUT = 9
 
 
 @njit_inline

@@ -11,7 +11,9 @@
     required_forces(m, d, tau, hh)         # 6  Eq. 7 torques and site forces (update.py)
     energies(m, d, q+, qdot_r+)            #    diagnostics (energy.py)
 
-with hh = h for BDF1 (q^ = q* = q_k, v^ = v* = qdot_k: the paper's step) and hh = 2h/3 for BDF2.
+with hh = h for BDF1 (q^ = q* = q_k, v^ = v* = qdot_k: the paper's step) and hh = 2h/3 for BDF2. A BDF2 step
+that the order control rejects (scheme.accepted, step/scheme.accepts) is taken again from the same state as
+BDF1; d.out[OUT_ORDER] says which order the step has.
 
 It returns a status: OK, or REFERENCE with the stage that asked for it in d.out[OUT_STAGE]: whatever the
 kernel does not finish itself (a joint-limit active set that does not settle; a loop projection that
@@ -24,15 +26,15 @@ from __future__ import annotations
 from redmax_ros.core.jit import njit, njit_inline
 from redmax_ros.core.step.compiled.cache import drop_stale
 from redmax_ros.core.solvers.kkt import kkt_residual, kkt_solve_into
-from redmax_ros.core.step.compiled.data import (OUT_ITERS, OUT_E_KIN, OUT_E_POT, OUT_E_SPRING, OUT_RESIDUAL, OUT_STAGE,
-                                                OUT_VIOL_POS, OUT_VIOL_VEL, data_views)
+from redmax_ros.core.step.compiled.data import (OUT_ITERS, OUT_E_KIN, OUT_E_POT, OUT_E_SPRING, OUT_ORDER, OUT_RESIDUAL,
+                                                OUT_STAGE, OUT_VIOL_POS, OUT_VIOL_VEL, data_views)
 from redmax_ros.core.step.compiled.energy import energies
 from redmax_ros.core.step.compiled.forces import assemble
 from redmax_ros.core.step.compiled.kinematics import kinematics
 from redmax_ros.core.step.compiled.limits import active_set, bilateral_violation
 from redmax_ros.core.step.compiled.model import model_views
 from redmax_ros.core.step.compiled.rows import rows
-from redmax_ros.core.step.compiled.scheme import point
+from redmax_ros.core.step.compiled.scheme import accepted, point
 from redmax_ros.core.step.compiled.update import required_forces, update_configuration
 from redmax_ros.core.solvers.recursive import jv_kernel
 from redmax_ros.core.step.state import MAX_SPEED, impulse_beyond, row_beyond
@@ -72,7 +74,20 @@ def step_kernel(mf, mi, mt, df, di, dt, q, vR, tau, h, gj, sv, qp, vp, hist):
 
 @njit_inline
 def one_step(m, d, q, vR, tau, h, gj, sv, qp, vp, hist):
-    """The stages of one step on the Model and Data namedtuples; returns OK or REFERENCE."""
+    """One step on the Model and Data namedtuples: BDF2 (``hist``) kept if the order control accepts it, else
+    BDF1 from the same state; returns OK or REFERENCE."""
+    status = stages(m, d, q, vR, tau, h, gj, sv, qp, vp, hist)
+    if hist and status == OK and not accepted(m, d, q):
+        status = stages(m, d, q, vR, tau, h, gj, sv, qp, vp, 0)
+        hist = 0
+    d.out[OUT_ORDER] = 2.0 if hist else 1.0
+    return status
+
+
+@njit
+def stages(m, d, q, vR, tau, h, gj, sv, qp, vp, hist):
+    """The stages of one step (BDF2 with ``hist``, else BDF1) on the Model and Data namedtuples; returns OK or
+    REFERENCE."""
     d.out[OUT_STAGE] = 0.0
     vv = vR @ vR
     if not (_finite_sum(q) and vv - vv == 0.0 and _finite_sum(tau)) or vv > MAX_SPEED * MAX_SPEED:

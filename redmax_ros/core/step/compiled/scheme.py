@@ -7,12 +7,16 @@ pin.difference by manifold.py, bit for bit):
         q* = q^ (+) hat h v*  (hat h = 2h/3)
     BDF1 (Eq. 2): q^ = q* = q_k, v* = v^ = qdot_k.
 
-Outputs: d.q_base (q^), d.q_lin (q*), d.v_r (v*, reduced), d.v_mom (v^, reduced), d.back (q* (-) q^, reduced)."""
+Outputs: d.q_base (q^), d.q_lin (q*), d.v_r (v*, reduced), d.v_mom (v^, reduced), d.back (q* (-) q^, reduced).
+
+``accepted(m, d, q)``: the order control of step/scheme.accepts on the step's result d.q_new (the same
+differences and maxima, so the same decision bit for bit)."""
 from __future__ import annotations
 
 from redmax_ros.core.jit import njit_inline
 from redmax_ros.core.step.compiled.manifold import difference, integrate
 from redmax_ros.core.step.compiled.update import to_reduced
+from redmax_ros.core.step.scheme import ORDER_FLOOR, ORDER_RATIO
 
 
 @njit_inline
@@ -36,3 +40,17 @@ def point(m, d, q, vR, qp, vp, hist, hh):
     for i in range(d.back.shape[0]):
         d.back[i] = hh * d.v_r[i]
     integrate(m.kind, m.idx_q, m.idx_v, d.q_base, d.back, d.q_lin)
+
+
+@njit_inline
+def accepted(m, d, q):
+    """Whether the BDF2 step from q = q_k that predicted d.q_lin and reached d.q_new is kept (step/scheme.accepts:
+    max |q+ (-) q*| <= ORDER_RATIO max |q+ (-) q_k| + ORDER_FLOOR); scratch d.bdf_d, d.step_v."""
+    difference(m.kind, m.idx_q, m.idx_v, d.q_lin, d.q_new, d.bdf_d)
+    difference(m.kind, m.idx_q, m.idx_v, q, d.q_new, d.step_v)
+    miss = 0.0
+    motion = 0.0
+    for i in range(d.bdf_d.shape[0]):
+        miss = max(miss, abs(d.bdf_d[i]))
+        motion = max(motion, abs(d.step_v[i]))
+    return miss <= ORDER_RATIO * motion + ORDER_FLOOR
