@@ -45,7 +45,6 @@ import numpy as np
 from redmax_ros.core.errors import StepError
 from redmax_ros.core.solvers import coupled_kernel as ck
 from redmax_ros.core.solvers import sparse_ldl
-from redmax_ros.core.solvers.coupled_kernel import csr_matvec
 
 MAX_ITER = 200  # cap of sub-problem solves per step (friction and normal stages together)
 TOL_V = 1e-6  # [m/s] the staggered loop's tolerance on the velocity change of a friction bound update (as friction.tol)
@@ -64,6 +63,18 @@ class VertexContacts:
     vertex: np.ndarray
 
 
+@dataclass(frozen=True)
+class ContactStates:
+    """The floor contacts' states a solve ends with, the next step's warm start: ``vertex`` (c,) the contact
+    vertices (ascending), ``rows`` (c, 6) their (stick_x, stick_y (1/0), sign_x, sign_y, alpha [N s], the step
+    before's alpha or NaN)."""
+    vertex: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    rows: np.ndarray = field(default_factory=lambda: np.zeros((0, 6)))
+
+    def __len__(self):
+        return len(self.vertex)
+
+
 @dataclass
 class CoupledSolution:
     z: np.ndarray  # (n,) reduced velocities (v_f, qdot_r)
@@ -73,8 +84,7 @@ class CoupledSolution:
     violation: float  # max |G qdot_r - g|
     residual: float  # stationarity |A z + G^T lam + C^T mu - b - F - R| / |b|
     contact_impulse: np.ndarray  # (k,3) floor impulses on the contact vertices (beta_x, beta_y, alpha) [N s]
-    # vertex in contact -> (stick_x, stick_y, sign_x, sign_y, alpha, the last step's alpha or NaN) (1/0, signs, N s)
-    contact_state: dict = field(default_factory=dict)
+    contact_state: ContactStates = field(default_factory=ContactStates)  # the contacts' states (warm start)
     converged: bool = True
     factorisations: int = 0  # LDL^T factorisations of the reduced matrix this solve
     contact_tol: np.ndarray | None = None  # (k,) [N s] |beta| <= mu alpha + contact_tol: the loop's TOL_V A_jj
@@ -89,22 +99,6 @@ def _pattern_maps(indptr, indices, n):
     tpos = order[np.searchsorted(key[order], tkey)]
     diag = order[np.searchsorted(key[order], np.arange(n) * (n + 1))]
     return diag, tpos
-
-
-class CSR:
-    """A square matrix with values ``data`` in a CSR pattern (indptr, indices): ``A @ x`` by one compiled loop.
-    (scipy.sparse.csr_matrix costs ~35 us to construct and ~25 us a product on the starfish's reduced system,
-    this ~8 us a product and nothing to construct.)"""
-
-    __slots__ = ("indptr", "indices", "data")
-
-    def __init__(self, indptr, indices, data):
-        self.indptr, self.indices, self.data = indptr, indices, data
-
-    def __matmul__(self, x):
-        out = np.empty(len(self.indptr) - 1)
-        csr_matvec(self.indptr, self.indices, self.data, np.ascontiguousarray(x, dtype=float), out)
-        return out
 
 
 class Workspace:
@@ -128,55 +122,36 @@ def solve(ws: Workspace, data, b, n_r, G, g, C=None, lo=None, hi=None, contacts:
           warm=None, labels=(), tol=1e-12, stats=None) -> CoupledSolution:
     """The coupled solve on the reduced system (values ``data`` in ws's CSR pattern, right-hand side b (n,)):
     G (m, n_r) dense with g (m,), joint-limit rows C (p, n_r) with lo, hi (+-inf where open) or None, the
-    floor ``contacts`` of free vertices or None, ``warm`` the last step's contact states (vertex -> state, as
-    CoupledSolution.contact_state). ``stats`` (a dict or None) receives ``contact_iterations`` (sub-problem
+    floor ``contacts`` of free vertices or None, ``warm`` the last step's ContactStates
+    (CoupledSolution.contact_state) or None. ``stats`` (a dict or None) receives ``contact_iterations`` (sub-problem
     solves), ``contact_factorisations`` and ``contact_converged``. Raises StepError when the contact iteration
     does not converge within MAX_ITER sub-problem solves (the caller's state is then left as it was). The loop
-    itself is one compiled call (coupled_kernel.staggered); this sets up its warm state and reads its result."""
+    itself, with its warm start and the contacts' states, is one compiled call (coupled_kernel.coupled_solve)."""
     n = ws.n
     nf = n - n_r
-    p = 0 if C is None else len(lo)
     k = 0 if contacts is None else len(contacts.dof)
-    scale = 1.0 + float(np.abs(b).max()) if n else 1.0
-    tol_imp = tol * scale
     fric = 0.0 if contacts is None else float(contacts.mu)
-    # contact state; the tangents are flat, slot 2 i + c for vertex i, world axis c (x, y)
-    normal = np.zeros(k, dtype=bool)  # v_z = lo held (alpha >= 0)
-    stick = np.zeros(2 * k, dtype=bool)  # tangent held at 0 (|beta| <= mu alpha)
-    sign = np.zeros(2 * k)  # sign of a sliding tangent's friction impulse (its velocity has the other sign)
-    alpha = np.zeros(k)  # the normal impulse the friction bound mu alpha uses [N s]
-    known = np.zeros(k, dtype=bool)  # alpha computed (this step or the last): stuck tangents may be released
-    prev = np.full(k, np.nan)  # the last step's normal impulse of the contacts it had
-    if k and warm:
-        hit = [(i, warm[v]) for i, v in enumerate(contacts.vertex.tolist()) if v in warm]
-        if hit:
-            ii = np.array([h[0] for h in hit])
-            W = np.array([h[1] for h in hit], dtype=float)  # rows (stick_x, stick_y, sign_x, sign_y, alpha, prev)
-            normal[ii] = known[ii] = True
-            stick[2 * ii], stick[2 * ii + 1] = W[:, 0] > 0, W[:, 1] > 0
-            sign[2 * ii], sign[2 * ii + 1] = W[:, 2], W[:, 3]
-            # alpha extrapolated from the last two steps' (when both had the contact)
-            alpha[ii] = np.where(np.isnan(W[:, 5]), W[:, 4], np.maximum(2.0 * W[:, 4] - W[:, 5], 0.0))
-            prev[ii] = W[:, 4]
-        if fric <= 0:
-            stick[:] = False
     dof = np.zeros(0, np.int64) if not k else np.ascontiguousarray(contacts.dof, dtype=np.int64)
     clo = np.zeros(0) if not k else np.ascontiguousarray(contacts.lo, dtype=float)
+    cvert = np.zeros(0, np.int64) if not k else np.ascontiguousarray(contacts.vertex, dtype=np.int64)
+    if warm is None or not k:
+        warm = ContactStates()
     G = np.ascontiguousarray(G, dtype=float).reshape(len(g), n_r)
     Cm = np.zeros((0, n_r)) if C is None else np.ascontiguousarray(C, dtype=float)
     lo_ = np.zeros(0) if C is None else np.ascontiguousarray(lo, dtype=float)
     hi_ = np.zeros(0) if C is None else np.ascontiguousarray(hi, dtype=float)
-    m = len(g)
+    m, p = len(g), len(lo_)
     z, F, lam, mu_lim = np.empty(n), np.empty(n), np.zeros(m), np.zeros(p)
-    fixed = np.empty(3 * k, np.int64)
+    imp, svert, srows, ctol = np.zeros((k, 3)), np.empty(k, np.int64), np.empty((k, 6)), np.empty(k)
     info = np.zeros(ck.INFO_LEN, np.int64)
-    dmax = ck.staggered(ws.indptr, ws.indices, ws.diag, ws.tpos, data, b, ws.held, ws.factor_arrays, ws.solve_arrays,
-                        ws.num.values, ws.num.buf, sparse_ldl.TINY, nf, G, np.ascontiguousarray(g, dtype=float), Cm,
-                        lo_, hi_, dof, clo, fric, normal, stick, sign, alpha, known, tol_imp, MAX_ITER,
-                        MAX_CHANGES if fric > 0 else 0, TOL_V, STICK_V, z, F, lam, mu_lim, fixed, info)
+    finfo = np.zeros(ck.FINFO_LEN)
+    ck.coupled_solve(ws.indptr, ws.indices, ws.diag, ws.tpos, data, b, ws.held, ws.factor_arrays, ws.solve_arrays,
+                     ws.num.values, ws.num.buf, sparse_ldl.TINY, nf, G, np.ascontiguousarray(g, dtype=float), Cm, lo_,
+                     hi_, dof, clo, cvert, warm.vertex, warm.rows, fric, tol, MAX_ITER, MAX_CHANGES if fric > 0 else 0,
+                     TOL_V, STICK_V, z, F, lam, mu_lim, imp, svert, srows, ctol, info, finfo)
     it, facts = int(info[ck.INFO_ITER]), int(info[ck.INFO_FACTORS])
     if info[ck.INFO_STATUS] == ck.FACTOR_FAILED:
-        e = sparse_ldl.pivot_error(ws.sym, ws.num, int(info[ck.INFO_PIVOT]), dmax)
+        e = sparse_ldl.pivot_error(ws.sym, ws.num, int(info[ck.INFO_PIVOT]), float(finfo[ck.FINFO_DMAX]))
         raise StepError("the coupled system of the skeleton and the deformables is singular "
                         f"(among: {', '.join(sorted(set(labels))[:6]) or 'the mesh'}): {e}")
     if info[ck.INFO_STATUS] == ck.BORDER_SINGULAR:
@@ -189,31 +164,8 @@ def solve(ws: Workspace, data, b, n_r, G, g, C=None, lo=None, hi=None, contacts:
         stats["contact_converged"] = converged
     if not converged:
         raise StepError(f"the floor contact solve of the deformables did not converge in {MAX_ITER} sub-problem "
-                        f"solves ({int(normal.sum())} vertices in contact, {int(stick.sum())} tangents stuck, "
-                        f"{facts} factorisations)")
-    A = CSR(ws.indptr, ws.indices, data)
-    r = A @ z - b - F
-    imp = np.zeros((k, 3))
-    diag = data[ws.diag][dof] if k else np.zeros(0)
-    if k:
-        ndof = dof + 2
-        tdof = (dof[:, None] + np.arange(2)).ravel()
-        stick2 = stick.reshape(k, 2)
-        imp[:, 2] = np.where(normal, r[ndof], 0.0)
-        rt, Ft = r[tdof].reshape(k, 2), F[tdof].reshape(k, 2)
-        imp[:, :2] = np.where(normal[:, None] & stick2, rt, np.where(normal[:, None], Ft, 0.0))
-    res = r.copy()
-    if k:
-        res[fixed[:int(info[ck.INFO_NFIXED])]] = 0.0
-    if m:
-        res[nf:] += G.T @ lam
-    if p:
-        res[nf:] += Cm.T @ mu_lim
-    state = {}
-    if k and normal.any():
-        rows = np.column_stack([stick[0::2], stick[1::2], sign[0::2], sign[1::2], np.maximum(imp[:, 2], 0.0),
-                                prev])[normal]
-        state = dict(zip(contacts.vertex[normal].tolist(), map(tuple, rows.tolist())))
-    viol = float(np.abs(G @ z[nf:] - g).max()) if m else 0.0
-    return CoupledSolution(z, lam, mu_lim, it, viol, float(np.linalg.norm(res) / max(np.linalg.norm(b), 1e-300)),
-                           imp, state, converged, facts, TOL_V * diag)
+                        f"solves ({int(info[ck.INFO_NORMAL])} vertices in contact, {int(info[ck.INFO_STUCK])} "
+                        f"tangents stuck, {facts} factorisations)")
+    c = int(info[ck.INFO_NSTATE])
+    return CoupledSolution(z, lam, mu_lim, it, float(finfo[ck.FINFO_VIOLATION]), float(finfo[ck.FINFO_RESIDUAL]),
+                           imp, ContactStates(svert[:c], srows[:c]), converged, facts, ctol)

@@ -29,8 +29,11 @@ from redmax_ros.core.jit import njit
 from redmax_ros.core.solvers.sparse_ldl import factor_kernel, solve_matrix_kernel, solve_vector_kernel
 
 # info (int64) slots written by ``staggered``
-INFO_ITER, INFO_FACTORS, INFO_STATUS, INFO_NFIXED, INFO_CONVERGED, INFO_PIVOT = range(6)
-INFO_LEN = 6
+INFO_ITER, INFO_FACTORS, INFO_STATUS, INFO_NFIXED, INFO_CONVERGED, INFO_PIVOT, INFO_NORMAL, INFO_STUCK, INFO_NSTATE = \
+    range(9)
+INFO_LEN = 9
+FINFO_DMAX, FINFO_RESIDUAL, FINFO_VIOLATION = range(3)  # finfo (float64) slots
+FINFO_LEN = 3
 OK, FACTOR_FAILED, BORDER_SINGULAR = 0, 1, 2  # INFO_STATUS
 
 
@@ -114,14 +117,16 @@ def fixed_set(dof, clo, normal, stick, fixed, vals):
 @njit
 def staggered(indptr, indices, adiag, tpos, data, b, held, fs, ss, values, lbuf, tiny, nf, G, g, C, lo, hi,
               dof, clo, fric, normal, stick, sign, alpha, known, tol_imp, max_iter, max_changes, tol_v, stick_v,
-              z, F, lam, mu_lim, fixed, info):
+              z, F, lam, mu_lim, fixed, info, imp, finfo):
     """The staggered contact loop of coupled.solve on the reduced system (values ``data`` in the CSR pattern
     indptr / indices, diagonal positions ``adiag``, transpose positions ``tpos``; ``held`` a buffer of data's
     length), right-hand side b, skeleton rows G z_r = g and joint-limit rows lo <= C z_r <= hi (z_r = z[nf:]),
     contacts of the free vertices (x DOF ``dof``, v_z >= ``clo``, friction coefficient ``fric``) with their
     warm state. Writes z, F (friction impulses of the sliding tangents), lam (G's multipliers), mu_lim, the
-    final held DOFs fixed[:info[INFO_NFIXED]], and info. A failed factorisation (INFO_PIVOT) or a singular
-    bordered system returns at once with its INFO_STATUS."""
+    final held DOFs fixed[:info[INFO_NFIXED]], info, and, when converged, the floor impulses ``imp`` (k, 3)
+    (beta_x, beta_y, alpha) [N s] and finfo[FINFO_RESIDUAL] = |A z + G^T lam + C^T mu - b - F - R| / |b|,
+    finfo[FINFO_VIOLATION] = max |G z_r - g|. A failed factorisation (INFO_PIVOT, finfo[FINFO_DMAX]) or a
+    singular bordered system returns at once with its INFO_STATUS."""
     n = len(b)
     m = len(g)
     p = len(lo)
@@ -272,7 +277,8 @@ def staggered(indptr, indices, adiag, tpos, data, b, held, fs, ss, values, lbuf,
                         info[INFO_PIVOT] = piv
                         info[INFO_ITER] = it
                         info[INFO_FACTORS] = factorisations
-                        return dmax
+                        finfo[FINFO_DMAX] = dmax
+                        return
                     factorisations += 1
                     have_base = True
                     for j in range(nh0):
@@ -366,7 +372,7 @@ def staggered(indptr, indices, adiag, tpos, data, b, held, fs, ss, values, lbuf,
                         info[INFO_STATUS] = BORDER_SINGULAR
                         info[INFO_ITER] = it
                         info[INFO_FACTORS] = factorisations
-                        return 0.0
+                        return
                 key_valid = True
                 key_nfix = nfix
                 for j in range(nfix):
@@ -585,7 +591,43 @@ def staggered(indptr, indices, adiag, tpos, data, b, held, fs, ss, values, lbuf,
     info[INFO_FACTORS] = factorisations
     info[INFO_NFIXED] = nfix
     info[INFO_CONVERGED] = 1 if converged else 0
-    return 0.0
+    if converged:
+        finish(indptr, indices, data, b, F, z, nf, G, g, lam, C, mu_lim, dof, normal, stick, fixed[:nfix], imp, finfo)
+
+
+@njit
+def finish(indptr, indices, data, b, F, z, nf, G, g, lam, C, mu_lim, dof, normal, stick, fixed, imp, finfo):
+    """The converged solve's floor impulses and residuals (``staggered``): r = A z - b - F; a held contact's
+    alpha = r_z, a stuck tangent's beta = r_t, a sliding one's the friction impulse F_t; the stationarity
+    residual with the held DOFs' reactions removed."""
+    n = len(b)
+    r = np.empty(n)
+    csr_matvec(indptr, indices, data, z, r)
+    for j in range(n):
+        r[j] = r[j] - b[j] - F[j]
+    for i in range(len(dof)):
+        imp[i, 2] = r[dof[i] + 2] if normal[i] else 0.0
+        for c in range(2):
+            imp[i, c] = (r[dof[i] + c] if stick[2 * i + c] else F[dof[i] + c]) if normal[i] else 0.0
+    for j in fixed:
+        r[j] = 0.0
+    viol = 0.0
+    for j in range(len(g)):
+        gz = 0.0
+        for c in range(n - nf):
+            gz += G[j, c] * z[nf + c]
+            r[nf + c] += G[j, c] * lam[j]
+        viol = max(viol, abs(gz - g[j]))
+    for j in range(len(mu_lim)):
+        for c in range(n - nf):
+            r[nf + c] += C[j, c] * mu_lim[j]
+    rr = 0.0
+    bb = 0.0
+    for j in range(n):
+        rr += r[j] * r[j]
+        bb += b[j] * b[j]
+    finfo[FINFO_RESIDUAL] = np.sqrt(rr) / max(np.sqrt(bb), 1e-300)
+    finfo[FINFO_VIOLATION] = viol
 
 
 @njit
@@ -608,3 +650,73 @@ def border(X, Wrows, nf, add, na, rel, nr, indptr, indices, data, out):
             for e in range(indptr[j], indptr[j + 1]):
                 acc += data[e] * X[indices[e], c]
             out[nw + na + q, c] = acc
+
+
+@njit
+def warm_start(cvert, wvert, wrows, fric, normal, stick, sign, alpha, known, prev):
+    """The contact state of the contacts ``cvert`` (k,) from the last step's states (vertices ``wvert``, rows
+    ``wrows`` (c, 6): stick_x, stick_y, sign_x, sign_y, alpha, the step before's alpha or NaN): held, the
+    stick/slide state (no stuck tangent without friction), alpha extrapolated from the last two steps' when
+    both had the contact."""
+    if len(wvert):
+        o = np.argsort(wvert)
+        sv = wvert[o]
+        for i in range(len(cvert)):
+            at = np.searchsorted(sv, cvert[i])
+            if at < len(sv) and sv[at] == cvert[i]:
+                w = wrows[o[at]]
+                normal[i] = known[i] = True
+                stick[2 * i], stick[2 * i + 1] = w[0] > 0, w[1] > 0
+                sign[2 * i], sign[2 * i + 1] = w[2], w[3]
+                alpha[i] = w[4] if np.isnan(w[5]) else max(2.0 * w[4] - w[5], 0.0)
+                prev[i] = w[4]
+    if fric <= 0:
+        stick[:] = False
+
+
+@njit
+def contact_states(cvert, normal, stick, sign, imp, prev, svert, srows):
+    """The held contacts' states (the next step's ``warm_start``), ascending by vertex, into svert / srows;
+    returns their count."""
+    o = np.argsort(cvert)
+    c = 0
+    for i in o:
+        if normal[i]:
+            svert[c] = cvert[i]
+            srows[c, 0] = 1.0 if stick[2 * i] else 0.0
+            srows[c, 1] = 1.0 if stick[2 * i + 1] else 0.0
+            srows[c, 2], srows[c, 3] = sign[2 * i], sign[2 * i + 1]
+            srows[c, 4], srows[c, 5] = max(imp[i, 2], 0.0), prev[i]
+            c += 1
+    return c
+
+
+@njit
+def coupled_solve(indptr, indices, adiag, tpos, data, b, held, fs, ss, values, lbuf, tiny, nf, G, g, C, lo, hi,
+                  dof, clo, cvert, wvert, wrows, fric, tol, max_iter, max_changes, tol_v, stick_v,
+                  z, F, lam, mu_lim, imp, svert, srows, ctol, info, finfo):
+    """coupled.solve in one call: the warm start, ``staggered`` (tolerance tol (1 + max|b|) on the impulses),
+    the contacts' states (svert[:info[INFO_NSTATE]], srows) and ctol = tol_v A_jj (k,) [N s]."""
+    k = len(dof)
+    normal = np.zeros(k, np.bool_)  # v_z = lo held (alpha >= 0)
+    stick = np.zeros(2 * k, np.bool_)  # tangent held at 0 (|beta| <= mu alpha); slot 2 i + c, world axis c
+    sign = np.zeros(2 * k)  # sign of a sliding tangent's friction impulse (its velocity has the other sign)
+    alpha = np.zeros(k)  # the normal impulse the friction bound mu alpha uses [N s]
+    known = np.zeros(k, np.bool_)  # alpha computed (this step or the last): stuck tangents may be released
+    prev = np.full(k, np.nan)  # the last step's normal impulse of the contacts it had
+    if k:
+        warm_start(cvert, wvert, wrows, fric, normal, stick, sign, alpha, known, prev)
+    scale = 1.0
+    if len(b):
+        scale = 1.0 + np.abs(b).max()
+    fixed = np.empty(3 * k, np.int64)
+    staggered(indptr, indices, adiag, tpos, data, b, held, fs, ss, values, lbuf, tiny, nf, G, g, C, lo, hi, dof, clo,
+              fric, normal, stick, sign, alpha, known, tol * scale, max_iter, max_changes, tol_v, stick_v, z, F, lam,
+              mu_lim, fixed, info, imp, finfo)
+    info[INFO_NORMAL] = normal.sum()
+    info[INFO_STUCK] = stick.sum()
+    for i in range(k):
+        ctol[i] = tol_v * data[adiag[dof[i]]]
+    info[INFO_NSTATE] = 0
+    if info[INFO_STATUS] == OK and info[INFO_CONVERGED]:
+        info[INFO_NSTATE] = contact_states(cvert, normal, stick, sign, imp, prev, svert, srows)

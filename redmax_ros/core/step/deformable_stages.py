@@ -35,6 +35,7 @@ from redmax_ros.core.deformable.system import Attachments, Deformables, DeformSt
 from redmax_ros.core.dynamics.energy import energies
 from redmax_ros.core.dynamics.kinematics import point_jacobians
 from redmax_ros.core.errors import SceneError, StepError
+from redmax_ros.core.jit import njit
 from redmax_ros.core.solvers import coupled
 from redmax_ros.core.solvers.direct import Solution
 from redmax_ros.core.step import trajectory
@@ -300,9 +301,23 @@ def _floor_contacts(dm, ds, red, h):
     if dm.floor is None:
         return None
     idx = dm.floor_vertices
-    gap = ds.x[idx, 2] - dm.floor
-    near = idx[gap < FLOOR_MARGIN + h * np.abs(ds.v[idx, 2]) + h * h * abs(dm.gravity[2])]
-    return coupled.VertexContacts(red.dof[3 * near], (dm.floor - ds.x[near, 2]) / h, float(dm.floor_mu), near)
+    near, dof, lo = np.empty(len(idx), np.int64), np.empty(len(idx), np.int64), np.empty(len(idx))
+    c = near_floor(ds.x, ds.v, idx, float(dm.floor), FLOOR_MARGIN, h, float(dm.gravity[2]), red.dof, near, dof, lo)
+    return coupled.VertexContacts(dof[:c], lo[:c], float(dm.floor_mu), near[:c])
+
+
+@njit
+def near_floor(x, v, idx, floor, margin, h, gz, red_dof, near, dof, lo):
+    """The loop of _floor_contacts: the count of vertices of ``idx`` near the floor, written into near (vertex),
+    dof (reduced index of its x DOF) and lo (the bound of v_z [m/s])."""
+    c = 0
+    for i in idx:
+        if x[i, 2] - floor < margin + h * abs(v[i, 2]) + h * h * abs(gz):
+            near[c] = i
+            dof[c] = red_dof[3 * i]
+            lo[c] = (floor - x[i, 2]) / h
+            c += 1
+    return c
 
 
 def step(mech, ws, dm, state, cmd, h, timing=None):
