@@ -88,6 +88,15 @@ def ldl_factor(fs, values, lbuf, data, tiny):
 
 
 @njit
+def same_prefix(a, b, n):
+    """a[:n] == b[:n] elementwise."""
+    for j in range(n):
+        if a[j] != b[j]:
+            return False
+    return True
+
+
+@njit
 def fixed_set(dof, clo, normal, stick, fixed, vals):
     """Number of held DOFs, written sorted into fixed / vals: v_z = lo for a held normal, v_x / v_y = 0 for
     a sticking tangent of a held contact (``stick`` flat, slot 2 i + c)."""
@@ -234,19 +243,8 @@ def staggered(indptr, indices, adiag, tpos, data, b, held, fs, ss, values, lbuf,
             for j in range(n):
                 rhs[j] = b[j] + F[j]
             # ---- the held system: z with z[fixed] = vals, G z_r = g, active limit rows at their bounds
-            if not have_base or not key_valid or key_nfix != nfix or key_nw != nact:
-                same = False
-            else:
-                same = True
-                for j in range(nfix):
-                    if key_fixed[j] != fixed[j]:
-                        same = False
-                        break
-                if same:
-                    for j in range(nact):
-                        if key_w[j] != act_idx[j]:
-                            same = False
-                            break
+            same = (have_base and key_valid and key_nfix == nfix and key_nw == nact
+                    and same_prefix(key_fixed, fixed, nfix) and same_prefix(key_w, act_idx, nact))
             if not same:
                 rebase = not have_base
                 if have_base:
@@ -302,13 +300,7 @@ def staggered(indptr, indices, adiag, tpos, data, b, held, fs, ss, values, lbuf,
                     na = 0
                     nr = 0
                 nw = m + nact
-                wsame = schur_valid and schur_nw == nact
-                if wsame:
-                    for j in range(nact):
-                        if schur_w[j] != act_idx[j]:
-                            wsame = False
-                            break
-                if not wsame:
+                if not (schur_valid and schur_nw == nact and same_prefix(schur_w, act_idx, nact)):
                     Wrows = np.empty((nw, n - nf))
                     Wrows[:m] = G
                     for j in range(nact):
