@@ -220,17 +220,40 @@ def unit_rows(G, C=None):
     """(rows, columns, coefficients) of the rows of G (m, n_r) with exactly one nonzero c on a column no other
     row of G or C touches: the prescribed joint velocities of Eq. (7) without couplings, c qdot_j = g_i. Such a
     row is imposed by holding the DOF (``hold``) instead of by a Schur complement (one solve per row)."""
-    G = np.asarray(G, dtype=float)
-    nz = G != 0.0
-    count = nz.sum(axis=1)
-    touched = nz.sum(axis=0)
-    if C is not None and len(C):
-        touched = touched + (np.asarray(C) != 0.0).sum(axis=0)
-    rows = np.nonzero(count == 1)[0]
-    cols = np.argmax(nz[rows], axis=1) if len(rows) else np.zeros(0, dtype=np.int64)
-    keep = touched[cols] == 1
-    rows, cols = rows[keep], cols[keep]
+    G = np.ascontiguousarray(G, dtype=float)
+    C = np.zeros((0, G.shape[1])) if C is None else np.ascontiguousarray(C, dtype=float)
+    rows, cols = np.empty(len(G), np.int64), np.empty(len(G), np.int64)
+    cnt = unit_rows_kernel(G, C, rows, cols)
+    rows, cols = rows[:cnt], cols[:cnt]
     return rows, cols, G[rows, cols]
+
+
+@njit
+def unit_rows_kernel(G, C, rows, cols):
+    """The loops of ``unit_rows``: their count, written into rows / cols."""
+    n = G.shape[1]
+    touched = np.zeros(n, np.int64)
+    for i in range(G.shape[0]):
+        for j in range(n):
+            if G[i, j] != 0.0:
+                touched[j] += 1
+    for i in range(C.shape[0]):
+        for j in range(n):
+            if C[i, j] != 0.0:
+                touched[j] += 1
+    cnt = 0
+    for i in range(G.shape[0]):
+        first, nz = -1, 0
+        for j in range(n):
+            if G[i, j] != 0.0:
+                nz += 1
+                if first < 0:
+                    first = j
+        if nz == 1 and touched[first] == 1:
+            rows[cnt] = i
+            cols[cnt] = first
+            cnt += 1
+    return cnt
 
 
 def hold(indptr, indices, diag, tpos, data, b, dofs, vals):

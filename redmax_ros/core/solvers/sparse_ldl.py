@@ -1026,10 +1026,15 @@ def factor(sym: LDLSymbolic, data, out: LDLNumeric | None = None, tiny: float = 
                                  sym.run_ptr, sym.run_row, sym.run_pos, data, out.values, out.buf, tiny)
     out.n_negative = int(neg)
     if k >= 0:
-        raise StepError(f"sparse LDL^T: pivot {k} (row {int(sym.perm[k])} of the matrix) is "
-                        f"{out.values[sym.diag[k]]:.3g}, |d| <= {tiny:g} max|diag| = {tiny * dmax:.3g}: the matrix is "
-                        "singular, or has no LDL^T without pivoting in this order")
+        raise pivot_error(sym, out, k, dmax, tiny)
     return out
+
+
+def pivot_error(sym: LDLSymbolic, num: LDLNumeric, k: int, dmax: float, tiny: float = TINY) -> StepError:
+    """The StepError of a factorisation (factor_kernel) that stopped at pivot k, max|diag A| = dmax."""
+    return StepError(f"sparse LDL^T: pivot {k} (row {int(sym.perm[k])} of the matrix) is "
+                     f"{num.values[sym.diag[k]]:.3g}, |d| <= {tiny:g} max|diag| = {tiny * dmax:.3g}: the matrix is "
+                     "singular, or has no LDL^T without pivoting in this order")
 
 
 # ------------------------------------------------------------------------------------------- solve
