@@ -76,15 +76,18 @@ def step_kernel(mf, mi, mt, df, di, dt, q, vR, tau, h, gj, sv, qp, vp, hist):
 def one_step(m, d, q, vR, tau, h, gj, sv, qp, vp, hist):
     """One step on the Model and Data namedtuples: BDF2 (``hist``) kept if the order control accepts it, else
     BDF1 from the same state; returns OK or REFERENCE."""
-    status = stages(m, d, q, vR, tau, h, gj, sv, qp, vp, hist)
-    if hist and status == OK and not accepted(m, d, q):
-        status = stages(m, d, q, vR, tau, h, gj, sv, qp, vp, 0)
-        hist = 0
-    d.out[OUT_ORDER] = 2.0 if hist else 1.0
+    order = hist
+    while True:  # one call site: the stages are inlined once (a plain call copies the namedtuples)
+        status = stages(m, d, q, vR, tau, h, gj, sv, qp, vp, order)
+        if order and status == OK and not accepted(m, d, q):
+            order = 0
+            continue
+        break
+    d.out[OUT_ORDER] = 2.0 if order else 1.0
     return status
 
 
-@njit
+@njit_inline
 def stages(m, d, q, vR, tau, h, gj, sv, qp, vp, hist):
     """The stages of one step (BDF2 with ``hist``, else BDF1) on the Model and Data namedtuples; returns OK or
     REFERENCE."""
