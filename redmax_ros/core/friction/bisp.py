@@ -291,7 +291,7 @@ def linear_wrenches(mech, fm, work: FrictionWork, kin, ws, Z, h, v0, PX, v_prev_
     reduced coordinates through the coupling matrix (Eq. 9), the bilateral multipliers lambda = lambda_0 +
     LamX x (§5.3: loop closures and prescribed sites act as external forces), the ground impulses
     (Eq. 11-12) and the loop-pin friction moments. One compiled Newton-Euler pass over the tree
-    (_map_kernel) gives both parts; the loop pins' rows are the loop forces F = Sel^T lambda / h (world).
+    (map_kernel) gives both parts; the loop pins' rows are the loop forces F = Sel^T lambda / h (world).
     Same numbers as Pinocchio's RNEA with the external forces (bisp.joint_alphas, the test reference).
     With a configuration-dependent J_rR (catalogue joint maps) the reduced acceleration of the step is
     (J_rR qdot_R^con - qdot_r^prev)/h + Jdot_rR qdot_R (Eq. 2.89, the term forces.assemble puts in the RHS):
@@ -316,7 +316,7 @@ def linear_wrenches(mech, fm, work: FrictionWork, kin, ws, Z, h, v0, PX, v_prev_
         c_jid, c_X, c_n, c_t = cs.jid, cs.X, cs.n, cs.t
     nloops = len(mech.loop_ab) if cons.loop_rows.stop else 0
     v_prev = v_prev_r if jdot_qdot is None else v_prev_r - h * jdot_qdot
-    _map_kernel(nu, h, v0, PX, v_prev, *coupling_csr(fm, work), lam0, LamX, fm.sel_r, fm.sel_c, fm.sel_v,
+    map_kernel(nu, h, v0, PX, v_prev, *coupling_csr(fm, work), lam0, LamX, fm.sel_r, fm.sel_c, fm.sel_v,
                 nloops, kin.X, fm.loop_xa, fm.loop_xb, fm.loop_index, fm.n_tree, c_jid, c_X, c_n, c_t, fm.pin_ja,
                 fm.pin_jb, fm.pin_moment, fm.loop_ja, fm.loop_jb, topo.parents, topo.idx_v, topo.nv_j, ws.St, ws.I,
                 ws.ov, Z, fm.gravity, ws.R, ws.p, fm.fj_jid, E0, E, W0, Wx)
@@ -329,7 +329,7 @@ _NO_23 = np.zeros((0, 2, 3))
 
 
 @njit(cache=True, nogil=True)
-def _map_kernel(nu, h, v0, PX, v_prev, T_ptr, T_idx, T_val, lam0, LamX, sel_r, sel_c, sel_v, nloops, X, rows_a,
+def map_kernel(nu, h, v0, PX, v_prev, T_ptr, T_idx, T_val, lam0, LamX, sel_r, sel_c, sel_v, nloops, X, rows_a,
                 rows_b, loop_index, n_tree, c_jid, c_X, c_n, c_t, pin_ja, pin_jb, pin_m, lp_ja, lp_jb, parents, idx_v,
                 nv_j, St, I, ov, Z, g, R, p, jids, E0, E, W0, Wx):
     """linear_wrenches in one compiled call: reduced accelerations acc0 = (T qdot_0 - qdot^prev)/h and

@@ -500,7 +500,7 @@ _EMPTY = np.zeros((0, 0))
 
 
 @njit(cache=True, nogil=True)
-def _rows_kernel(R, p, St, sph_jid, sph_local, sph_radius, sph_support, sph_mu, plane_n, plane_off, plane_t, plane_mu,
+def rows_kernel(R, p, St, sph_jid, sph_local, sph_radius, sph_support, sph_mu, plane_n, plane_off, plane_t, plane_mu,
                  margin, erp, h, T, T_ptr, T_idx, T_val, ndof, rows_fixed, pin_moment, loop_sdiff, CU, lo_CU):
     """_detect_kernel plus the stacked rows of the staggered solve, RX = [N; CU; -T_ground; -T_joints;
     -T_loops] (unilateral rows first: ground normals, then the limit rows CU), with the loop-pin rows
@@ -543,7 +543,7 @@ def staggered_rows(mech, fm: FrictionModel, work: FrictionWork, h, cons):
     st = fm.settings
     contacts = len(fm.plane_n) > 0
     ws = work.tree
-    out = _rows_kernel(ws.R, ws.p, ws.St, fm.sph_jid if contacts else _NO_SPHERES, fm.sph_local, fm.sph_radius,
+    out = rows_kernel(ws.R, ws.p, ws.St, fm.sph_jid if contacts else _NO_SPHERES, fm.sph_local, fm.sph_radius,
                        fm.sph_support_f, fm.sph_mu, fm.plane_n, fm.plane_off, fm.plane_t, fm.plane_mu, st.margin, st.erp,
                        h, _EMPTY if work.T is None else work.T, *coupling_csr(fm, work), mech.ndof,
                        joint_rows(fm, work), fm.pin_moment, fm.loop_sdiff, CU, lo_CU)

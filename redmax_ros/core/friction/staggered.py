@@ -26,7 +26,7 @@ warm-start the next step [Kaufman et al. 2008]. The loop exits after a CONTACT s
 velocity always satisfies the bilateral and unilateral rows (feasible) even when the iteration cap is
 reached; that case is reported (FrictionReport.converged = False), never silent.
 Per step: bisp.body_frames (kinematics), contact.staggered_rows (detection, rows RX = [U; -T]),
-condense.condense, bisp.linear_wrenches, _warm_start, staggered_kernel (with PGS and whole-joint bounds;
+condense.condense, bisp.linear_wrenches, warm_start, staggered_kernel (with PGS and whole-joint bounds;
 _python_loop otherwise), finish: all compiled (numba), a few calls per step. Under a step budget
 (solvers/budget.py) the loop checks the step's deadline between iterations (_python_loop) or between
 pieces of the resumable compiled loop (_compiled_loop), with bitwise the result of an unbudgeted step.
@@ -381,7 +381,7 @@ def solve(mech, work, kin, system: LinearSystem, cons, q, v_prev_r, h, cache, si
         raise StepError("bilateral constraints are redundant or conflicting (singular Schur complement)")
 
     # warm start of the friction impulses: one cache slot per (sphere, plane) tangent, joint and loop row
-    slots, beta = _warm_start(_NO_CACHE if cache is None else cache, cache is not None,
+    slots, beta = warm_start(_NO_CACHE if cache is None else cache, cache is not None,
                               cs.sphere if nc else _NO_INDEX, cs.plane if nc else _NO_INDEX, len(fm.plane_n),
                               fm.joint_slot0, nf)
     joint_fric = fm.has_joint_friction
@@ -425,7 +425,7 @@ _NO_GAP = np.zeros(0)
 
 
 @numba.njit(cache=True)
-def _warm_start(cache, has_cache, sphere, plane, n_planes, j0, nf):
+def warm_start(cache, has_cache, sphere, plane, n_planes, j0, nf):
     """Cache slots of this step's friction rows (2 per (sphere, plane) ground contact, then the joint and
     loop rows from j0) and the warm-start impulses beta [Kaufman et al. 2008] (zeros without a cache)."""
     nc = len(sphere)

@@ -151,9 +151,10 @@ def make_backend(mech, solver: str, rtol: float = DEFAULT_RTOL, max_iter: int | 
     Scenes with deformables (SceneSpec.deformables) step on deformable_stages.DeformableBackend (the Pinocchio
     pipeline with the coupled sparse solve) for 'direct', 'reference' and 'auto'; 'pcg' and 'compiled' are a
     SceneError.
-    Scenes with contact or joint friction (Mechanism.friction, Staggered Projections / BISP), catalogue
-    joints and force elements (Mechanism.extras) or self-collision (Mechanism.collision) need the Pinocchio
-    pipeline: 'direct', 'reference' and 'auto' use it at any size, 'pcg' is a SceneError."""
+    Scenes with contact or joint friction (Mechanism.friction, Staggered Projections / BISP) take the compiled
+    step under 'direct' and 'compiled' where compiled.friction.friction_unsupported is empty. Those it does not
+    take, catalogue joints and force elements (Mechanism.extras) and self-collision (Mechanism.collision) need
+    the Pinocchio pipeline: 'direct', 'reference' and 'auto' use it at any size, 'pcg' is a SceneError."""
     if mech.scheme == "bdf2" and mech.extras is not None:
         raise SceneError(mech.spec.source, "integrator.scheme",
                          "'bdf2' is not supported with catalogue joints or force elements (spline, exponential and "

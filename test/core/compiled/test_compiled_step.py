@@ -16,15 +16,15 @@ from redmax_ros.core.errors import SceneError, StepError
 TIPS = ["index_tip", "middle_tip", "ring_tip", "little_tip", "thumb_tip"]
 
 # every shipped scene the compiled path takes (scenes/ and scenes/catalogue/), with the overrides used; the
-# others (friction, catalogue joints, composite joints, implicit Coriolis) are in test_unsupported_scenes_are_named
+# others (catalogue joints, composite joints, implicit Coriolis) are in test_unsupported_scenes_are_named; the
+# frictional scenes are in test_compiled_friction.py
 SCENES = [("pendulum", []), ("chain", ["params.n=20"]), ("chain", ["params.n=30", "params.springs=10"]),
           ("fourbar", []), ("klann_leg", []), ("slider_crank", []), ("mass_springs", []), ("hand", []),
           ("branching", []), ("bridge", []), ("umbrella", []), ("catalogue/revolute", []), ("catalogue/prismatic", []), ("catalogue/translational", []),
           ("catalogue/fixed", []), ("catalogue/spring_damper", []), ("catalogue/explicit_spring", []),
           ("catalogue/spherical", ["integrator.coriolis=explicit"]),
           ("catalogue/universal", ["integrator.coriolis=explicit"])]
-UNSUPPORTED = {"klann": "contact or joint friction", "friction_chain": "contact or joint friction",
-               "incline": "contact or joint friction", "catalogue/spline_curve": "catalogue",
+UNSUPPORTED = {"catalogue/spline_curve": "catalogue",
                "catalogue/free3d": "Composite", "catalogue/limits_multi": "Composite",
                "catalogue/spherical": "coriolis: implicit"}
 

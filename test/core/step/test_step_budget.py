@@ -250,10 +250,10 @@ def test_time_budget_fails_the_compiled_staggered_loop_and_keeps_the_state(monke
     """Under a budget the compiled staggered loop of the walker (joint friction and floor contact) runs in
     pieces with the deadline checked between them, and fails with the budget's error, the state unchanged. Its
     first piece (staggered.KERNEL_FIRST_WORK work units) is more than a normal step needs, so it is cut to one
-    unit here: the step then runs in pieces whatever the machine. (The test used to drive the crank at 1e4 rad/s
+    unit here (the reference pipeline's loop; the compiled step hands such a step to it: test_compiled_friction.py): the step then runs in pieces whatever the machine. (The test used to drive the crank at 1e4 rad/s
     and wait for a step that runs long, ~20 ms at the 7th step on one machine; on another CPU the chaotic
     trajectory's round-off differs and no step of the first 10 ran long: the 11th diverged.)"""
-    sim = Simulator.load("klann")
+    sim = Simulator.load("klann", solver="reference")
     sim.step(3)
     sim.budget = StepBudget(cpu_time=1e-9)
     monkeypatch.setattr(staggered, "KERNEL_FIRST_WORK", 1.0)
@@ -265,7 +265,7 @@ def test_time_budget_fails_the_compiled_staggered_loop_and_keeps_the_state(monke
     assert unchanged(before, sim)
     monkeypatch.setattr(staggered, "KERNEL_FIRST_WORK", 2.0e6)
     sim.budget = None
-    ref = Simulator.load("klann")
+    ref = Simulator.load("klann", solver="reference")
     ref.step(4)
     sim.step()  # the failed step changed nothing: it now gives the unbudgeted step
     assert np.array_equal(sim.state.q, ref.state.q)
@@ -281,7 +281,7 @@ def test_the_compiled_staggered_loop_in_pieces_is_bitwise_the_loop_in_one_call(m
     monkeypatch.setattr(staggered, "staggered_kernel", lambda *a: calls.append(1) or kernel(*a))
     runs = []
     for budget in (StepBudget(cpu_time=None), None):
-        sim = Simulator.load("klann", ["friction.joint_mu=0.6"], budget=budget)
+        sim = Simulator.load("klann", ["friction.joint_mu=0.6"], solver="reference", budget=budget)
         calls.clear()
         runs.append([sim.step() for _ in range(40)])
         n_calls = len(calls)

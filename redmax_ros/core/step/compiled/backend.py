@@ -24,7 +24,11 @@ from redmax_ros.core.errors import SceneError, StepError
 from redmax_ros.core.step import trajectory
 from redmax_ros.core.step.compiled.data import (OUT_ITERS, OUT_E_KIN, OUT_E_POT, OUT_E_SPRING, OUT_ORDER, OUT_RESIDUAL, OUT_STAGE,
                                                 OUT_VIOL_POS, OUT_VIOL_VEL, build_data)
-from redmax_ros.core.step.compiled.kernel import STAGE_NAMES, step_kernel, step_n_kernel
+from redmax_ros.core.friction import staggered
+from redmax_ros.core.step.compiled.friction import (N_REP, REP_ACTIVE, REP_CONTACTS, REP_CONVERGED, REP_ITERS,
+                                                    REP_PENETRATION, REP_RESIDUAL, REP_STICKING, build_friction)
+from redmax_ros.core.step.compiled.kernel import (STAGE_NAMES, friction_step_kernel, friction_step_n_kernel, step_kernel,
+                                                  step_n_kernel)
 from redmax_ros.core.step.compiled.model import build_model, unsupported
 from redmax_ros.core.step.pipeline import pinocchio_velocity, step as pipeline_step
 from redmax_ros.core.step.scheme import bdf2_point, continues, next_history
@@ -60,6 +64,13 @@ class CompiledBackend:
         self.bdf2 = mech.scheme == "bdf2"  # integrator.scheme: the kernel keeps BDF2's history (step/scheme.py)
         self._data = {}
         self.handoffs = Counter()
+        fm = mech.friction  # contact / joint friction: the staggered solve in the kernel (friction.py)
+        self.friction = None if fm is None else build_friction(mech)
+        if fm is not None:
+            self._cache_new = np.zeros(fm.n_slots)
+            self._jn = np.zeros(len(fm.fj_names))
+            self._rep = np.zeros(N_REP)
+            self._no_cache = np.zeros(fm.n_slots)
 
     def at_state(self, q, t):
         self.workspace.at_state(q, t)
@@ -83,6 +94,9 @@ class CompiledBackend:
         """(resolved commands, tau, Data, gj, sv) of a step the kernel can take, or None (the reference's)."""
         if cmd.body_twists or cmd.site_forces:
             self.handoffs["body twists or site forces commanded"] += 1
+            return None
+        if self.friction is not None and cmd.site_velocities:  # their lambda in the joint reactions (bisp.py)
+            self.handoffs["prescribed sites with contact or joint friction"] += 1
             return None
         if not (h > 0 and math.isfinite(h)):
             return None  # applied_torques names it
@@ -120,6 +134,8 @@ class CompiledBackend:
         if inp is None:
             return self.reference_step(state, cmd, h, budget)
         rcmd, tau, d, gj, sv = inp
+        if self.friction is not None:
+            return self._friction_step(state, cmd, h, budget, inp, t0)
         qp, vp, hist = self._history_args(state, h)
         if step_kernel(*self.model.args, *d.args, state.q, state.v, tau, float(h), gj, sv, qp, vp, hist):
             self._handed_back(d)
@@ -132,6 +148,53 @@ class CompiledBackend:
         new = self._advanced(state, h, q_new, v_hyper, state.q, state.v)
         return new, self._result(new, d, q_new, rcmd, t0)
 
+    def _friction_args(self, state, budget):
+        """(cache, has_cache, cache_new, jn, rep, work_cap) of friction_step_kernel: a copy of the state's
+        friction cache (the kernel advances it in place in a run of steps) and the loop's work budget (the
+        reference's first piece under a step budget, staggered.KERNEL_FIRST_WORK: past it, the reference takes
+        the step with its deadline checks)."""
+        fc = state.friction_cache
+        has = fc is not None and len(fc) == len(self._no_cache)
+        cache = fc.copy() if has else self._no_cache.copy()
+        cap = math.inf if budget is None else float(staggered.KERNEL_FIRST_WORK)
+        return cache, int(has), self._cache_new, self._jn, self._rep, cap
+
+    def _friction_step(self, state, cmd, h, budget, inp, t0):
+        rcmd, tau, d, gj, sv = inp
+        args = self._friction_args(state, budget)
+        if friction_step_kernel(*self.model.args, *d.args, *self.friction.args, state.q, state.v, tau, float(h), gj,
+                                sv, *args):
+            self._handed_back(d)
+            return self.reference_step(state, cmd, h, budget)
+        q_new, v_hyper = d["q_new"].copy(), d["v_hyper"].copy()
+        new = state.advanced(h, q_new, v_hyper, self._cache_new.copy())
+        return new, self._result(new, d, q_new, rcmd, t0)
+
+    def _friction_run(self, state, cmd, h, n, budget, inp):
+        """step_run with contact or joint friction: up to n steps in one friction_step_n_kernel call."""
+        t0 = time.perf_counter()
+        rcmd, tau, d, gj, sv = inp
+        cache, has, cache_new, jn, rep, cap = self._friction_args(state, budget)
+        q, v = state.q.copy(), state.v.copy()
+        k = friction_step_n_kernel(*self.model.args, *d.args, *self.friction.args, q, v, tau, float(h), gj, sv, n,
+                                   cache, has, cache_new, jn, rep, cap)
+        if k == 0:
+            self._handed_back(d)
+            new, res = self.reference_step(state, cmd, h, budget)
+            return new, res, 1
+        new = state.advanced(h, q, v, cache, steps=k)
+        return new, self._result(new, d, q.copy(), rcmd, t0), k
+
+    def friction_report(self):
+        """The FrictionReport of the kernel's last frictional step (staggered.FrictionReport)."""
+        r = self._rep
+        rep = staggered.FrictionReport(int(r[REP_ITERS]), bool(r[REP_CONVERGED]), float(r[REP_RESIDUAL]), int(r[REP_CONTACTS]),
+                             int(r[REP_ACTIVE]), float(r[REP_PENETRATION]), int(r[REP_STICKING]))
+        if len(self._jn):
+            rep._jn_names = self.mech.friction.fj_names
+            rep._jn_values = self._jn.copy()
+        return rep
+
     def step_run(self, state, cmd, h, n, budget=None):
         """Advance by k in [1, n] steps with the same commands: a run of up to n steps in one kernel call
         (kernel.step_n_kernel), or, when the kernel cannot take the next step (or trajectory prescriptions
@@ -141,6 +204,8 @@ class CompiledBackend:
         if inp is None:
             new, res = self.step(state, cmd, h, budget)
             return new, res, 1
+        if self.friction is not None:
+            return self._friction_run(state, cmd, h, n, budget, inp)
         t0 = time.perf_counter()
         rcmd, tau, d, gj, sv = inp
         q, v = state.q.copy(), state.v.copy()
@@ -165,8 +230,8 @@ class CompiledBackend:
         todo = np.full(B, int(n), dtype=np.int64)
         done = np.zeros(B, dtype=np.int64)
         errors = [None] * B
-        inp = None if cmd.joint_trajectories else self._inputs(states[0], cmd, h)
-        if inp is None:  # trajectories (rows depend on each instance's time) or commands the kernel does not take
+        inp = None if cmd.joint_trajectories or self.friction is not None else self._inputs(states[0], cmd, h)
+        if inp is None:  # friction (a cache per instance), trajectories (rows depend on each instance's time) or commands the kernel does not take
             return step_each(self.step, states, cmd, h, n, budget)
         _, tau, d, gj, sv = inp
         DF = np.tile(d.f, (B, 1))
@@ -222,5 +287,6 @@ class CompiledBackend:
         sol = CompiledSolution(new.v, d["lam"].copy(), d["mu"].copy(), float(out[OUT_RESIDUAL]))
         iters = int(out[OUT_ITERS])
         diag = Diagnostics(ek, ep, es, ek + ep + es, float(out[OUT_VIOL_POS]), float(out[OUT_VIOL_VEL]), iters,
-                           "compiled", time.perf_counter() - t0, sol, None)
+                           "compiled", time.perf_counter() - t0, sol,
+                           None if self.friction is None else self.friction_report())
         return StepResult(new.t, q_new, d["v_new"].copy(), d["effort"].copy(), site_forces, diag, {})

@@ -7,6 +7,7 @@
     rows(m, d, q^, hh, gj, sv)             # 3  loops, prescribed joints and sites (Eq. 7), limits (rows.py)
     kkt_solve_into(A_R, b_R, G, g, ...)    # 4  Cholesky + Schur complement of Eq. (6)/(7) (solvers/kkt.py)
     active_set(m, d)                       # 4' joint limits of Eq. (5), when one is crossed (limits.py)
+    friction_solve(m, d, c, h, cache, ...) # 4'' instead of 4: contact and joint friction, Alg. 2-3 (friction.py)
     update_configuration(m, d, q^, hh)     # 5  manifold update, loop post-stabilization (update.py)
     required_forces(m, d, tau, hh)         # 6  Eq. 7 torques and site forces (update.py)
     energies(m, d, q+, qdot_r+)            #    diagnostics (energy.py)
@@ -30,6 +31,8 @@ from redmax_ros.core.step.compiled.data import (OUT_ITERS, OUT_E_KIN, OUT_E_POT,
                                                 OUT_STAGE, OUT_VIOL_POS, OUT_VIOL_VEL, data_views)
 from redmax_ros.core.step.compiled.energy import energies
 from redmax_ros.core.step.compiled.forces import assemble
+from redmax_ros.core.step.compiled.friction import (NOT_PD, PAUSED, RANK_DEFICIENT, REP_ITERS, REP_KKT,
+                                                    bilateral_residual, friction_solve, friction_views)
 from redmax_ros.core.step.compiled.kinematics import kinematics
 from redmax_ros.core.step.compiled.limits import active_set, bilateral_violation
 from redmax_ros.core.step.compiled.model import model_views
@@ -44,10 +47,11 @@ drop_stale()  # before numba looks at the cache of the kernels below (cache.py)
 OK, REFERENCE = 0, 1
 # the stage that handed the step to the reference (d.out[OUT_STAGE])
 (STAGE_NONE, STAGE_INPUT, STAGE_IMPULSE, STAGE_ROWS, STAGE_FACTOR, STAGE_SCHUR, STAGE_LIMITS, STAGE_SPEED,
- STAGE_PROJECTION, STAGE_ENERGY) = range(10)
+ STAGE_PROJECTION, STAGE_ENERGY, STAGE_FRICTION_BUDGET) = range(11)
 STAGE_NAMES = ("none", "non-finite input or RHS", "applied impulse beyond the limit", "prescribed row beyond the limit",
                "LHS not positive definite", "constraint rows rank-deficient", "joint-limit active set did not settle",
-               "velocity beyond the limit", "loop projection (full Newton)", "non-finite energy")
+               "velocity beyond the limit", "loop projection (full Newton)", "non-finite energy",
+               "friction loop beyond its first work budget (step budget)")
 
 
 @njit
@@ -91,28 +95,9 @@ def one_step(m, d, q, vR, tau, h, gj, sv, qp, vp, hist):
 def stages(m, d, q, vR, tau, h, gj, sv, qp, vp, hist):
     """The stages of one step (BDF2 with ``hist``, else BDF1) on the Model and Data namedtuples; returns OK or
     REFERENCE."""
-    d.out[OUT_STAGE] = 0.0
-    vv = vR @ vR
-    if not (_finite_sum(q) and vv - vv == 0.0 and _finite_sum(tau)) or vv > MAX_SPEED * MAX_SPEED:
-        return _handoff(d.out, STAGE_INPUT)  # step/state.applied_torques names it
-    hh = 2.0 * h / 3.0 if hist else h
-    point(m, d, q, vR, qp, vp, hist, hh)  # 0
-    kinematics(m, d, d.q_lin, d.v_r)  # 1
-    if hist:  # 2, BDF2: the momentum of v^, springs at q^
-        jv_kernel(m.parents, m.idx_v, m.nv_j, d.St, d.v_mom, d.ovm)
-        assemble(m, d, d.q_base, d.v_r, d.v_mom, d.ovm, tau, hh, True)
-    else:
-        assemble(m, d, d.q_base, d.v_r, d.v_r, d.ov, tau, hh, False)
-    if not _finite_sum(d.bR):
-        return _handoff(d.out, STAGE_INPUT)
-    if impulse_beyond(d.AR, m.T, tau, d.free_mask, hh, MAX_SPEED) >= 0:
-        return _handoff(d.out, STAGE_IMPULSE)
-    rows(m, d, d.q_base, hh, gj, sv)  # 3
-    if d.g.shape[0]:
-        if not _finite_sum(d.g):
-            return _handoff(d.out, STAGE_INPUT)
-        if row_beyond(d.G, d.g, MAX_SPEED) >= 0:
-            return _handoff(d.out, STAGE_ROWS)
+    status, hh = rigid_stages(m, d, q, vR, tau, h, gj, sv, qp, vp, hist)  # 0-3
+    if status != OK:
+        return status
     status, ratio, viol, limits_ok = kkt_solve_into(d.AR, d.bR, d.G, d.g, m.limit_rows, d.lo, d.hi, d.kkt_L,
                                                     d.kkt_Y, d.kkt_S, d.kkt_LS, d.kkt_y, d.v_hyper, d.lam)  # 4
     if status == 1:
@@ -132,6 +117,40 @@ def stages(m, d, q, vR, tau, h, gj, sv, qp, vp, hist):
         return _handoff(d.out, STAGE_SPEED)
     d.out[OUT_VIOL_VEL] = viol
     d.out[OUT_RESIDUAL] = kkt_residual(d.AR, d.bR, d.v_hyper, d.G, d.lam, m.limit_rows, d.mu)
+    return tail_stages(m, d, tau, hh)  # 5-6
+
+
+@njit_inline
+def rigid_stages(m, d, q, vR, tau, h, gj, sv, qp, vp, hist):
+    """Stages 0-3 with the input checks of step/state.py: (OK or REFERENCE, hh)."""
+    d.out[OUT_STAGE] = 0.0
+    vv = vR @ vR
+    if not (_finite_sum(q) and vv - vv == 0.0 and _finite_sum(tau)) or vv > MAX_SPEED * MAX_SPEED:
+        return _handoff(d.out, STAGE_INPUT), h  # step/state.applied_torques names it
+    hh = 2.0 * h / 3.0 if hist else h
+    point(m, d, q, vR, qp, vp, hist, hh)  # 0
+    kinematics(m, d, d.q_lin, d.v_r)  # 1
+    if hist:  # 2, BDF2: the momentum of v^, springs at q^
+        jv_kernel(m.parents, m.idx_v, m.nv_j, d.St, d.v_mom, d.ovm)
+        assemble(m, d, d.q_base, d.v_r, d.v_mom, d.ovm, tau, hh, True)
+    else:
+        assemble(m, d, d.q_base, d.v_r, d.v_r, d.ov, tau, hh, False)
+    if not _finite_sum(d.bR):
+        return _handoff(d.out, STAGE_INPUT), hh
+    if impulse_beyond(d.AR, m.T, tau, d.free_mask, hh, MAX_SPEED) >= 0:
+        return _handoff(d.out, STAGE_IMPULSE), hh
+    rows(m, d, d.q_base, hh, gj, sv)  # 3
+    if d.g.shape[0]:
+        if not _finite_sum(d.g):
+            return _handoff(d.out, STAGE_INPUT), hh
+        if row_beyond(d.G, d.g, MAX_SPEED) >= 0:
+            return _handoff(d.out, STAGE_ROWS), hh
+    return OK, hh
+
+
+@njit_inline
+def tail_stages(m, d, tau, hh):
+    """Stages 5-6 and the energies after a solve (d.v_hyper, d.lam); returns OK or REFERENCE."""
     converged, viol_pos = update_configuration(m, d, d.q_base, hh)  # 5
     if not converged or not _finite_sum(d.q_new):
         return _handoff(d.out, STAGE_PROJECTION)
@@ -144,6 +163,56 @@ def stages(m, d, q, vR, tau, h, gj, sv, qp, vp, hist):
     d.out[OUT_E_SPRING] = es
     d.out[OUT_VIOL_POS] = viol_pos
     return OK
+
+
+@njit_inline
+def one_friction_step(m, d, c, q, vR, tau, h, gj, sv, cache, has_cache, cache_new, jn, rep, work_cap):
+    """One BDF1 step with ground contact and joint friction: stages 0-3, the Staggered Projections / BISP solve
+    (friction.py) in place of stage 4, stages 5-6; returns OK or REFERENCE."""
+    status, hh = rigid_stages(m, d, q, vR, tau, h, gj, sv, q, vR, 0)  # 0-3
+    if status != OK:
+        return status
+    fs = friction_solve(m, d, c, hh, cache, has_cache, cache_new, jn, rep, work_cap)  # 4''
+    if fs == NOT_PD:
+        return _handoff(d.out, STAGE_FACTOR)
+    if fs == RANK_DEFICIENT:
+        return _handoff(d.out, STAGE_SCHUR)
+    if fs == PAUSED:
+        return _handoff(d.out, STAGE_FRICTION_BUDGET)
+    d.out[OUT_ITERS] = rep[REP_ITERS]
+    if not (d.v_hyper @ d.v_hyper <= MAX_SPEED * MAX_SPEED):
+        return _handoff(d.out, STAGE_SPEED)
+    d.out[OUT_VIOL_VEL] = bilateral_residual(d)
+    d.out[OUT_RESIDUAL] = rep[REP_KKT]
+    return tail_stages(m, d, tau, hh)  # 5-6
+
+
+@njit
+def friction_step_kernel(mf, mi, mt, df, di, dt, ff, fi, ft, q, vR, tau, h, gj, sv, cache, has_cache, cache_new, jn,
+                         rep, work_cap):
+    """step_kernel for a scene with contact or joint friction (BDF1): the friction constants (ff, fi, ft:
+    friction.FRICTION_SPEC), the last step's friction impulses ``cache`` (``has_cache`` 0: none) in; the new
+    cache, the joints' normal loads and the report (friction.REP_*) out in cache_new, jn, rep."""
+    return one_friction_step(model_views(mf, mi, mt), data_views(df, di, dt), friction_views(ff, fi, ft), q, vR, tau,
+                             h, gj, sv, cache, has_cache, cache_new, jn, rep, work_cap)
+
+
+@njit
+def friction_step_n_kernel(mf, mi, mt, df, di, dt, ff, fi, ft, q, vR, tau, h, gj, sv, n, cache, has_cache, cache_new,
+                           jn, rep, work_cap):
+    """Up to n frictional steps with the same commands: (q, vR) and the friction ``cache`` advanced in place
+    after every step taken; returns the number of steps taken (as step_n_kernel)."""
+    m = model_views(mf, mi, mt)
+    d = data_views(df, di, dt)
+    c = friction_views(ff, fi, ft)
+    for k in range(n):
+        if one_friction_step(m, d, c, q, vR, tau, h, gj, sv, cache, has_cache, cache_new, jn, rep, work_cap) != OK:
+            return k
+        q[:] = d.q_new
+        vR[:] = d.v_hyper
+        cache[:] = cache_new
+        has_cache = 1
+    return n
 
 
 @njit

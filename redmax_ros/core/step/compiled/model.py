@@ -3,7 +3,7 @@ arrays built once (:func:`build_model`), unpacked inside numba by :func:`model_v
 :data:`Model`. Units SI (m, kg, kg m^2, N/m, N s/m, N m/rad, rad).
 
 :func:`unsupported` says why a Mechanism cannot take the compiled path (then the Pinocchio pipeline, the
-reference, steps it): contact or joint friction, catalogue joints and force elements (splines,
+reference, steps it): contact or joint friction beyond friction.friction_unsupported's set, catalogue joints and force elements (splines,
 exponential coordinates, Euler charts, timed loads...), the implicit Coriolis option, Pinocchio joints
 other than revolute, prismatic, helical, spherical, free, translation, universal and planar, or more
 than PIN_DATA_MAX_NV DOFs (the dense solve of this path).
@@ -18,6 +18,7 @@ from redmax_ros.core.dynamics.springs import needs_velocities
 from redmax_ros.core.dynamics.tree_kinematics import PIN_DATA_MAX_NV, Context
 from redmax_ros.core.jit import njit_inline
 from redmax_ros.core.solvers import recursive as rc
+from redmax_ros.core.step.compiled.friction import friction_unsupported
 from redmax_ros.core.step.compiled.manifold import PLANAR, UNIVERSAL, joint_kinds
 from redmax_ros.core.step.compiled.packing import f1, f2, f3, i1, pack
 
@@ -85,8 +86,7 @@ SUPPORTED_KINDS = {rc.REVOLUTE, rc.REVOLUTE_UNBOUNDED, rc.PRISMATIC, rc.HELICAL,
 def unsupported(mech) -> list:
     """What keeps ``mech`` off the compiled path (empty: supported)."""
     out = []
-    if mech.friction is not None:
-        out.append("contact or joint friction")
+    out += friction_unsupported(mech)
     if mech.extras is not None:
         out.append("catalogue joints/force elements")
     if mech.coriolis_implicit:
