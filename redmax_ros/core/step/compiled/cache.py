@@ -17,7 +17,7 @@ _CORE = Path(__file__).resolve().parents[2]  # redmax_ros/core
 SOURCES = ("step/compiled/kernel.py", "step/compiled/kinematics.py", "step/compiled/forces.py",
            "step/compiled/rows.py", "step/compiled/update.py", "step/compiled/limits.py", "step/compiled/energy.py", "step/compiled/model.py",
            "step/compiled/data.py", "step/compiled/packing.py", "step/compiled/manifold.py", "step/compiled/scheme.py", "step/state.py",
-           "solvers/recursive.py", "solvers/pcg.py", "solvers/kkt.py", "linalg.py", "jit.py",
+           "solvers/recursive.py", "solvers/pcg.py", "solvers/preconditioner.py", "solvers/lockstep_kernel.py", "solvers/kkt.py", "linalg.py", "jit.py",
            "dynamics/tree_forces.py", "dynamics/tree_kinematics.py", "dynamics/stabilization.py",
            "dynamics/energy.py", "dynamics/springs.py")
 
