@@ -11,6 +11,9 @@ and search directions; :func:`lockstep_iterate` runs iterations it_from .. it_to
 products are linalg.dot's four interleaved sums. :func:`spd_solve_kernel` is the small dense solve
 (H Z) lambda = H u - g of Eq. (4).
 
+The cached kernels here contain lhs_kernel and apply_kernel: this module is in step/compiled/cache.py's
+SOURCES, so an edit of either drops its cache too (when the step package loads, as for pcg.py's own).
+
 Arguments ``A`` and ``P`` below are the tuples of MatrixFreeSystem.lhs_args() and
 ProjectedBlockJacobi.apply_args(), spelled out because numba takes arrays, not objects; ``Ys`` = (Y, W, F)
 and ``Ps`` = (beta, u, acc) are their scratch arrays.
@@ -23,9 +26,6 @@ from redmax_ros.core.jit import njit
 from redmax_ros.core.linalg import cholesky, chol_solve, dot
 from redmax_ros.core.solvers.pcg import lhs_kernel
 from redmax_ros.core.solvers.preconditioner import apply_kernel
-from redmax_ros.core.step.compiled.cache import drop_stale
-
-drop_stale()  # this module's cached kernels contain lhs_kernel and apply_kernel (cache.py SOURCES)
 
 
 @njit
