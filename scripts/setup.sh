@@ -115,13 +115,19 @@ else
 fi
 
 # The compiled step's kernels (redmax_ros/core/step/compiled/): numba compiles them once per source version
-# (~4 min on a 2-core machine, one core) and caches them on disk; doing it here keeps the first node, run or
+# (the rigid, friction and deformable-contact kernels: several minutes on one core) and caches them on disk; doing it here keeps the first node, run or
 # test from spending that time inside a step. It needs only the Python packages, so it runs in the
 # background beside steps 4-5 (the colcon build) and is waited for at the end.
 say "compiling the step kernels in the background (numba, cached on disk)"
 KERNEL_LOG="$(mktemp)"
 kernel_t0=$(date +%s)
-"$PY" -c "from redmax_ros.core import Simulator; Simulator.load('pendulum').step(2)" > "$KERNEL_LOG" 2>&1 &
+"$PY" -c "from redmax_ros.core import Simulator
+Simulator.load('pendulum').step(2)  # the rigid step: step_kernel, step_n_kernel
+walker = Simulator.load('klann', ['friction.joint_mu=0.4'])  # contact and joint friction: friction_step_n_kernel
+walker.step(2)
+walker.step()
+Simulator.load('starfish').step(1)  # the coupled deformable step's contact loop (solvers/coupled_kernel.py)
+" > "$KERNEL_LOG" 2>&1 &
 KERNEL_PID=$!
 trap 'kill "$KERNEL_PID" 2>/dev/null || true; rm -f "$KERNEL_LOG"' EXIT
 

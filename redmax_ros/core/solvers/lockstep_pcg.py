@@ -1,8 +1,9 @@
 """PCG solves run in lockstep (paper §3, Eq. (4)) and the joint-limit active set on their dual system.
 
 :func:`block_pcg` runs k independent preconditioned CG solves A x_c = b_c (the l + 1 solves
-u = A^-1 b and Z = A^-1 H^T of Eq. (4)) together: one compiled call per iteration for all right-hand
-sides (the LHS products of :class:`~redmax_ros.core.solvers.pcg.MatrixFreeSystem` and the Projected
+u = A^-1 b and Z = A^-1 H^T of Eq. (4)) together: all iterations of all right-hand sides in one compiled
+call on preallocated arrays (solvers/lockstep_kernel.py; one call per iteration under a step budget), with the
+LHS products of :class:`~redmax_ros.core.solvers.pcg.MatrixFreeSystem` and the Projected
 Block Jacobi Preconditioner of Alg. 1, :mod:`~redmax_ros.core.solvers.preconditioner`).
 :func:`active_set` imposes the joint limits of Eq. (5) by a primal active set on the same dual system
 (limit rows enter as equalities at their bound, multipliers checked for sign), with Z columns computed
@@ -14,107 +15,65 @@ from __future__ import annotations
 
 import numpy as np
 
-from redmax_ros.core.jit import njit
 from redmax_ros.core.solvers.direct import check_rank
-from redmax_ros.core.solvers.pcg import MatrixFreeSystem, lhs_kernel
-from redmax_ros.core.solvers.preconditioner import ProjectedBlockJacobi, apply_kernel
+from redmax_ros.core.solvers.lockstep_kernel import lockstep_iterate, lockstep_start, spd_solve_kernel
+from redmax_ros.core.solvers.pcg import MatrixFreeSystem
+from redmax_ros.core.solvers.preconditioner import ProjectedBlockJacobi
 
 DEFAULT_RTOL = 1e-6
 MAX_ITER_CAP = 1000  # per PCG solve, whatever n; then the step falls back to the direct solver
 
 
-
-
-@njit
-def _lhs_multi(parents, idx_v, nv_j, St, I, blocks, use_blocks, ja, pa, jb, pb, C, diag, X, active, Y, W, F, OUT):
-    for c in range(X.shape[0]):
-        if active[c]:
-            lhs_kernel(parents, idx_v, nv_j, St, I, blocks, use_blocks, ja, pa, jb, pb, C, diag, X[c], Y, W, F,
-                        OUT[c])
-
-
-@njit
-def _pinv_multi(parents, idx_v, nv_j, St, Ut, Psi, X, active, beta, u, acc, OUT):
-    for c in range(X.shape[0]):
-        if active[c]:
-            apply_kernel(parents, idx_v, nv_j, St, Ut, Psi, X[c], OUT[c], beta, u, acc)
-
-
 class Ops:
-    """Multi-column A and P^-1 products of a MatrixFreeSystem and its factored preconditioner."""
+    """The arrays of a MatrixFreeSystem (A, Eq. 2) and its factored preconditioner (P^-1, Alg. 1) for the
+    compiled lockstep solves (solvers/lockstep_kernel.py). ``scratch``: a dict kept across steps (e.g. in the
+    step workspace's cache) holding the (k, n) work arrays per number of columns k, so a step allocates only
+    its solutions."""
 
-    def __init__(self, system: MatrixFreeSystem, P: ProjectedBlockJacobi):
+    def __init__(self, system: MatrixFreeSystem, P: ProjectedBlockJacobi, scratch: dict | None = None):
         self.s, self.P = system, P
         self.t = system.topo
+        self.args = system.lhs_args() + P.apply_args() + system.lhs_scratch() + (P.beta, P.u, P.acc)
+        self.scratch = {} if scratch is None else scratch
 
-    def A(self, X, active):
-        s, t = self.s, self.t
-        OUT = np.zeros_like(X)
-        blocks = s._noblocks if s.body_blocks is None else s.body_blocks
-        sp = s.springs
-        _lhs_multi(t.parents, t.idx_v, t.nv_j, s.ws.St, s.ws.I, blocks, s.body_blocks is not None, sp.joint_a,
-                   s.pa, sp.joint_b, s.pb, s.C, s._diag, X, active, s._Y, s._W, s._F, OUT)
-        return OUT
-
-    def Pinv(self, X, active):
-        P, t = self.P, self.t
-        OUT = np.zeros_like(X)
-        _pinv_multi(t.parents, t.idx_v, t.nv_j, P._St, P._Ut, P._Psi, X, active, P._beta, P._u, P._acc, OUT)
-        return OUT
+    def work(self, k: int, n: int) -> tuple:
+        """(R, Zr, Pd, AP, bn, tol, rn, rz, active, conv, its) for k columns of length n."""
+        w = self.scratch.get(k)
+        if w is None or w[0].shape[1] != n:
+            f = np.empty
+            w = self.scratch[k] = (f((k, n)), f((k, n)), f((k, n)), f((k, n)), f(k), f(k), f(k), f(k),
+                                   np.zeros(k, dtype=np.bool_), np.zeros(k, dtype=np.bool_), np.zeros(k, dtype=np.int64))
+        return w
 
 
 PCG_NAME = "lockstep PCG (Eq. 4)"
 
 
 def block_pcg(ops: Ops, B: np.ndarray, X0: np.ndarray | None, rtol: float, max_iter: int, deadline=None):
-    """Independent preconditioned CG solves A x_c = b_c for the rows b_c of B (k, n), run in lockstep.
-    Each column stops when ||r_c|| <= rtol ||b_c||. Returns (X, iterations (k,), converged (k,),
-    relative residuals (k,)). ``deadline``: the step's budget.Deadline, checked every iteration (None: no
-    budget)."""
+    """Independent preconditioned CG solves A x_c = b_c for the rows b_c of B (k, n), run in lockstep by the
+    compiled kernels of solvers/lockstep_kernel.py. Each column stops when ||r_c|| <= rtol ||b_c||. Returns
+    (X, iterations (k,), converged (k,), relative residuals (k,)). ``deadline``: the step's budget.Deadline,
+    checked before every iteration after the first (None: no budget, all iterations in one call)."""
     if deadline is not None:
         deadline.begin()
+    B = np.ascontiguousarray(B, dtype=float)
     k, n = B.shape
     X = np.zeros((k, n)) if X0 is None else np.array(X0, dtype=float)
-    bn = np.sqrt(np.einsum("ij,ij->i", B, B))
-    tol = rtol * bn
-    active = bn > 0.0
-    X[~active] = 0.0
-    R = B - ops.A(X, active) if X0 is not None else B.copy()
-    rn = np.sqrt(np.einsum("ij,ij->i", R, R))
-    its = np.zeros(k, dtype=int)
-    conv = ~active
-    done = active & (rn <= tol)
-    conv = conv | done
-    active = active & ~done
-    if not active.any():
-        return X, its, conv, np.where(bn > 0, rn / np.where(bn > 0, bn, 1.0), 0.0)
-    Z = ops.Pinv(R, active)
-    Pd = Z.copy()
-    rz = np.einsum("ij,ij->i", R, Z)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        for it in range(max_iter):
-            if deadline is not None and it:
+    R, Zr, Pd, AP, bn, tol, rn, rz, active, conv, its = ops.work(k, n)
+    left = lockstep_start(*ops.args, B, X, X0 is not None, float(rtol), R, Zr, Pd, AP, bn, tol, rn, rz, active,
+                          conv, its)
+    it = 0
+    while left and it < max_iter:
+        if deadline is None:
+            stop = max_iter
+        else:
+            if it:
                 deadline.check(PCG_NAME, it)
-            AP = ops.A(Pd, active)
-            pAp = np.einsum("ij,ij->i", Pd, AP)
-            active = active & (pAp > 0.0)  # A not positive definite on p: give up on that column
-            alpha = np.where(active, rz / pAp, 0.0)
-            X += alpha[:, None] * Pd
-            R -= alpha[:, None] * AP
-            its += active
-            rn = np.sqrt(np.einsum("ij,ij->i", R, R))
-            done = active & (rn <= tol)
-            conv = conv | done
-            active = active & ~done
-            if not active.any():
-                break
-            Z = ops.Pinv(R, active)
-            rz_new = np.einsum("ij,ij->i", R, Z)
-            beta = np.where(active, rz_new / rz, 0.0)
-            Pd = Z + beta[:, None] * Pd
-            rz = np.where(active, rz_new, rz)
+            stop = it + 1
+        left = lockstep_iterate(*ops.args, X, R, Zr, Pd, AP, tol, rn, rz, active, conv, its, it, stop)
+        it = stop
     rel = np.where(bn > 0, rn / np.where(bn > 0, bn, 1.0), 0.0)
-    return X, its, conv, rel
+    return X, its.copy(), conv.copy(), rel
 
 
 def default_max_iter(nv: int) -> int:
@@ -129,16 +88,17 @@ class Fallback(Exception):
 
 
 def spd_solve(S, rhs, labels):
+    """y = S^-1 rhs for the dual matrix S = H Z of Eq. (4) (symmetrised) by the compiled Cholesky
+    (lockstep_kernel.spd_solve_kernel); a singular or nearly singular S has its redundant rows named
+    (direct.check_rank raises StepError), else a non-positive-definite one is solved by least squares."""
     S = 0.5 * (S + S.T)
-    try:
-        L = np.linalg.cholesky(S)
-        d = np.abs(np.diag(L))
-        if d.min() <= 1e-6 * d.max():
-            check_rank(S, labels)
-        return np.linalg.solve(L.T, np.linalg.solve(L, rhs))
-    except np.linalg.LinAlgError:
-        check_rank(S, labels)
-        return np.linalg.lstsq(S, rhs, rcond=None)[0]
+    n = S.shape[0]
+    y = np.empty(n)
+    status = spd_solve_kernel(S, np.ascontiguousarray(rhs, dtype=float), np.empty((n, n)), y)
+    if status == 1:
+        return y
+    check_rank(S, labels)
+    return y if status == 2 else np.linalg.lstsq(S, rhs, rcond=None)[0]
 
 
 def active_set(ops, rows, H, gH, Z, u, v, y, labels, rtol, max_iter, stats, deadline=None):

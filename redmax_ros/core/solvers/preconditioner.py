@@ -64,12 +64,16 @@ def _chol_inverse(D, n, out, L, Li):
 
 
 @njit
-def _factor_kernel(parents, idx_v, nv_j, St, I, blocks, use_blocks, dr, Mhat, Ut, Psi):
-    """Alg. 1 lines 1-8 (world frame, all Ad = identity). Returns 0 or the failing joint index."""
+def factor_kernel(parents, idx_v, nv_j, St, I, blocks, use_blocks, dr, Mhat, Ut, psi, psi_off):
+    """Alg. 1 lines 1-8 (world frame, all Ad = identity). Psi_j (line 6) is stored compactly: the n_j x n_j
+    block of joint j row-major at psi[psi_off[j]:], so P^-1 x reads sum_j n_j^2 numbers instead of 36 per
+    joint. Returns 0 or the failing joint index."""
     nj = parents.shape[0]
     D = np.zeros((6, 6))
     L = np.zeros((6, 6))
     Li = np.zeros((6, 6))
+    Pj = np.zeros((6, 6))
+    PU = np.zeros((6, 6))
     for j in range(1, nj):
         for a in range(6):
             for b in range(6):
@@ -95,27 +99,34 @@ def _factor_kernel(parents, idx_v, nv_j, St, I, blocks, use_blocks, dr, Mhat, Ut
                 D[k, l] = s
             D[k, k] += dr[i0 + k]
         if n > 0:
-            if not _chol_inverse(D, n, Psi[j], L, Li):
+            if not _chol_inverse(D, n, Pj, L, Li):
                 return j
+            o = psi_off[j]
+            for k in range(n):
+                for l in range(n):
+                    psi[o + k * n + l] = Pj[k, l]
         # line 7: Pi_j = Mhat_j - U Psi U^T ; line 5 (for the parent): Mhat_p += Pi_j
         par = parents[j]
         if par > 0:
+            for k in range(n):  # PU = Psi U^T (n x 6), once per joint
+                for b in range(6):
+                    t = 0.0
+                    for l in range(n):
+                        t += Pj[k, l] * Ut[i0 + l, b]
+                    PU[k, b] = t
             for a in range(6):
                 for b in range(6):
                     s = Mhat[j, a, b]
                     for k in range(n):
-                        t = 0.0
-                        for l in range(n):
-                            t += Psi[j, k, l] * Ut[i0 + l, b]
-                        s -= Ut[i0 + k, a] * t
+                        s -= Ut[i0 + k, a] * PU[k, b]
                     Mhat[par, a, b] += s
     return 0
 
 
 @njit
-def apply_kernel(parents, idx_v, nv_j, St, Ut, Psi, x, y, beta, u, acc):
-    """Alg. 1 lines 10-18 (world frame). beta, acc: (njoints, 6) scratch; u: (nv,) scratch
-    holding x_j - S_j^T Bhat_j between the two passes."""
+def apply_kernel(parents, idx_v, nv_j, St, Ut, psi, psi_off, x, y, beta, u, acc):
+    """Alg. 1 lines 10-18 (world frame), Psi_j compact as :func:`factor_kernel` stores it. beta, acc:
+    (njoints, 6) scratch; u: (nv,) scratch holding x_j - S_j^T Bhat_j between the two passes."""
     nj = parents.shape[0]
     w = np.empty(6)
     for j in range(nj):
@@ -130,10 +141,11 @@ def apply_kernel(parents, idx_v, nv_j, St, Ut, Psi, x, y, beta, u, acc):
             for a in range(6):
                 s -= St[i0 + k, a] * beta[j, a]
             u[i0 + k] = s
+        o = psi_off[j]
         for k in range(n):
             s = 0.0
             for l in range(n):
-                s += Psi[j, k, l] * u[i0 + l]
+                s += psi[o + k * n + l] * u[i0 + l]
             w[k] = s
         par = parents[j]
         for a in range(6):  # line 13: beta_j = Bhat_j + Mhat_j S_j Psi_j (x_j - S_j^T Bhat_j)
@@ -154,10 +166,11 @@ def apply_kernel(parents, idx_v, nv_j, St, Ut, Psi, x, y, beta, u, acc):
             w[k] = s
         for a in range(6):
             acc[j, a] = acc[par, a]
+        o = psi_off[j]
         for k in range(n):
             s = 0.0
             for l in range(n):
-                s += Psi[j, k, l] * w[l]
+                s += psi[o + k * n + l] * w[l]
             y[i0 + k] = s
             for a in range(6):  # line 17: Vdot_j = Vdot_p + S_j y_j
                 acc[j, a] += St[i0 + k, a] * s
@@ -178,12 +191,14 @@ class ProjectedBlockJacobi:
         self.topo = topo
         nj, nv = topo.njoints, topo.nv
         self._Mhat = np.zeros((nj, 6, 6))
-        self._Ut = np.zeros((nv, 6))
-        self._Psi = np.zeros((nj, 6, 6))
-        self._St = np.zeros((nv, 6))
-        self._beta = np.zeros((nj, 6))
-        self._acc = np.zeros((nj, 6))
-        self._u = np.zeros(nv)
+        self.Ut = np.zeros((nv, 6))
+        sq = np.asarray(topo.nv_j, dtype=np.int64) ** 2
+        self.psi_off = np.ascontiguousarray(np.cumsum(sq) - sq)  # Psi_j at psi[psi_off[j]:], n_j x n_j row-major
+        self.psi = np.zeros(int((topo.nv_j ** 2).sum()))
+        self.St = np.zeros((nv, 6))
+        self.beta = np.zeros((nj, 6))
+        self.acc = np.zeros((nj, 6))
+        self.u = np.zeros(nv)
         self._noblocks = np.zeros((1, 6, 6))
         self.factored = False
 
@@ -202,9 +217,9 @@ class ProjectedBlockJacobi:
         else:
             blocks = np.ascontiguousarray(body_blocks, dtype=float).reshape(topo.njoints, 6, 6)
             use = True
-        self._St[:] = ws.St  # keep the world subspaces of the factored configuration
-        bad = _factor_kernel(topo.parents, topo.idx_v, topo.nv_j, self._St, ws.I, blocks, use, dr,
-                             self._Mhat, self._Ut, self._Psi)
+        self.St[:] = ws.St  # keep the world subspaces of the factored configuration
+        bad = factor_kernel(topo.parents, topo.idx_v, topo.nv_j, self.St, ws.I, blocks, use, dr,
+                            self._Mhat, self.Ut, self.psi, self.psi_off)
         if bad:
             self.factored = False
             raise ValueError(f"Alg. 1 line 6: S^T Mhat S + A^r is not positive definite at joint {bad}")
@@ -218,8 +233,13 @@ class ProjectedBlockJacobi:
         topo = self.topo
         x = np.ascontiguousarray(x, dtype=float).reshape(topo.nv)
         out = np.empty(topo.nv) if out is None else out
-        apply_kernel(topo.parents, topo.idx_v, topo.nv_j, self._St, self._Ut, self._Psi, x, out,
-                      self._beta, self._u, self._acc)
+        apply_kernel(topo.parents, topo.idx_v, topo.nv_j, self.St, self.Ut, self.psi, self.psi_off, x, out,
+                     self.beta, self.u, self.acc)
         return out
 
     __call__ = apply
+
+    def apply_args(self) -> tuple:
+        """(St, Ut, psi, psi_off): the factored arrays :func:`apply_kernel` reads, for compiled callers
+        (solvers/lockstep_kernel.py); its scratch is (beta, u, acc)."""
+        return self.St, self.Ut, self.psi, self.psi_off

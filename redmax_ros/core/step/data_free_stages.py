@@ -126,13 +126,16 @@ def solve_pcg(mech, ws, system: MatrixFreeSystem, b, cons: Constraints, x0, rtol
         ctx.P = system.preconditioner(ctx.P)
     except ValueError as e:
         raise Fallback(f"preconditioner: {e}") from None
-    ops = Ops(system, ctx.P)
+    ops = Ops(system, ctx.P, ws.cache.setdefault("lockstep scratch", {}))
     Gc = coupling_rows(mech, ws)
     H = np.vstack([cons.G, Gc]) if len(Gc) else cons.G
     gH = np.concatenate([cons.g, np.zeros(len(Gc))]) if len(Gc) else cons.g
     l = len(H)
-    labels = [lab for lab, n in cons.label_spans for _ in range(n)] + ["coupling (hyper-reduced coordinates)"] * len(Gc)
     key = tuple(cons.label_spans) + (len(Gc),)
+    labels = ws.cache.get(("row labels", key))
+    if labels is None:  # per set of rows, kept
+        labels = ws.cache[("row labels", key)] = ([lab for lab, n in cons.label_spans for _ in range(n)]
+                                                  + ["coupling (hyper-reduced coordinates)"] * len(Gc))
     X0 = np.empty((l + 1, nv))
     X0[0] = x0
     zc = ctx.z_cache

@@ -18,7 +18,8 @@ SOURCES = ("step/compiled/kernel.py", "step/compiled/kinematics.py", "step/compi
            "step/compiled/rows.py", "step/compiled/update.py", "step/compiled/limits.py", "step/compiled/energy.py", "step/compiled/model.py",
            "step/compiled/data.py", "step/compiled/packing.py", "step/compiled/manifold.py", "step/compiled/scheme.py", "step/scheme.py",
            "step/compiled/friction.py", "step/state.py",
-           "solvers/recursive.py", "solvers/pcg.py", "solvers/kkt.py", "linalg.py", "jit.py",
+           "solvers/recursive.py", "solvers/pcg.py", "solvers/preconditioner.py", "solvers/lockstep_kernel.py", "solvers/kkt.py",
+           "linalg.py", "jit.py",
            "dynamics/tree_forces.py", "dynamics/tree_kinematics.py", "dynamics/stabilization.py",
            "dynamics/energy.py", "dynamics/springs.py",
            "friction/staggered.py", "friction/condense.py", "friction/contact.py", "friction/bisp.py")

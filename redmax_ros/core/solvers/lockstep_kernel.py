@@ -1,0 +1,126 @@
+"""The lockstep PCG solves of Eq. (4) (Wang et al. 2019, §3) as compiled calls on preallocated arrays.
+
+k independent preconditioned CG recurrences A x_c = b_c, c = 0..k-1 (u = A^-1 b and the columns of
+Z = A^-1 H^T), advanced together: every iteration applies the LHS of Eq. (2) (pcg.lhs_kernel, one forward
+and one backward pass plus O(m) spring work) and the Projected Block Jacobi Preconditioner (Alg. 1 lines
+10-18, preconditioner.apply_kernel) to each active column, then the CG scalars and vector updates, all
+inside one compiled call. A column stops when ||r_c|| <= rtol ||b_c|| or when p^T A p <= 0 (A not
+positive definite on p). :func:`lockstep_start` computes the initial residuals, preconditioned residuals
+and search directions; :func:`lockstep_iterate` runs iterations it_from .. it_to - 1 and can be resumed
+(the step budget checks its deadline between calls, solvers/lockstep_pcg.block_pcg). Memory: O(k n). Dot
+products are linalg.dot's four interleaved sums. :func:`spd_solve_kernel` is the small dense solve
+(H Z) lambda = H u - g of Eq. (4).
+
+The cached kernels here contain lhs_kernel and apply_kernel: this module is in step/compiled/cache.py's
+SOURCES, so an edit of either drops its cache too (when the step package loads, as for pcg.py's own).
+
+Arguments ``A`` and ``P`` below are the tuples of MatrixFreeSystem.lhs_args() and
+ProjectedBlockJacobi.apply_args(), spelled out because numba takes arrays, not objects; ``Ys`` = (Y, W, F)
+and ``Ps`` = (beta, u, acc) are their scratch arrays.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from redmax_ros.core.jit import njit
+from redmax_ros.core.linalg import cholesky, chol_solve, dot
+from redmax_ros.core.solvers.pcg import lhs_kernel
+from redmax_ros.core.solvers.preconditioner import apply_kernel
+
+
+@njit
+def lockstep_start(parents, idx_v, nv_j, St, I, blocks, use_blocks, ja, pa, jb, pb, C, diag,
+                   PSt, Ut, psi, psi_off, Y, W, F, beta, u, acc,
+                   B, X, warm, rtol, R, Zr, Pd, AP, bn, tol, rn, rz, active, conv, its):
+    """Initial state of the k solves (rows of B (k, n)): X the warm start (``warm`` False: X = 0),
+    R = B - A X, Zr = P^-1 R, Pd = Zr, rz = r.z; bn, tol = rtol bn, rn = ||r|| per column; active/conv
+    flags, its = 0. Returns the number of active columns."""
+    k = B.shape[0]
+    n_active = 0
+    for c in range(k):
+        its[c] = 0
+        bn[c] = np.sqrt(dot(B[c], B[c]))
+        tol[c] = rtol * bn[c]
+        act = bn[c] > 0.0
+        if not warm or not act:
+            X[c, :] = 0.0
+        if warm and act:
+            lhs_kernel(parents, idx_v, nv_j, St, I, blocks, use_blocks, ja, pa, jb, pb, C, diag, X[c], Y, W, F,
+                       AP[c])
+            for i in range(B.shape[1]):
+                R[c, i] = B[c, i] - AP[c, i]
+        else:
+            R[c, :] = B[c]
+        rn[c] = np.sqrt(dot(R[c], R[c]))
+        done = act and rn[c] <= tol[c]
+        conv[c] = (not act) or done
+        active[c] = act and not done
+        if active[c]:
+            n_active += 1
+            apply_kernel(parents, idx_v, nv_j, PSt, Ut, psi, psi_off, R[c], Zr[c], beta, u, acc)
+            Pd[c, :] = Zr[c]
+            rz[c] = dot(R[c], Zr[c])
+    return n_active
+
+
+@njit
+def lockstep_iterate(parents, idx_v, nv_j, St, I, blocks, use_blocks, ja, pa, jb, pb, C, diag,
+                     PSt, Ut, psi, psi_off, Y, W, F, beta, u, acc,
+                     X, R, Zr, Pd, AP, tol, rn, rz, active, conv, its, it_from, it_to):
+    """PCG iterations it_from .. it_to - 1 of every active column (the state of :func:`lockstep_start`,
+    updated in place). Returns the number of columns still active (0: every column finished)."""
+    k, n = X.shape
+    n_active = 0
+    for c in range(k):
+        n_active += active[c]
+    for it in range(it_from, it_to):
+        n_active = 0
+        for c in range(k):
+            if not active[c]:
+                continue
+            pc, apc = Pd[c], AP[c]
+            lhs_kernel(parents, idx_v, nv_j, St, I, blocks, use_blocks, ja, pa, jb, pb, C, diag, pc, Y, W, F, apc)
+            pAp = dot(pc, apc)
+            if not pAp > 0.0:  # A not positive definite on p: give up on that column
+                active[c] = False
+                continue
+            alpha = rz[c] / pAp
+            xc, rc = X[c], R[c]
+            for i in range(n):
+                xc[i] += alpha * pc[i]
+                rc[i] -= alpha * apc[i]
+            its[c] += 1
+            rn[c] = np.sqrt(dot(rc, rc))
+            if rn[c] <= tol[c]:
+                conv[c] = True
+                active[c] = False
+                continue
+            zc = Zr[c]
+            apply_kernel(parents, idx_v, nv_j, PSt, Ut, psi, psi_off, rc, zc, beta, u, acc)
+            rz_new = dot(rc, zc)
+            bet = rz_new / rz[c]
+            for i in range(n):
+                pc[i] = zc[i] + bet * pc[i]
+            rz[c] = rz_new
+            n_active += 1
+        if n_active == 0:
+            break
+    return n_active
+
+
+@njit
+def spd_solve_kernel(S, rhs, L, y):
+    """y = S^-1 rhs for the small dual matrix S = H Z of Eq. (4) (its lower triangle is read) by Cholesky
+    (linalg.cholesky / chol_solve). Returns 0 when a pivot is not positive (y not set), 2 when the factor's
+    diagonal spreads beyond 1e6 (nearly redundant rows: the caller checks the rank; y is set), else 1."""
+    if not cholesky(S, L):
+        return 0
+    n = S.shape[0]
+    dmin, dmax = np.inf, 0.0
+    for i in range(n):
+        d = abs(L[i, i])
+        dmin = min(dmin, d)
+        dmax = max(dmax, d)
+    y[:] = rhs
+    chol_solve(L, y)
+    return 2 if n and dmin <= 1e-6 * dmax else 1
