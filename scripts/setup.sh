@@ -114,22 +114,27 @@ else
   echo "$pip_hash" > "$PIP_STAMP"
 fi
 
-# The compiled step's kernels (redmax_ros/core/step/compiled/): numba compiles them once per source version
-# (the rigid, friction and deformable-contact kernels: several minutes on one core) and caches them on disk; doing it here keeps the first node, run or
-# test from spending that time inside a step. It needs only the Python packages, so it runs in the
-# background beside steps 4-5 (the colcon build) and is waited for at the end.
+# The compiled kernels: numba compiles them once per source version and caches them on disk; doing it here
+# keeps the first node, run or test from spending that time inside a step. Two background processes beside
+# steps 4-5 (the colcon build), waited for at the end: the rigid step (step_kernel, step_n_kernel) and the
+# deformable step's contact loop (solvers/coupled_kernel.py) in one; the friction step (friction_step_n_kernel:
+# contact and joint friction, the largest) in the other. Measured 2026-12-04 in one process at load ~2: 1073 s.
 say "compiling the step kernels in the background (numba, cached on disk)"
 KERNEL_LOG="$(mktemp)"
+FRICTION_LOG="$(mktemp)"
 kernel_t0=$(date +%s)
 "$PY" -c "from redmax_ros.core import Simulator
-Simulator.load('pendulum').step(2)  # the rigid step: step_kernel, step_n_kernel
-walker = Simulator.load('klann', ['friction.joint_mu=0.4'])  # contact and joint friction: friction_step_n_kernel
-walker.step(2)
-walker.step()
-Simulator.load('starfish').step(1)  # the coupled deformable step's contact loop (solvers/coupled_kernel.py)
+Simulator.load('pendulum').step(2)
+Simulator.load('starfish').step(1)
 " > "$KERNEL_LOG" 2>&1 &
 KERNEL_PID=$!
-trap 'kill "$KERNEL_PID" 2>/dev/null || true; rm -f "$KERNEL_LOG"' EXIT
+"$PY" -c "from redmax_ros.core import Simulator
+walker = Simulator.load('klann', ['friction.joint_mu=0.4'])
+walker.step(2)
+walker.step()
+" > "$FRICTION_LOG" 2>&1 &
+FRICTION_PID=$!
+trap 'kill "$KERNEL_PID" "$FRICTION_PID" 2>/dev/null || true; rm -f "$KERNEL_LOG" "$FRICTION_LOG"' EXIT
 
 # The editable install (PEP 660) carries no data_files, so give the venv prefix what
 # colcon would install for redmax_ros: the ament index marker and share/redmax_ros,
@@ -221,6 +226,10 @@ elif [ -d install_msgs ]; then
   rm -rf build_msgs install_msgs
 fi
 
+if ! wait "$FRICTION_PID"; then
+  cat "$FRICTION_LOG" >&2
+  die "the compiled friction step kernels failed to compile (output above)"
+fi
 if ! wait "$KERNEL_PID"; then
   cat "$KERNEL_LOG" >&2
   die "the compiled step kernels failed to compile (output above)"
