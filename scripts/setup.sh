@@ -124,14 +124,16 @@ KERNEL_LOG="$(mktemp)"
 FRICTION_LOG="$(mktemp)"
 kernel_t0=$(date +%s)
 "$PY" -c "from redmax_ros.core import Simulator
-Simulator.load('pendulum').step(2)
+rigid = Simulator.load('pendulum')
+rigid.step(2)  # step_n_kernel
+rigid.backend.step(rigid.state, rigid.commands, rigid.dt)  # step_kernel (single steps: trajectories, budgets)
 Simulator.load('starfish').step(1)
 " > "$KERNEL_LOG" 2>&1 &
 KERNEL_PID=$!
 "$PY" -c "from redmax_ros.core import Simulator
 walker = Simulator.load('klann', ['friction.joint_mu=0.4'])
-walker.step(2)
-walker.step()
+walker.step(2)  # friction_step_n_kernel
+walker.backend.step(walker.state, walker.commands, walker.dt)  # friction_step_kernel
 " > "$FRICTION_LOG" 2>&1 &
 FRICTION_PID=$!
 trap 'kill "$KERNEL_PID" "$FRICTION_PID" 2>/dev/null || true; rm -f "$KERNEL_LOG" "$FRICTION_LOG"' EXIT
