@@ -155,6 +155,33 @@ def attachment_points(mech, data, dm: Deformables, support=None):
     return P, point_jacobians(data.J.reshape(6, mech.nv), P, support).reshape(3 * len(P), mech.nv)
 
 
+def attachment_points_at(mech, ws, dm, q, support=None):
+    """attachment_points at configuration q from the workspace's compiled forward kinematics
+    (tree_kinematics.Context.site_positions_at: one compiled call, the same placements as Pinocchio's to
+    round-off, ~1e-16 m) instead of reading data.oMi through the bindings (~4 us per joint, two passes a step);
+    world points are their stored positions. With ``support``, the Jacobians from data.J (computeJointJacobians
+    at q, which the skeleton stages leave in ws.data)."""
+    att = dm.attach
+    jid, local, world = _attach_frames(ws, dm)
+    P = ws.tree.site_positions_at(q, jid, local)
+    if len(world):
+        P[world] = att.local[world]
+    if support is None:
+        return P, None
+    return P, point_jacobians(ws.data.J.reshape(6, mech.nv), P, support).reshape(3 * len(P), mech.nv)
+
+
+def _attach_frames(ws, dm):
+    """(joint ids (world points: 0), offsets, indices of the world points) of the attachments, kept in ws.cache."""
+    hit = ws.cache.get("deformable_attach_frames")
+    if hit is None:
+        att = dm.attach
+        hit = ws.cache["deformable_attach_frames"] = (
+            np.ascontiguousarray(np.maximum(att.body, 0), dtype=np.int64),
+            np.ascontiguousarray(att.local, dtype=float), np.flatnonzero(att.body < 0))
+    return hit
+
+
 def attachment_support(mech, dm):
     """(a, nv) bool: the DOFs that move each attached vertex's body (none for world points)."""
     sup = np.zeros((len(dm.attach.vertex), mech.nv), dtype=bool)
@@ -183,7 +210,7 @@ def coupled_velocity(mech, ws, dm, state, ds, cmd, tau, h, timing=None):
     if filled is None or filled[0] is not ds or filled[1] != h:  # the last step filled it when it ended in ds
         dm.fill(ds.x, ds.v, h, buf["ad"], buf["bd"])  # 2 of the deformables: A_d, b_d in A_d's fixed pattern
     t2 = cpu_time()
-    E, t = _attached_velocity_map(mech, ws, dm, ds, n_r)
+    E, t = _attached_velocity_map(mech, ws, dm, ds, n_r, state.q)
     reduction.fill(red, buf["ad"], buf["bd"], E, t, system.A, system.b, buf["data"], buf["b"], buf["work"])
     t_red = cpu_time()
     contacts = _floor_contacts(dm, ds, red, h)
@@ -278,7 +305,7 @@ def _support(mech, ws, dm):
     return support
 
 
-def _attached_velocity_map(mech, ws, dm, ds, n_r):
+def _attached_velocity_map(mech, ws, dm, ds, n_r, q):
     """(E (3a, n_r), t (3a,)) with v_a = E qdot_r + t for every attached vertex: E the body point's Jacobian
     (0 for a world point), t = -g (body point) or +g (world point) of the attachment row's right-hand side g
     (0 with post-stabilization, -b phi with Baumgarte; attach.py's rows [J_p, -S_i] and [0, S_i])."""
@@ -286,7 +313,7 @@ def _attached_velocity_map(mech, ws, dm, ds, n_r):
     a = len(att.vertex)
     if not a:
         return np.zeros((0, n_r)), np.zeros(0)
-    P, J = attachment_points(mech, ws.data, dm, _support(mech, ws, dm))  # at q_k (the skeleton stages' kinematics)
+    P, J = attachment_points_at(mech, ws, dm, q, _support(mech, ws, dm))  # at q_k (the skeleton stages' kinematics)
     E = J if ws.T is None else J @ ws.T
     t = np.zeros(3 * a)
     if mech.loop_baumgarte:  # G z = -b phi(q_k, x_k)
@@ -341,8 +368,7 @@ def step(mech, ws, dm, state, cmd, h, timing=None):
     x_new = ds.x + h * v_d
     drift = resid = 0.0
     if len(dm.attach.vertex):  # post-stabilization: attached vertices onto their points at q+
-        pin.forwardKinematics(mech.model, ws.data, q_new)
-        P, _ = attachment_points(mech, ws.data, dm)
+        P, _ = attachment_points_at(mech, ws, dm, q_new)
         drift = float(np.abs(x_new[dm.attach.vertex] - P).max())
         if mech.loop_baumgarte:  # Baumgarte: no projection, the residual is the violation
             resid = drift
