@@ -59,6 +59,21 @@ def csr_matvec(indptr, indices, data, x, out):
 
 
 @njit
+def held_columns(indptr, indices, tpos, data, dofs, vals, out):
+    """out <- A[:, dofs] vals of the symmetric CSR matrix (``dofs`` ascending), reading row j's entries' transposes
+    data[tpos[e]] = A[indices[e], j]: nnz of the held rows instead of a product with the whole matrix. Bit for bit
+    the csr_matvec of the vector with vals on dofs (the nonzero terms of each out[i] are added in the same
+    ascending column order; the skipped terms are exact zeros)."""
+    for i in range(len(out)):
+        out[i] = 0.0
+    for q in range(len(dofs)):
+        j = dofs[q]
+        v = vals[q]
+        for e in range(indptr[j], indptr[j + 1]):
+            out[indices[e]] += data[tpos[e]] * v
+
+
+@njit
 def csr_row_dot(indptr, indices, data, j, x):
     """(A x)_j."""
     acc = 0.0
@@ -287,12 +302,8 @@ def staggered(indptr, indices, adiag, tpos, data, b, held, fs, ss, values, lbuf,
                         v0[j] = vals[j]
                         in_h0[fixed[j]] = True
                     has_au = nfix > 0
-                    if has_au:
-                        for j in range(n):
-                            tmp[j] = 0.0
-                        for j in range(nfix):
-                            tmp[fixed[j]] = vals[j]
-                        csr_matvec(indptr, indices, data, tmp.copy(), au)
+                    if has_au:  # A[:, H0] v0 by the held rows (A symmetric: A[i, j] = data[tpos[e]])
+                        held_columns(indptr, indices, tpos, data, fixed[:nfix], vals[:nfix], au)
                     col_add[:] = -1
                     col_rel[:] = -1
                     ncols = 0
