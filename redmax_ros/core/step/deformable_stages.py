@@ -217,19 +217,14 @@ def coupled_velocity(mech, ws, dm, state, ds, cmd, tau, h, timing=None):
     C = cons.C if cons.C is not None and len(cons.lo) else None
     G = np.asarray(cons.G).reshape(cons.m, n_r)
     # prescribed joint velocities c qdot_j = g (unit rows of Eq. 7) are held DOFs, not Schur rows
-    rows, cols, coef = reduction.unit_rows(G, C)
-    keep = np.ones(cons.m, dtype=bool)
-    keep[rows] = False
-    rest = np.flatnonzero(keep)
-    labs = cons.labels
+    rows, cols, coef, rest, G_rest, labels = _held_rows(ws, dm, G, C, cons.labels)
     if len(rows):
         dofs = red.n_free + cols
         saved, b_saved = reduction.hold(red.indptr, red.indices, cws.diag, cws.tpos, buf["data"], buf["b"], dofs,
                                         cons.g[rows] / coef)
-    sol = coupled.solve(cws, buf["data"], buf["b"], n_r, G[rest], cons.g[rest],
-                              C, cons.lo if C is not None else None, cons.hi if C is not None else None, contacts,
-                              _warm_contacts(ws, ds), [labs[i] for i in rest] + dm.attach.labels,
-                              stats=timing)
+    sol = coupled.solve(cws, buf["data"], buf["b"], n_r, G_rest, cons.g[rest],
+                        C, cons.lo if C is not None else None, cons.hi if C is not None else None, contacts,
+                        _warm_contacts(ws, ds), labels, stats=timing)
     ws.cache[_CONTACTS_FOUND] = sol.contact_state  # step() keys them to the DeformState it ends in, on success
     lam, violation = np.empty(cons.m), sol.violation
     lam[rest] = sol.lam
@@ -238,7 +233,7 @@ def coupled_velocity(mech, ws, dm, state, ds, cmd, tau, h, timing=None):
         violation = max(violation, float(np.abs(coef * sol.z[dofs] - cons.g[rows]).max()))
     v_r = sol.z[red.n_free:]
     v_d = np.empty(3 * N)
-    v_d[(3 * red.free[:, None] + np.arange(3)).ravel()] = sol.z[:red.n_free]
+    v_d[buf["free_dof"]] = sol.z[:red.n_free]
     v_d[red.att_dof] = E @ v_r + t
     t3 = cpu_time()
     if timing is not None:
@@ -252,6 +247,25 @@ def coupled_velocity(mech, ws, dm, state, ds, cmd, tau, h, timing=None):
     vs = VelocitySolve(s, cons.joint_rows, cons.site_rows,
                        cons.G[cons.loop_rows] if len(mech.loop_ab) else None, violation, "coupled", sol.iterations)
     return vs, v_d.reshape(-1, 3)
+
+
+def _held_rows(ws, dm, G, C, labs):
+    """(rows, columns, coefficients) of reduction.unit_rows(G, C), the other rows ``rest``, G[rest] and the
+    labels of the coupled solve's rows (G[rest]'s, then the attachments'): kept in ws.cache and reused while
+    G, C and the labels are those of the last step (the skeleton's rows of a prescribed joint are the same unit
+    rows every step; only their right-hand side changes), so the same numbers as computing them afresh."""
+    hit = ws.cache.get("deformable_held_rows")
+    if (hit is not None and hit[0].shape == G.shape and np.array_equal(hit[0], G) and hit[2] == list(labs)
+            and (C is None if hit[1] is None else C is not None and C.shape == hit[1].shape
+                 and np.array_equal(C, hit[1]))):
+        return hit[3]
+    rows, cols, coef = reduction.unit_rows(G, C)
+    keep = np.ones(len(G), dtype=bool)
+    keep[rows] = False
+    rest = np.flatnonzero(keep)
+    out = (rows, cols, coef, rest, G[rest], [labs[i] for i in rest] + dm.attach.labels)
+    ws.cache["deformable_held_rows"] = (G.copy(), None if C is None else np.array(C), list(labs), out)
+    return out
 
 
 _CONTACTS = "deformable contacts"  # ws.cache: (the DeformState they were found for, contact states by vertex)
@@ -292,7 +306,8 @@ def _reduction(mech, ws, dm, n_r):
             support = (support.astype(float) @ np.abs(ws.T)) != 0.0
         red = reduction.build(indptr, indices, dm.n_vertices, dm.attach.vertex, n_r, support)
         buf = {"ad": np.empty(len(indices)), "bd": np.empty(3 * dm.n_vertices), "data": np.empty(len(red.indices)),
-               "b": np.empty(red.n), "work": np.empty(reduction.work_shape(red))}
+               "b": np.empty(red.n), "work": np.empty(reduction.work_shape(red)),
+               "free_dof": (3 * red.free[:, None] + np.arange(3)).ravel()}
         hit = ws.cache["deformable_reduction"] = (red, coupled.Workspace(red.indptr, red.indices, red.n), buf)
     return hit
 
@@ -380,7 +395,7 @@ def step(mech, ws, dm, state, cmd, h, timing=None):
     if not math.isfinite(float(x_new.ravel() @ x_new.ravel())):
         raise StepError("non-finite deformable positions after the step")
     ek, ep, es = energies(mech, ws, q_new, v_new)
-    ds_new = DeformState.of(x_new, v_d)
+    ds_new = DeformState(x_new, v_d)  # both fresh float (N,3) arrays of this step: no copy (DeformState.of)
     t1 = cpu_time()
     dk, dg, de = dm.energies(ds_new.x, ds_new.v, _prefill(ws, dm, ds_new, h))  # the next step's A_d, b_d
     if timing is not None:
