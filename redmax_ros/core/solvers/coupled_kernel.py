@@ -1,7 +1,8 @@
 """The coupled solve's staggered floor-contact loop (solvers/coupled.py: paper Alg. 2, Eq. 11-12 as primal
 active sets on the vertex DOFs of the reduced system) as one compiled call on the step's arrays: the friction
 stage, the normal stage, the joint-limit working set, and the held system on the reduced matrix's LDL^T
-(sparse_ldl's factor and solve kernels) with the bordered (capacitance) updates of its held set
+(sparse_ldl's factor and solve kernels, compiled into this module's cache: an edit of those kernels must come
+with an edit here, or numba keeps the old ones) with the bordered (capacitance) updates of its held set
 (Golub & Van Loan §2.1.4). The algorithm and its notation are coupled.py's module docstring; ``staggered``
 reads and writes the contact state (normal, stick, sign, alpha, known) in place and returns its counters in
 ``info`` (INFO_*). Before it, each sub-problem solve cost ~100-200 us of numpy calls in Python around a
