@@ -291,18 +291,92 @@ def add_tet_forces(P, Bt, vol, tet, scale, f):
             f[tet[a], i] -= scale * vol * (P[i, 0] * Bt[a, 0] + P[i, 1] * Bt[a, 1] + P[i, 2] * Bt[a, 2])
 
 
+@njit_inline
+def newton_polar_batch(x, tets, B, Fb, Rb, s2, ok):
+    """The polar factors of every tetrahedron's F by Newton's iteration (``newton_polar3``'s) run on all of them
+    at once: Fb, Rb (9, T) the entries of F and R (row-major 3 x 3 per column t), s2 (T,) scratch, ok (T,) True
+    where Newton's R is taken (F neither inverted nor near flat, ``newton_polar3``'s test, and converged). The
+    iterations run over all tetrahedra in lockstep, a loop over t without branches that the compiler
+    vectorises (the per-tetrahedron iteration is a chain of dependent operations, a division among them, that
+    left the core idle: 3.6 iterations at ~100 ns each on the starfish), until the largest step of the accepted
+    ones is below 1e-8 (Frobenius; at most 30 iterations). A tetrahedron that converged earlier takes the extra
+    iterations at its fixed point, which move R by round-off (~1e-16): R is the polar factor to the same
+    accuracy as newton_polar3's, not bit for bit the same numbers. Returns the number of accepted tetrahedra."""
+    T = len(tets)
+    nok = 0
+    for t in range(T):
+        for i in range(3):
+            for k in range(3):
+                v = 0.0
+                for a in range(4):
+                    v += x[tets[t, a], i] * B[t, a, k]
+                Fb[3 * i + k, t] = v
+        r00, r01, r02, r10, r11, r12, r20, r21, r22 = (Fb[0, t], Fb[1, t], Fb[2, t], Fb[3, t], Fb[4, t], Fb[5, t],
+                                                       Fb[6, t], Fb[7, t], Fb[8, t])
+        n2 = r00 * r00 + r01 * r01 + r02 * r02 + r10 * r10 + r11 * r11 + r12 * r12 + r20 * r20 + r21 * r21 + r22 * r22
+        det = r00 * (r11 * r22 - r12 * r21) + r01 * (r12 * r20 - r10 * r22) + r02 * (r10 * r21 - r11 * r20)
+        good = det > 0.0 and det * det > 1e-4 * (n2 / 3.0) ** 3
+        ok[t] = good
+        for i in range(9):  # a rejected F iterates from the identity (discarded; keeps the loop finite)
+            Rb[i, t] = Fb[i, t] if good else (1.0 if i % 4 == 0 else 0.0)
+        nok += 1 if good else 0
+    if nok == 0:
+        return 0
+    G0, G1, G2, G3, G4, G5, G6, G7, G8 = Rb[0], Rb[1], Rb[2], Rb[3], Rb[4], Rb[5], Rb[6], Rb[7], Rb[8]
+    for _ in range(30):
+        for tt in range(T):  # unsigned indices: no wrap-around test, so the loop vectorises
+            t = np.uint64(tt)
+            r00, r01, r02, r10, r11, r12, r20, r21, r22 = G0[t], G1[t], G2[t], G3[t], G4[t], G5[t], G6[t], G7[t], G8[t]
+            c00, c01, c02 = r11 * r22 - r12 * r21, r12 * r20 - r10 * r22, r10 * r21 - r11 * r20
+            c10, c11, c12 = r02 * r21 - r01 * r22, r00 * r22 - r02 * r20, r01 * r20 - r00 * r21
+            c20, c21, c22 = r01 * r12 - r02 * r11, r02 * r10 - r00 * r12, r00 * r11 - r01 * r10
+            b = 0.5 / (r00 * c00 + r01 * c01 + r02 * c02)
+            s00, s01, s02 = 0.5 * r00 + b * c00, 0.5 * r01 + b * c01, 0.5 * r02 + b * c02
+            s10, s11, s12 = 0.5 * r10 + b * c10, 0.5 * r11 + b * c11, 0.5 * r12 + b * c12
+            s20, s21, s22 = 0.5 * r20 + b * c20, 0.5 * r21 + b * c21, 0.5 * r22 + b * c22
+            d00, d01, d02, d10, d11 = s00 - r00, s01 - r01, s02 - r02, s10 - r10, s11 - r11
+            d12, d20, d21, d22 = s12 - r12, s20 - r20, s21 - r21, s22 - r22
+            s2[t] = (d00 * d00 + d01 * d01 + d02 * d02 + d10 * d10 + d11 * d11 + d12 * d12 + d20 * d20 + d21 * d21
+                     + d22 * d22)
+            G0[t], G1[t], G2[t], G3[t], G4[t], G5[t], G6[t], G7[t], G8[t] = s00, s01, s02, s10, s11, s12, s20, s21, s22
+        worst = 0.0
+        for t in range(T):
+            if ok[t] and s2[t] > worst:
+                worst = s2[t]
+        if worst <= 1e-16:
+            return nok
+    for t in range(T):  # not converged in 30: those take polar3's SVD route
+        if ok[t] and not s2[t] <= 1e-16:
+            ok[t] = False
+            nok -= 1
+    return nok
+
+
 @njit
 def fem_add(x, tets, B, vol, mu, lam, blk, stride, ck, hf, data, f):
     """Over every tetrahedron: f (n,3) += hf * (elastic forces [N]) when hf != 0, the CSR ``data`` of a
     sparsity.BlockPattern += ck * (element stiffness blocks [N/m]) when ck != 0. Returns the elastic energy
-    sum_t V_t Psi_t [J]. x (n,3) [m], tets (T,4), B (T,4,3) [1/m], vol (T,) [m^3], mu, lam [Pa]."""
+    sum_t V_t Psi_t [J]. x (n,3) [m], tets (T,4), B (T,4,3) [1/m], vol (T,) [m^3], mu, lam [Pa]. The polar
+    factors first, for all tetrahedra at once (``newton_polar_batch``; ``polar3`` for those it does not take)."""
     F, R, P = np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3))
     C, V, Ah = np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3))
     Cr, N, Kb = np.empty((4, 3)), np.empty((4, 3, 3)), np.empty((4, 4, 3, 3))
+    T = len(tets)
+    Fb, Rb, s2, ok = np.empty((9, T)), np.empty((9, T)), np.empty(T), np.empty(T, np.bool_)
+    newton_polar_batch(x, tets, B, Fb, Rb, s2, ok)
     energy = 0.0
-    for t in range(len(tets)):
+    for t in range(T):
         tet, Bt = tets[t], B[t]
-        trS = tet_state(x, tet, Bt, mu, lam, F, R, P, C, V)
+        for i in range(3):
+            for k in range(3):
+                F[i, k] = Fb[3 * i + k, t]
+        if ok[t]:
+            for i in range(3):
+                for k in range(3):
+                    R[i, k] = Rb[3 * i + k, t]
+        else:
+            polar3(F, R, C, V)
+        trS = tet_stress(F, R, mu, lam, P)
         energy += vol[t] * tet_energy_density(F, R, trS, mu, lam)
         if hf != 0.0:
             add_tet_forces(P, Bt, vol[t], tet, hf, f)

@@ -57,6 +57,21 @@ class Reduction:
     att_dof: np.ndarray  # (3a,) the A_d DOF of row r of E
     ad_indptr: np.ndarray  # the A_d pattern it was built for
     ad_indices: np.ndarray
+    # ``fill``'s entry lists, in A_d's row order (each target then sums its terms in the order of a row scan):
+    # free-free entries (A_d position, reduced position); per free DOF p the A_d DOF free_ad[p] and its
+    # attached-column entries fa_src[fa_ptr[p]:fa_ptr[p + 1]] with their E rows fa_row; per attached row r its
+    # attached-column entries aa_src[aa_ptr[r]:aa_ptr[r + 1]] with their E rows aa_row.
+    ff_src: np.ndarray
+    ff_dst: np.ndarray
+    free_ad: np.ndarray
+    fa_ptr: np.ndarray
+    fa_src: np.ndarray
+    fa_row: np.ndarray
+    aa_ptr: np.ndarray
+    aa_src: np.ndarray
+    aa_row: np.ndarray
+    e_end: np.ndarray  # (3a,) one past the last skeleton column E's row r can be nonzero on (from ``support``)
+    y_end: np.ndarray  # (3a,) the same for row r of Y = A_aa E (the largest e_end of its attached columns)
 
     @property
     def n(self) -> int:
@@ -130,8 +145,38 @@ def build(ad_indptr, ad_indices, n_vertices: int, attached, n_r: int, support=No
             if q >= 0:
                 pos[e] = indptr[p] + int(np.searchsorted(row, q))
     att_dof = (3 * attached[:, None] + np.arange(3)).ravel()
+    na = len(att_dof)
+    ends = np.array([int(np.nonzero(support[k])[0][-1]) + 1 if support[k].any() else 0 for k in range(len(attached))],
+                    dtype=np.int64)
+    e_end = np.repeat(ends, 3)
+    ff_src, ff_dst, fa_src, fa_row = [], [], [], []
+    aa_rows = [[] for _ in range(na)]  # per attached row r (E's row order, not A_d's): (A_d position, E row)
+    free_ad = np.empty(nf3, dtype=np.int64)
+    fa_ptr = np.zeros(nf3 + 1, dtype=np.int64)
+    y_end = np.zeros(na, dtype=np.int64)
+    for i in range(3 * n_vertices):
+        p = dof[i]
+        for e in range(ad_indptr[i], ad_indptr[i + 1]):
+            q = dof[ad_indices[e]]
+            if p >= 0 and q >= 0:
+                ff_src.append(e)
+                ff_dst.append(pos[e])
+            elif p >= 0:
+                fa_src.append(e)
+                fa_row.append(-q - 1)
+            elif q < 0:
+                aa_rows[-p - 1].append((e, -q - 1))
+                y_end[-p - 1] = max(y_end[-p - 1], e_end[-q - 1])
+        if p >= 0:  # free DOFs are numbered in A_d's row order
+            free_ad[p] = i
+            fa_ptr[p + 1] = len(fa_src)
+    aa_ptr = np.concatenate([[0], np.cumsum([len(r) for r in aa_rows])]).astype(np.int64)
+    aa_src = [e for r in aa_rows for e, _ in r]
+    aa_row = [s for r in aa_rows for _, s in r]
+    i64 = lambda a: np.asarray(a, dtype=np.int64)
     return Reduction(int(n_r), nf3, dof, free, indptr, indices, pos, adj_rank, fs_pos, sf_pos, sk_start, att_dof,
-                     ad_indptr, ad_indices)
+                     ad_indptr, ad_indices, i64(ff_src), i64(ff_dst), free_ad, fa_ptr, i64(fa_src), i64(fa_row),
+                     aa_ptr, i64(aa_src), i64(aa_row), e_end, y_end)
 
 
 def fill(red: Reduction, ad_data, b_d, E, t, A_r, b_r, data_out, b_out, work):
@@ -140,8 +185,9 @@ def fill(red: Reduction, ad_data, b_d, E, t, A_r, b_r, data_out, b_out, work):
     (nonzero only on the support ``build`` was given), t (3a,) their offsets (v_a = E qdot_r + t), A_r (n_r,
     n_r), b_r (n_r,); ``work`` (3a + n_adj, n_r) scratch (``work_shape``)."""
     na = len(red.att_dof)
-    fill_kernel(red.ad_indptr, red.ad_indices, np.asarray(ad_data, float), np.asarray(b_d, float), red.dof, red.pos,
-                red.adj_rank, red.fs_pos, red.sf_pos, red.sk_start, red.att_dof, red.n_free,
+    fill_kernel(np.asarray(ad_data, float), np.asarray(b_d, float), red.ff_src, red.ff_dst, red.free_ad, red.fa_ptr,
+                red.fa_src, red.fa_row, red.aa_ptr, red.aa_src, red.aa_row, red.e_end, red.y_end, red.adj_rank,
+                red.fs_pos, red.sf_pos, red.sk_start, red.att_dof, red.n_free,
                 np.ascontiguousarray(E, dtype=float), np.asarray(t, float), np.ascontiguousarray(A_r, dtype=float),
                 np.asarray(b_r, float), data_out, b_out, work[:na], work[na:])
 
@@ -153,46 +199,41 @@ def work_shape(red: Reduction) -> tuple:
 
 
 @njit
-def fill_kernel(ad_indptr, ad_indices, ad_data, b_d, dof, pos, adj_rank, fs_pos, sf_pos, sk_start, att_dof, nf3, E,
-                t, A_r, b_r, data, b, Y, W):
-    """The loops of ``fill``: each A_d entry once; the products with E as contiguous rows over the n_r skeleton
-    columns (Y = A_aa E, W = A_fa E; E's zero columns cost less than indexing the nonzero ones), scattered into
-    the reduced pattern once at the end; E^T A_af = W^T (A_d symmetric); E^T A_aa E symmetrised."""
+def fill_kernel(ad_data, b_d, ff_src, ff_dst, free_ad, fa_ptr, fa_src, fa_row, aa_ptr, aa_src, aa_row, e_end, y_end,
+                adj_rank, fs_pos, sf_pos, sk_start, att_dof, nf3, E, t, A_r, b_r, data, b, Y, W):
+    """The loops of ``fill`` over the Reduction's entry lists (no per-entry test of which block an entry is in):
+    the free-free entries copied; the products with E as contiguous rows over the skeleton columns a row of E
+    can be nonzero on (e_end: its body's supports end there; the columns past it are exact zeros, so skipping
+    them changes no bit) (Y = A_aa E, W = A_fa E), scattered into the reduced pattern once at the end;
+    E^T A_af = W^T (A_d symmetric); E^T A_aa E symmetrised. Every sum takes its terms in the order of a scan of
+    A_d's rows."""
     n_r = A_r.shape[0]
     na = E.shape[0]
     data[:] = 0.0
     Y[:, :] = 0.0
     W[:, :] = 0.0
     ta = np.zeros(na)  # A_aa t
-    for p in range(nf3):
+    for k in range(len(ff_src)):  # free row, free column
+        data[ff_dst[k]] += ad_data[ff_src[k]]
+    for p in range(nf3):  # free row, attached column: A_fa E and -A_fa t
         b[p] = 0.0
+        b[p] += b_d[free_ad[p]]
+        c = adj_rank[p]
+        for k in range(fa_ptr[p], fa_ptr[p + 1]):
+            a = ad_data[fa_src[k]]
+            r = fa_row[k]
+            for l in range(e_end[r]):
+                W[c, l] += a * E[r, l]
+            b[p] -= a * t[r]
     for k in range(n_r):
         b[nf3 + k] = b_r[k]
-    for i in range(len(ad_indptr) - 1):
-        p = dof[i]
-        if p >= 0:
-            b[p] += b_d[i]
-            c = adj_rank[p]
-            for e in range(ad_indptr[i], ad_indptr[i + 1]):
-                a = ad_data[e]
-                q = dof[ad_indices[e]]
-                if q >= 0:
-                    data[pos[e]] += a
-                else:  # free row, attached column: A_fa E and -A_fa t
-                    r = -q - 1
-                    for k in range(n_r):
-                        W[c, k] += a * E[r, k]
-                    b[p] -= a * t[r]
-        else:
-            r = -p - 1
-            for e in range(ad_indptr[i], ad_indptr[i + 1]):
-                q = dof[ad_indices[e]]
-                if q < 0:  # attached row and column: Y = A_aa E
-                    a = ad_data[e]
-                    s = -q - 1
-                    for k in range(n_r):
-                        Y[r, k] += a * E[s, k]
-                    ta[r] += a * t[s]
+    for r in range(na):  # attached row and column: Y = A_aa E
+        for k in range(aa_ptr[r], aa_ptr[r + 1]):
+            a = ad_data[aa_src[k]]
+            s = aa_row[k]
+            for l in range(e_end[s]):
+                Y[r, l] += a * E[s, l]
+            ta[r] += a * t[s]
     for c in range(fs_pos.shape[0]):  # A_fa E and E^T A_af = (A_fa E)^T
         for k in range(n_r):
             f = fs_pos[c, k]
@@ -205,10 +246,10 @@ def fill_kernel(ad_indptr, ad_indices, ad_data, b_d, dof, pos, adj_rank, fs_pos,
             b[nf3 + k] += E[r, k] * ba
     S = np.zeros((n_r, n_r))  # E^T A_aa E = E^T Y
     for r in range(na):
-        for k in range(n_r):
+        for k in range(e_end[r]):
             erk = E[r, k]
             if erk != 0.0:
-                for l in range(n_r):
+                for l in range(y_end[r]):
                     S[k, l] += erk * Y[r, l]
     for k in range(n_r):  # + A_r: the dense skeleton block
         s = sk_start[k]

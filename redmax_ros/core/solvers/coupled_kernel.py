@@ -1,7 +1,8 @@
 """The coupled solve's staggered floor-contact loop (solvers/coupled.py: paper Alg. 2, Eq. 11-12 as primal
 active sets on the vertex DOFs of the reduced system) as one compiled call on the step's arrays: the friction
 stage, the normal stage, the joint-limit working set, and the held system on the reduced matrix's LDL^T
-(sparse_ldl's factor and solve kernels) with the bordered (capacitance) updates of its held set
+(sparse_ldl's factor and solve kernels, compiled into this module's cache: an edit of those kernels must come
+with an edit here, or numba keeps the old ones) with the bordered (capacitance) updates of its held set
 (Golub & Van Loan §2.1.4). The algorithm and its notation are coupled.py's module docstring; ``staggered``
 reads and writes the contact state (normal, stick, sign, alpha, known) in place and returns its counters in
 ``info`` (INFO_*). Before it, each sub-problem solve cost ~100-200 us of numpy calls in Python around a
@@ -56,6 +57,21 @@ def csr_matvec(indptr, indices, data, x, out):
         for e in range(indptr[i], indptr[i + 1]):
             acc += data[e] * x[indices[e]]
         out[i] = acc
+
+
+@njit
+def held_columns(indptr, indices, tpos, data, dofs, vals, out):
+    """out <- A[:, dofs] vals of the symmetric CSR matrix (``dofs`` ascending), reading row j's entries' transposes
+    data[tpos[e]] = A[indices[e], j]: nnz of the held rows instead of a product with the whole matrix. Bit for bit
+    the csr_matvec of the vector with vals on dofs (the nonzero terms of each out[i] are added in the same
+    ascending column order; the skipped terms are exact zeros)."""
+    for i in range(len(out)):
+        out[i] = 0.0
+    for q in range(len(dofs)):
+        j = dofs[q]
+        v = vals[q]
+        for e in range(indptr[j], indptr[j + 1]):
+            out[indices[e]] += data[tpos[e]] * v
 
 
 @njit
@@ -287,12 +303,8 @@ def staggered(indptr, indices, adiag, tpos, data, b, held, fs, ss, values, lbuf,
                         v0[j] = vals[j]
                         in_h0[fixed[j]] = True
                     has_au = nfix > 0
-                    if has_au:
-                        for j in range(n):
-                            tmp[j] = 0.0
-                        for j in range(nfix):
-                            tmp[fixed[j]] = vals[j]
-                        csr_matvec(indptr, indices, data, tmp.copy(), au)
+                    if has_au:  # A[:, H0] v0 by the held rows (A symmetric: A[i, j] = data[tpos[e]])
+                        held_columns(indptr, indices, tpos, data, fixed[:nfix], vals[:nfix], au)
                     col_add[:] = -1
                     col_rel[:] = -1
                     ncols = 0

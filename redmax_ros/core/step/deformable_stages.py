@@ -155,6 +155,33 @@ def attachment_points(mech, data, dm: Deformables, support=None):
     return P, point_jacobians(data.J.reshape(6, mech.nv), P, support).reshape(3 * len(P), mech.nv)
 
 
+def attachment_points_at(mech, ws, dm, q, support=None):
+    """attachment_points at configuration q from the workspace's compiled forward kinematics
+    (tree_kinematics.Context.site_positions_at: one compiled call, the same placements as Pinocchio's to
+    round-off, ~1e-16 m) instead of reading data.oMi through the bindings (~4 us per joint, two passes a step);
+    world points are their stored positions. With ``support``, the Jacobians from data.J (computeJointJacobians
+    at q, which the skeleton stages leave in ws.data)."""
+    att = dm.attach
+    jid, local, world = _attach_frames(ws, dm)
+    P = ws.tree.site_positions_at(q, jid, local)
+    if len(world):
+        P[world] = att.local[world]
+    if support is None:
+        return P, None
+    return P, point_jacobians(ws.data.J.reshape(6, mech.nv), P, support).reshape(3 * len(P), mech.nv)
+
+
+def _attach_frames(ws, dm):
+    """(joint ids (world points: 0), offsets, indices of the world points) of the attachments, kept in ws.cache."""
+    hit = ws.cache.get("deformable_attach_frames")
+    if hit is None:
+        att = dm.attach
+        hit = ws.cache["deformable_attach_frames"] = (
+            np.ascontiguousarray(np.maximum(att.body, 0), dtype=np.int64),
+            np.ascontiguousarray(att.local, dtype=float), np.flatnonzero(att.body < 0))
+    return hit
+
+
 def attachment_support(mech, dm):
     """(a, nv) bool: the DOFs that move each attached vertex's body (none for world points)."""
     sup = np.zeros((len(dm.attach.vertex), mech.nv), dtype=bool)
@@ -183,26 +210,21 @@ def coupled_velocity(mech, ws, dm, state, ds, cmd, tau, h, timing=None):
     if filled is None or filled[0] is not ds or filled[1] != h:  # the last step filled it when it ended in ds
         dm.fill(ds.x, ds.v, h, buf["ad"], buf["bd"])  # 2 of the deformables: A_d, b_d in A_d's fixed pattern
     t2 = cpu_time()
-    E, t = _attached_velocity_map(mech, ws, dm, ds, n_r)
+    E, t = _attached_velocity_map(mech, ws, dm, ds, n_r, state.q)
     reduction.fill(red, buf["ad"], buf["bd"], E, t, system.A, system.b, buf["data"], buf["b"], buf["work"])
     t_red = cpu_time()
     contacts = _floor_contacts(dm, ds, red, h)
     C = cons.C if cons.C is not None and len(cons.lo) else None
     G = np.asarray(cons.G).reshape(cons.m, n_r)
     # prescribed joint velocities c qdot_j = g (unit rows of Eq. 7) are held DOFs, not Schur rows
-    rows, cols, coef = reduction.unit_rows(G, C)
-    keep = np.ones(cons.m, dtype=bool)
-    keep[rows] = False
-    rest = np.flatnonzero(keep)
-    labs = cons.labels
+    rows, cols, coef, rest, G_rest, labels = _held_rows(ws, dm, G, C, cons.labels)
     if len(rows):
         dofs = red.n_free + cols
         saved, b_saved = reduction.hold(red.indptr, red.indices, cws.diag, cws.tpos, buf["data"], buf["b"], dofs,
                                         cons.g[rows] / coef)
-    sol = coupled.solve(cws, buf["data"], buf["b"], n_r, G[rest], cons.g[rest],
-                              C, cons.lo if C is not None else None, cons.hi if C is not None else None, contacts,
-                              _warm_contacts(ws, ds), [labs[i] for i in rest] + dm.attach.labels,
-                              stats=timing)
+    sol = coupled.solve(cws, buf["data"], buf["b"], n_r, G_rest, cons.g[rest],
+                        C, cons.lo if C is not None else None, cons.hi if C is not None else None, contacts,
+                        _warm_contacts(ws, ds), labels, stats=timing)
     ws.cache[_CONTACTS_FOUND] = sol.contact_state  # step() keys them to the DeformState it ends in, on success
     lam, violation = np.empty(cons.m), sol.violation
     lam[rest] = sol.lam
@@ -211,7 +233,7 @@ def coupled_velocity(mech, ws, dm, state, ds, cmd, tau, h, timing=None):
         violation = max(violation, float(np.abs(coef * sol.z[dofs] - cons.g[rows]).max()))
     v_r = sol.z[red.n_free:]
     v_d = np.empty(3 * N)
-    v_d[(3 * red.free[:, None] + np.arange(3)).ravel()] = sol.z[:red.n_free]
+    v_d[buf["free_dof"]] = sol.z[:red.n_free]
     v_d[red.att_dof] = E @ v_r + t
     t3 = cpu_time()
     if timing is not None:
@@ -225,6 +247,25 @@ def coupled_velocity(mech, ws, dm, state, ds, cmd, tau, h, timing=None):
     vs = VelocitySolve(s, cons.joint_rows, cons.site_rows,
                        cons.G[cons.loop_rows] if len(mech.loop_ab) else None, violation, "coupled", sol.iterations)
     return vs, v_d.reshape(-1, 3)
+
+
+def _held_rows(ws, dm, G, C, labs):
+    """(rows, columns, coefficients) of reduction.unit_rows(G, C), the other rows ``rest``, G[rest] and the
+    labels of the coupled solve's rows (G[rest]'s, then the attachments'): kept in ws.cache and reused while
+    G, C and the labels are those of the last step (the skeleton's rows of a prescribed joint are the same unit
+    rows every step; only their right-hand side changes), so the same numbers as computing them afresh."""
+    hit = ws.cache.get("deformable_held_rows")
+    if (hit is not None and hit[0].shape == G.shape and np.array_equal(hit[0], G) and hit[2] == list(labs)
+            and (C is None if hit[1] is None else C is not None and C.shape == hit[1].shape
+                 and np.array_equal(C, hit[1]))):
+        return hit[3]
+    rows, cols, coef = reduction.unit_rows(G, C)
+    keep = np.ones(len(G), dtype=bool)
+    keep[rows] = False
+    rest = np.flatnonzero(keep)
+    out = (rows, cols, coef, rest, G[rest], [labs[i] for i in rest] + dm.attach.labels)
+    ws.cache["deformable_held_rows"] = (G.copy(), None if C is None else np.array(C), list(labs), out)
+    return out
 
 
 _CONTACTS = "deformable contacts"  # ws.cache: (the DeformState they were found for, contact states by vertex)
@@ -265,7 +306,8 @@ def _reduction(mech, ws, dm, n_r):
             support = (support.astype(float) @ np.abs(ws.T)) != 0.0
         red = reduction.build(indptr, indices, dm.n_vertices, dm.attach.vertex, n_r, support)
         buf = {"ad": np.empty(len(indices)), "bd": np.empty(3 * dm.n_vertices), "data": np.empty(len(red.indices)),
-               "b": np.empty(red.n), "work": np.empty(reduction.work_shape(red))}
+               "b": np.empty(red.n), "work": np.empty(reduction.work_shape(red)),
+               "free_dof": (3 * red.free[:, None] + np.arange(3)).ravel()}
         hit = ws.cache["deformable_reduction"] = (red, coupled.Workspace(red.indptr, red.indices, red.n), buf)
     return hit
 
@@ -278,7 +320,7 @@ def _support(mech, ws, dm):
     return support
 
 
-def _attached_velocity_map(mech, ws, dm, ds, n_r):
+def _attached_velocity_map(mech, ws, dm, ds, n_r, q):
     """(E (3a, n_r), t (3a,)) with v_a = E qdot_r + t for every attached vertex: E the body point's Jacobian
     (0 for a world point), t = -g (body point) or +g (world point) of the attachment row's right-hand side g
     (0 with post-stabilization, -b phi with Baumgarte; attach.py's rows [J_p, -S_i] and [0, S_i])."""
@@ -286,7 +328,7 @@ def _attached_velocity_map(mech, ws, dm, ds, n_r):
     a = len(att.vertex)
     if not a:
         return np.zeros((0, n_r)), np.zeros(0)
-    P, J = attachment_points(mech, ws.data, dm, _support(mech, ws, dm))  # at q_k (the skeleton stages' kinematics)
+    P, J = attachment_points_at(mech, ws, dm, q, _support(mech, ws, dm))  # at q_k (the skeleton stages' kinematics)
     E = J if ws.T is None else J @ ws.T
     t = np.zeros(3 * a)
     if mech.loop_baumgarte:  # G z = -b phi(q_k, x_k)
@@ -341,8 +383,7 @@ def step(mech, ws, dm, state, cmd, h, timing=None):
     x_new = ds.x + h * v_d
     drift = resid = 0.0
     if len(dm.attach.vertex):  # post-stabilization: attached vertices onto their points at q+
-        pin.forwardKinematics(mech.model, ws.data, q_new)
-        P, _ = attachment_points(mech, ws.data, dm)
+        P, _ = attachment_points_at(mech, ws, dm, q_new)
         drift = float(np.abs(x_new[dm.attach.vertex] - P).max())
         if mech.loop_baumgarte:  # Baumgarte: no projection, the residual is the violation
             resid = drift
@@ -354,7 +395,7 @@ def step(mech, ws, dm, state, cmd, h, timing=None):
     if not math.isfinite(float(x_new.ravel() @ x_new.ravel())):
         raise StepError("non-finite deformable positions after the step")
     ek, ep, es = energies(mech, ws, q_new, v_new)
-    ds_new = DeformState.of(x_new, v_d)
+    ds_new = DeformState(x_new, v_d)  # both fresh float (N,3) arrays of this step: no copy (DeformState.of)
     t1 = cpu_time()
     dk, dg, de = dm.energies(ds_new.x, ds_new.v, _prefill(ws, dm, ds_new, h))  # the next step's A_d, b_d
     if timing is not None:
