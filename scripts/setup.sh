@@ -116,7 +116,7 @@ fi
 
 # The compiled kernels: numba compiles them once per source version and caches them on disk; doing it here
 # keeps the first node, run or test from spending that time inside a step. Two background processes beside
-# steps 4-5 (the colcon build), waited for at the end: the rigid step (step_kernel, step_n_kernel) and the
+# steps 4-5 (the colcon build), waited for at the end: the rigid step (step_n_kernel) and the
 # deformable step's contact loop (solvers/coupled_kernel.py) in one; the friction step (friction_step_n_kernel:
 # contact and joint friction, the largest) in the other. Measured 2026-12-04 in one process at load ~2: 1073 s.
 say "compiling the step kernels in the background (numba, cached on disk)"
@@ -125,15 +125,13 @@ FRICTION_LOG="$(mktemp)"
 kernel_t0=$(date +%s)
 "$PY" -c "from redmax_ros.core import Simulator
 rigid = Simulator.load('pendulum')
-rigid.step(2)  # step_n_kernel
-rigid.backend.step(rigid.state, rigid.commands, rigid.dt)  # step_kernel (single steps: trajectories, budgets)
+rigid.step(2)  # step_n_kernel (single steps too: a run of one)
 Simulator.load('starfish').step(1)
 " > "$KERNEL_LOG" 2>&1 &
 KERNEL_PID=$!
 "$PY" -c "from redmax_ros.core import Simulator
 walker = Simulator.load('klann', ['friction.joint_mu=0.4'])
 walker.step(2)  # friction_step_n_kernel
-walker.backend.step(walker.state, walker.commands, walker.dt)  # friction_step_kernel
 " > "$FRICTION_LOG" 2>&1 &
 FRICTION_PID=$!
 trap 'kill "$KERNEL_PID" "$FRICTION_PID" 2>/dev/null || true; rm -f "$KERNEL_LOG" "$FRICTION_LOG"' EXIT

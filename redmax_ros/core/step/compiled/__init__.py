@@ -9,7 +9,7 @@ preallocated Data (MJX's split), with the Pinocchio pipeline as the reference be
     kinematics.py  stage 1;  forces.py  stage 2 (Eq. 2, Eq. 9-10);  rows.py  stage 3 (Eq. 7, limits)
     limits.py      stage 4': the joint limits of Eq. (5) by an active set
     update.py      stages 5-6 (manifold update, loop post-stabilization, required forces);  energy.py
-    kernel.py      step_kernel / step_n_kernel: the stages in order, and the hand-off statuses
+    kernel.py      step_n_kernel / friction_step_n_kernel (a single step: n = 1): the stages in order, hand-offs
     cache.py       drops cached kernels whose inlined or linked sources changed
     backend.py     CompiledBackend (solver: compiled; default of solver: direct), step_run, step_batch
 """

@@ -1,4 +1,4 @@
-"""The compiled stepping backend (``solver: compiled``): one native call per step (kernel.step_kernel) for every
+"""The compiled stepping backend (``solver: compiled``): one native call per step (kernel.step_n_kernel, a run of one) for every
 Mechanism model.unsupported accepts, with the Pinocchio pipeline as the reference beside it.
 
 Per step, Python only checks the inputs (step/state.applied_torques, trajectory prescriptions resolved by
@@ -27,8 +27,7 @@ from redmax_ros.core.step.compiled.data import (OUT_ITERS, OUT_E_KIN, OUT_E_POT,
 from redmax_ros.core.friction import staggered
 from redmax_ros.core.step.compiled.friction import (N_REP, REP_ACTIVE, REP_CONTACTS, REP_CONVERGED, REP_ITERS,
                                                     REP_PENETRATION, REP_RESIDUAL, REP_STICKING, build_friction)
-from redmax_ros.core.step.compiled.kernel import (STAGE_NAMES, friction_step_kernel, friction_step_n_kernel, step_kernel,
-                                                  step_n_kernel)
+from redmax_ros.core.step.compiled.kernel import STAGE_NAMES, friction_step_n_kernel, step_n_kernel
 from redmax_ros.core.step.compiled.model import build_model, unsupported
 from redmax_ros.core.step.pipeline import pinocchio_velocity, step as pipeline_step
 from redmax_ros.core.step.scheme import bdf2_point, continues, next_history
@@ -137,19 +136,19 @@ class CompiledBackend:
         if self.friction is not None:
             return self._friction_step(state, cmd, h, budget, inp, t0)
         qp, vp, hist = self._history_args(state, h)
-        if step_kernel(*self.model.args, *d.args, state.q, state.v, tau, float(h), gj, sv, qp, vp, hist):
+        q, v = state.q.copy(), state.v.copy()  # a run of one step: the kernel advances them in place
+        if not step_n_kernel(*self.model.args, *d.args, q, v, tau, float(h), gj, sv, 1, qp, vp, hist, hist):
             self._handed_back(d)
             return self.reference_step(state, cmd, h, budget)
         if hist and cmd.joint_trajectories and d["out"][OUT_ORDER] == 1.0:
             # the order control redid the step as BDF1, whose trajectories aim from q_k, not q^ (resolved above)
             self.handoffs["BDF2 step redone as BDF1 with trajectories"] += 1
             return self.reference_step(state, cmd, h, budget)
-        q_new, v_hyper = d["q_new"].copy(), d["v_hyper"].copy()
-        new = self._advanced(state, h, q_new, v_hyper, state.q, state.v)
-        return new, self._result(new, d, q_new, rcmd, t0)
+        new = self._advanced(state, h, q, v, state.q, state.v)
+        return new, self._result(new, d, q.copy(), rcmd, t0)
 
     def _friction_args(self, state, budget):
-        """(cache, has_cache, cache_new, jn, rep, work_cap) of friction_step_kernel: a copy of the state's
+        """(cache, has_cache, cache_new, jn, rep, work_cap) of friction_step_n_kernel: a copy of the state's
         friction cache (the kernel advances it in place in a run of steps) and the loop's work budget (the
         reference's first piece under a step budget, staggered.KERNEL_FIRST_WORK: past it, the reference takes
         the step with its deadline checks)."""
@@ -161,14 +160,14 @@ class CompiledBackend:
 
     def _friction_step(self, state, cmd, h, budget, inp, t0):
         rcmd, tau, d, gj, sv = inp
-        args = self._friction_args(state, budget)
-        if friction_step_kernel(*self.model.args, *d.args, *self.friction.args, state.q, state.v, tau, float(h), gj,
-                                sv, *args):
+        cache, has, cache_new, jn, rep, cap = self._friction_args(state, budget)
+        q, v = state.q.copy(), state.v.copy()  # a run of one step: the kernel advances them and the cache in place
+        if not friction_step_n_kernel(*self.model.args, *d.args, *self.friction.args, q, v, tau, float(h), gj, sv, 1,
+                                      cache, has, cache_new, jn, rep, cap):
             self._handed_back(d)
             return self.reference_step(state, cmd, h, budget)
-        q_new, v_hyper = d["q_new"].copy(), d["v_hyper"].copy()
-        new = state.advanced(h, q_new, v_hyper, self._cache_new.copy())
-        return new, self._result(new, d, q_new, rcmd, t0)
+        new = state.advanced(h, q, v, cache)
+        return new, self._result(new, d, q.copy(), rcmd, t0)
 
     def _friction_run(self, state, cmd, h, n, budget, inp):
         """step_run with contact or joint friction: up to n steps in one friction_step_n_kernel call."""

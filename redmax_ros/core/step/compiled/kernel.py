@@ -1,5 +1,6 @@
-"""The compiled RedMax step: one native call per step, ``step_kernel``, reading as the list of its stages (each
-``f(m, d, ...)`` in its own module, Model static, Data the preallocated workspace):
+"""The compiled RedMax step: one native call per run of steps, ``step_n_kernel`` (a single step is a run of one),
+its step reading as the list of its stages (each ``f(m, d, ...)`` in its own module, Model static, Data the
+preallocated workspace):
 
     point(m, d, q, qdot_R, history, hh)    # 0  BDF1, or BDF2's q^, q*, v*, v^ (scheme.py; step/scheme.py)
     kinematics(m, d, q*, v*)               # 1  forward kinematics, twists, inertias, sites (kinematics.py)
@@ -16,7 +17,11 @@ with hh = h for BDF1 (q^ = q* = q_k, v^ = v* = qdot_k: the paper's step) and hh 
 that the order control rejects (scheme.accepted, step/scheme.accepts) is taken again from the same state as
 BDF1; d.out[OUT_ORDER] says which order the step has.
 
-It returns a status: OK, or REFERENCE with the stage that asked for it in d.out[OUT_STAGE]: whatever the
+There are two kernels, each compiled once with every stage inlined (numba compile time grows with the inlined
+code: ~13 min of one core for step_n_kernel here), so a single step is not a kernel of its own: the backend runs
+``step_n_kernel`` / ``friction_step_n_kernel`` with n = 1 on copies of the state.
+
+A step returns a status: OK, or REFERENCE with the stage that asked for it in d.out[OUT_STAGE]: whatever the
 kernel does not finish itself (a joint-limit active set that does not settle; a loop projection that
 needs the full Newton; a rank-deficient or non-positive-definite system; any input the divergence checks
 of step/state.py reject) is redone by the Pinocchio pipeline, which solves it or raises the StepError
@@ -66,14 +71,6 @@ def _finite_sum(x):
 def _handoff(out, stage):
     out[OUT_STAGE] = stage
     return REFERENCE
-
-
-@njit
-def step_kernel(mf, mi, mt, df, di, dt, q, vR, tau, h, gj, sv, qp, vp, hist):
-    """One step from (q, qdot_R) with joint torques tau (nv,) [N m, N], prescribed joint velocities gj and
-    site velocities sv (ns, 3) [m/s]; ``hist`` nonzero: BDF2 with the history (qp, vp) = (q_k-1, qdot_R,k-1) of
-    a step of h, else BDF1; outputs in the Data (q_new, v_hyper, v_new, lam, effort, site_force, out)."""
-    return one_step(model_views(mf, mi, mt), data_views(df, di, dt), q, vR, tau, h, gj, sv, qp, vp, hist)
 
 
 @njit_inline
@@ -185,16 +182,6 @@ def one_friction_step(m, d, c, q, vR, tau, h, gj, sv, cache, has_cache, cache_ne
     d.out[OUT_VIOL_VEL] = bilateral_residual(d)
     d.out[OUT_RESIDUAL] = rep[REP_KKT]
     return tail_stages(m, d, tau, hh)  # 5-6
-
-
-@njit
-def friction_step_kernel(mf, mi, mt, df, di, dt, ff, fi, ft, q, vR, tau, h, gj, sv, cache, has_cache, cache_new, jn,
-                         rep, work_cap):
-    """step_kernel for a scene with contact or joint friction (BDF1): the friction constants (ff, fi, ft:
-    friction.FRICTION_SPEC), the last step's friction impulses ``cache`` (``has_cache`` 0: none) in; the new
-    cache, the joints' normal loads and the report (friction.REP_*) out in cache_new, jn, rep."""
-    return one_friction_step(model_views(mf, mi, mt), data_views(df, di, dt), friction_views(ff, fi, ft), q, vR, tau,
-                             h, gj, sv, cache, has_cache, cache_new, jn, rep, work_cap)
 
 
 @njit
