@@ -1,6 +1,12 @@
 """The JIT decorators of every compiled kernel: numba ``njit(cache=True, nogil=True)`` (kernels are cached
 on disk beside their module) and ``njit_inline`` (the same, inlined into its callers), or the plain Python
-function where numba is missing."""
+function where numba is missing; and :func:`drop_stale_caches`, which keeps those disk caches consistent with
+the sources compiled into them."""
+from __future__ import annotations
+
+import hashlib
+import os
+from pathlib import Path
 
 try:  # numba is a hard performance dependency but keep the module importable without it
     from numba import njit as _numba_njit
@@ -22,3 +28,57 @@ except ImportError:  # pragma: no cover - exercised only without numba
     njit_inline = njit
 
     HAVE_NUMBA = False
+
+
+_CORE = Path(__file__).resolve().parent  # redmax_ros/core
+
+
+def _cache_dir(source: Path, env) -> Path:
+    """Where numba caches the functions of ``source``: its __pycache__, or NUMBA_CACHE_DIR + its directory."""
+    if env:
+        return Path(env).joinpath(*source.parent.parts[1:])
+    return source.parent / "__pycache__"
+
+
+def sources_digest(sources) -> str:
+    """sha256 over the files ``sources`` (paths relative to redmax_ros/core), names and contents."""
+    h = hashlib.sha256()
+    for rel in sources:
+        h.update(rel.encode())
+        h.update((_CORE / rel).read_bytes())
+    return h.hexdigest()
+
+
+def drop_stale_caches(owner: str, sources) -> bool:
+    """numba keys a cached kernel on its own source file only, but a kernel contains the code of every njit
+    function it calls (inlined, or linked at compile time), so after an edit of a callee's file the cached
+    kernel would silently be the old one. Call this at the import of ``owner`` (a module path relative to
+    redmax_ros/core, before its kernels are first called) with every file compiled into its kernels: when
+    their digest differs from the one stamped in owner's cache directory (``<stem>.sources.sha256``), the
+    cached functions of all of ``sources`` are deleted, so numba compiles them afresh. True if something was
+    deleted."""
+    digest = sources_digest(sources)
+    env = os.environ.get("NUMBA_CACHE_DIR")
+    src = _CORE / owner
+    stamp_dir = _cache_dir(src, env)
+    stamp = stamp_dir / f"{src.stem}.sources.sha256"
+    try:
+        if not stamp_dir.is_dir():  # nothing of it cached yet
+            stamp_dir.mkdir(parents=True, exist_ok=True)
+            stamp.write_text(digest)
+            return False
+        if stamp.exists() and stamp.read_text() == digest:
+            return False
+        dropped = False
+        for rel in sources:
+            f_src = _CORE / rel
+            d = _cache_dir(f_src, env)
+            if not d.is_dir():
+                continue
+            for f in list(d.glob(f_src.stem + ".*.nbi")) + list(d.glob(f_src.stem + ".*.nbc")):
+                f.unlink(missing_ok=True)
+                dropped = True
+        stamp.write_text(digest)
+        return dropped
+    except OSError:  # a read-only install: numba then caches elsewhere or not at all
+        return False

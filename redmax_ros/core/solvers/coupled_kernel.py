@@ -1,8 +1,8 @@
 """The coupled solve's staggered floor-contact loop (solvers/coupled.py: paper Alg. 2, Eq. 11-12 as primal
 active sets on the vertex DOFs of the reduced system) as one compiled call on the step's arrays: the friction
 stage, the normal stage, the joint-limit working set, and the held system on the reduced matrix's LDL^T
-(sparse_ldl's factor and solve kernels, compiled into this module's cache: an edit of those kernels must come
-with an edit here, or numba keeps the old ones) with the bordered (capacitance) updates of its held set
+(sparse_ldl's factor and solve kernels, compiled into this module's cache, which jit.drop_stale_caches drops
+when either file changes) with the bordered (capacitance) updates of its held set
 (Golub & Van Loan §2.1.4). The algorithm and its notation are coupled.py's module docstring; ``staggered``
 reads and writes the contact state (normal, stick, sign, alpha, known) in place and returns its counters in
 ``info`` (INFO_*). Before it, each sub-problem solve cost ~100-200 us of numpy calls in Python around a
@@ -26,8 +26,11 @@ from __future__ import annotations
 
 import numpy as np
 
-from redmax_ros.core.jit import njit
+from redmax_ros.core.jit import drop_stale_caches, njit
 from redmax_ros.core.solvers.sparse_ldl import factor_kernel, solve_matrix_kernel, solve_vector_kernel
+
+# the kernels below carry sparse_ldl's factor and solve kernels: an edit of either file recompiles them
+drop_stale_caches("solvers/coupled_kernel.py", ("solvers/coupled_kernel.py", "solvers/sparse_ldl.py", "jit.py"))
 
 # info (int64) slots written by ``staggered``
 INFO_ITER, INFO_FACTORS, INFO_STATUS, INFO_NFIXED, INFO_CONVERGED, INFO_PIVOT, INFO_NORMAL, INFO_STUCK, INFO_NSTATE = \
