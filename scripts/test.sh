@@ -34,9 +34,9 @@ for arg in "$@"; do
   case "$arg" in -n|-n*|--numprocesses*|no:xdist) parallel=() ;; esac
 done
 
-echo "[test] ROS_DOMAIN_ID=$ROS_DOMAIN_ID python -m pytest -q ${parallel[*]} ${targets[*]} $*"
+echo "[test] ROS_DOMAIN_ID=$ROS_DOMAIN_ID python -m pytest -q --durations=20 ${parallel[*]} ${targets[*]} $*"
 status=0
-python -m pytest -q ${parallel[@]+"${parallel[@]}"} "${targets[@]}" "$@" || status=$?
+python -m pytest -q --durations=20 ${parallel[@]+"${parallel[@]}"} "${targets[@]}" "$@" || status=$?
 if [ "$status" -eq 5 ]; then
   echo "[test] error: pytest collected no tests (exit 5)" >&2
 fi
