@@ -33,10 +33,14 @@ except ImportError:  # pragma: no cover - exercised only without numba
 _CORE = Path(__file__).resolve().parent  # redmax_ros/core
 
 
-def _cache_dir(source: Path, env) -> Path:
-    """Where numba caches the functions of ``source``: its __pycache__, or NUMBA_CACHE_DIR + its directory."""
+def cache_dir(rel: str) -> Path:
+    """Where numba caches the functions of the module ``rel`` (relative to redmax_ros/core): its __pycache__,
+    or under NUMBA_CACHE_DIR the subdirectory numba's UserProvidedCacheLocator names for it."""
+    source = _CORE / rel
+    env = os.environ.get("NUMBA_CACHE_DIR")
     if env:
-        return Path(env).joinpath(*source.parent.parts[1:])
+        from numba.core.caching import UserProvidedCacheLocator  # optional: only with numba and NUMBA_CACHE_DIR
+        return Path(env) / UserProvidedCacheLocator.get_suitable_cache_subpath(str(source))
     return source.parent / "__pycache__"
 
 
@@ -58,10 +62,8 @@ def drop_stale_caches(owner: str, sources) -> bool:
     cached functions of all of ``sources`` are deleted, so numba compiles them afresh. True if something was
     deleted."""
     digest = sources_digest(sources)
-    env = os.environ.get("NUMBA_CACHE_DIR")
-    src = _CORE / owner
-    stamp_dir = _cache_dir(src, env)
-    stamp = stamp_dir / f"{src.stem}.sources.sha256"
+    stamp_dir = cache_dir(owner)
+    stamp = stamp_dir / f"{Path(owner).stem}.sources.sha256"
     try:
         if not stamp_dir.is_dir():  # nothing of it cached yet
             stamp_dir.mkdir(parents=True, exist_ok=True)
@@ -71,11 +73,10 @@ def drop_stale_caches(owner: str, sources) -> bool:
             return False
         dropped = False
         for rel in sources:
-            f_src = _CORE / rel
-            d = _cache_dir(f_src, env)
+            d, stem = cache_dir(rel), Path(rel).stem
             if not d.is_dir():
                 continue
-            for f in list(d.glob(f_src.stem + ".*.nbi")) + list(d.glob(f_src.stem + ".*.nbc")):
+            for f in list(d.glob(stem + ".*.nbi")) + list(d.glob(stem + ".*.nbc")):
                 f.unlink(missing_ok=True)
                 dropped = True
         stamp.write_text(digest)
