@@ -129,9 +129,10 @@ def rigid_stages(m, d, q, vR, tau, h, gj, sv, qp, vp, hist):
     kinematics(m, d, d.q_lin, d.v_r)  # 1
     if hist:  # 2, BDF2: the momentum of v^, springs at q^
         jv_kernel(m.parents, m.idx_v, m.nv_j, d.St, d.v_mom, d.ovm)
-        assemble(m, d, d.q_base, d.v_r, d.v_mom, d.ovm, tau, hh, True)
+        vm, ovm = d.v_mom, d.ovm
     else:
-        assemble(m, d, d.q_base, d.v_r, d.v_r, d.ov, tau, hh, False)
+        vm, ovm = d.v_r, d.ov
+    assemble(m, d, d.q_base, d.v_r, vm, ovm, tau, hh, hist != 0)  # one call site: inlined once
     if not _finite_sum(d.bR):
         return _handoff(d.out, STAGE_INPUT), hh
     if impulse_beyond(d.AR, m.T, tau, d.free_mask, hh, MAX_SPEED) >= 0:
