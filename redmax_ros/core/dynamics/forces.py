@@ -128,7 +128,7 @@ def assemble(mech, ws, kin: Kinematics, q, v_r, tau, h, site_forces=None) -> Lin
             # ... and the turn of the lever arms, B (q* (-) q^) with the unclamped lever blocks B at q*
             B = np.zeros_like(A)
             add_geometric_stiffness(ws, B, ws.tree.spring_ja, kin.X[rows[:, 0]], ws.tree.spring_jb,
-                                    kin.X[rows[:, 1]], fs, None, 1.0, clamp=False)
+                                    kin.X[rows[:, 1]], fs, mech.spring_explicit, 1.0, clamp=False)
             f += B @ pt.back
         if mech.spring_geometric:
             add_geometric_stiffness(ws, A, ws.tree.spring_ja, kin.X[rows[:, 0]], ws.tree.spring_jb,

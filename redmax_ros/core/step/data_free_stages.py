@@ -192,7 +192,7 @@ def data_free_velocity(mech, ws, state, cmd, tau, h, solver="pcg", rtol=DEFAULT_
     q_base = state.q if pt is None else pt.q_base  # joint springs and joint limits act from q^
     v_r = ws.to_reduced(state.v)
     rws = ctx.fk(state.q, v_r)
-    springs = None
+    springs = rhs_springs = None
     K = D = None
     if len(mech.spring_ab):
         X = ctx.jac_positions()  # at q*: where the spring forces act (their Jacobians)
@@ -218,7 +218,7 @@ def data_free_velocity(mech, ws, state, cmd, tau, h, solver="pcg", rtol=DEFAULT_
             B = np.zeros((ctx.topo.njoints, 6, 6))
             geometric_blocks_kernel(ctx.spring_ja, np.ascontiguousarray(X[rows[:, 0]]), ctx.spring_jb,
                                     np.ascontiguousarray(X[rows[:, 1]]), np.ascontiguousarray(fs),
-                                    np.zeros(len(fs), np.int64), 1.0, rws.I, B)
+                                    ex, 1.0, rws.I, B)
             b += h * rc.jtw(ctx.topo, rws, np.einsum("jab,jb->ja", B, rc.jv(ctx.topo, rws, pt.back)))
     if not math.isfinite(float(b.sum())):
         raise StepError("non-finite right-hand side of Eq. (2) (state or forces out of range)")
