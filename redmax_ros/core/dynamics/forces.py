@@ -29,6 +29,7 @@ from redmax_ros.core.dynamics.kinematics import Kinematics, frame_jacobian
 from redmax_ros.core.jit import njit
 from redmax_ros.core.solvers.problem import LinearSystem
 from redmax_ros.core.dynamics.springs import (clamp_lever_blocks, geometric_blocks_kernel, joint_displacement,
+                                              spring_shift_kernel,
                                               spring_terms)
 from redmax_ros.core.dynamics.tree_forces import dense_crba_kernel
 
@@ -70,7 +71,7 @@ def quadratic_jacobian(fn, v: np.ndarray) -> np.ndarray:
     return K
 
 
-def add_geometric_stiffness(ws, A, ja, pa, jb, pb, f, explicit, scale) -> None:
+def add_geometric_stiffness(ws, A, ja, pa, jb, pb, f, explicit, scale, clamp=True) -> None:
     """A += scale * sum_j J_j^T B_j J_j: the lever-arm blocks B_j of the springs' full maximal stiffness
     (springs.geometric_blocks_kernel: ends of force f (P,3) at world points pa, pb on joints ja, jb; explicit
     springs skipped) through each body's world spatial Jacobian (Pinocchio's WORLD joint Jacobian in ws.data,
@@ -88,37 +89,48 @@ def add_geometric_stiffness(ws, A, ja, pa, jb, pb, f, explicit, scale) -> None:
             inertia[j] = data.oMi[j].act(model.inertias[j]).matrix()
     geometric_blocks_kernel(ja, np.ascontiguousarray(pa, dtype=float), jb, np.ascontiguousarray(pb, dtype=float),
                             np.ascontiguousarray(f, dtype=float).reshape(-1, 3), ex, float(scale), inertia, blocks)
-    clamp_lever_blocks(inertia, blocks)
+    if clamp:
+        clamp_lever_blocks(inertia, blocks)
     St = np.ascontiguousarray(ws.data.J.reshape(6, -1).T)
     dense_crba_kernel(topo.parents, topo.idx_v, topo.nv_j, St, blocks, A)
 
 
 def assemble(mech, ws, kin: Kinematics, q, v_r, tau, h, site_forces=None) -> LinearSystem:
     """Eq. (2): returns (A, b) in hyper-reduced coordinates (projected by the workspace's J_rR, ws.T).
-    With a BDF2 step (ws.bdf2, step/scheme.py): (q, v_r) are (q*, v*), h is hat h, the joint and maximal
-    springs act at q^ and the RHS is M v^ + hat h f.
+    With a BDF2 step (ws.bdf2, step/scheme.py): (q, v_r) are (q*, v*), h is hat h, the joint springs act at q^,
+    the maximal springs are linearised about q* (f(q*) + K' (q* (-) q^), springs.spring_shift, plus the turn of
+    their lever arms) and the RHS is M v^ + hat h f.
 
     ``tau`` (nv,) explicit joint torques [N m]; ``site_forces`` {site index: (3,) world force [N]}
     explicit maximal point forces (J_site^T f). Needs ws.data from kinematics.compute.
     """
     data = ws.data
     M = kin.M
-    pt = ws.bdf2  # BDF2 (step/scheme.py): (q, v_r) = (q*, v*), h = hat h; springs at q^, RHS M v^
+    pt = ws.bdf2  # BDF2 (step/scheme.py): (q, v_r) = (q*, v*), h = hat h; joint springs at q^, RHS M v^
     A = None  # maximal and catalogue terms of the LHS, added to M + h D_r + h^2 K_r below
     f = tau - kin.nle  # f_r + J^T (f_m - M_m Jdot qdot)
     if mech.has_stiffness:
         f -= mech.stiffness * joint_displacement(mech, q if pt is None else pt.q_base)
     if len(mech.spring_ab):  # maximal implicit springs: J^T (h D_m + h^2 K_m) J, J^T f_m
-        # BDF2: the spring forces at the site positions of q^, x(q^) ~ x(q*) - J (q* (-) q^) (to O(h^2))
-        X = kin.X if pt is None else kin.X - kin.J @ pt.back
-        fs, K, D, Jd, _ = spring_terms(mech, X, kin.J, v_r)  # implicit: false springs: K = D = 0, f at step k
+        fs, K, D, Jd, _ = spring_terms(mech, kin.X, kin.J, v_r)  # implicit: false springs: K = D = 0, f at step k
         P, nv = Jd.shape[0], Jd.shape[2]
         W = np.matmul(h * D + (h * h) * K, Jd)
         Jf = Jd.reshape(3 * P, nv)
         A = Jf.T @ W.reshape(3 * P, nv)
         f += Jf.T @ fs.reshape(3 * P)
+        rows = mech.spring_rows
+        if pt is not None:  # BDF2: f(q+) ~ f(q*) + K' (q* (-) q^) - K hat h qdot+ (springs.spring_shift)
+            corr = np.empty((P, 3))
+            ex = np.zeros(P, np.int64) if mech.spring_explicit is None else mech.spring_explicit.astype(np.int64)
+            spring_shift_kernel(kin.X, rows[:, 0].copy(), rows[:, 1].copy(), mech.spring_k, mech.spring_rest, ex,
+                                kin.J @ pt.back, ws.tree.spring_ja, ws.tree.spring_jb, ws.tree.topo.mass, h * h, corr)
+            f += Jf.T @ corr.reshape(3 * P)
+            # ... and the turn of the lever arms, B (q* (-) q^) with the unclamped lever blocks B at q*
+            B = np.zeros_like(A)
+            add_geometric_stiffness(ws, B, ws.tree.spring_ja, kin.X[rows[:, 0]], ws.tree.spring_jb,
+                                    kin.X[rows[:, 1]], fs, mech.spring_explicit, 1.0, clamp=False)
+            f += B @ pt.back
         if mech.spring_geometric:
-            rows = mech.spring_rows
             add_geometric_stiffness(ws, A, ws.tree.spring_ja, kin.X[rows[:, 0]], ws.tree.spring_jb,
                                     kin.X[rows[:, 1]], fs, mech.spring_explicit, h * h)
     if len(mech.damped_bodies) or mech.extras is not None:

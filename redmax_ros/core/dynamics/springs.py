@@ -78,6 +78,53 @@ def spring_kernel(X, a, b, k, c, L0, explicit, V, f, K, D, l):
                 D[s, r, q] = c[s] * uu
 
 
+SHIFT_SOFT = 0.1  # spring_shift: a compressed spring's negative transverse stiffness counts as soft below this
+
+
+@njit
+def spring_shift(X, a, b, k, L0, explicit, dX, ma, mb, hh, s, out):
+    """BDF2 (step/scheme.py): out (3,) = K'_s (dX[a[s]] - dX[b[s]]), the change of spring s's force on end a
+    from the site positions X - dX to X, to first order, so that f(x^) ~ f(x*) + K' (x* - x^) with
+    dX = x* - x^ = J (q* (-) q^) (x* = X of q*). K' is the stiffness the LHS of the step has, spring_kernel's
+    K = k [u u^T + max(0, 1 - L0/l) (I - u u^T)], when what the LHS misses of the exact Jacobian (a compressed
+    spring's negative transverse stiffness k (1 - L0/l) < 0) is soft at this step, hh k (L0/l - 1) <=
+    SHIFT_SOFT min(ma, mb) (hh = hat h^2; ma, mb the masses of the ends' bodies, inf for the world): then the
+    step's spring force is f(x*) - K (x+ - x*), the linearisation about the predicted point, which errs by
+    O(|x+ - x*|^2) = O(h^6) and by the missed stiffness times x+ - x* = O(h^3). Otherwise K' is the exact
+    Jacobian k [u u^T + (1 - L0/l) (I - u u^T)] (and for explicit springs, which have no LHS stiffness, always):
+    the force is then f(x^) to second order and the missed stiffness acts at q^ as in the linearisation about q^,
+    which stays stable where treating a stiff missed part at the extrapolated q* does not (mass_springs
+    k = 1e8: the ties compressed by 7 %)."""
+    d0 = X[a[s], 0] - X[b[s], 0]
+    d1 = X[a[s], 1] - X[b[s], 1]
+    d2 = X[a[s], 2] - X[b[s], 2]
+    e0 = dX[a[s], 0] - dX[b[s], 0]
+    e1 = dX[a[s], 1] - dX[b[s], 1]
+    e2 = dX[a[s], 2] - dX[b[s], 2]
+    ls = np.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
+    if ls <= 1e-12:  # spring_kernel: K = k I
+        out[0], out[1], out[2] = k[s] * e0, k[s] * e1, k[s] * e2
+        return
+    u0, u1, u2 = d0 / ls, d1 / ls, d2 / ls
+    trans = 1.0 - L0[s] / ls
+    if trans < 0.0 and not explicit[s] and hh * k[s] * (-trans) <= SHIFT_SOFT * min(ma, mb):
+        trans = 0.0
+    ue = u0 * e0 + u1 * e1 + u2 * e2
+    out[0] = k[s] * (ue * u0 + trans * (e0 - ue * u0))
+    out[1] = k[s] * (ue * u1 + trans * (e1 - ue * u1))
+    out[2] = k[s] * (ue * u2 + trans * (e2 - ue * u2))
+
+
+@njit
+def spring_shift_kernel(X, a, b, k, L0, explicit, dX, ja, jb, mass, hh, out):
+    """:func:`spring_shift` for every spring into out (P,3); ``mass`` (njoints,) the body mass per joint (the world,
+    joint 0, counts as infinitely heavy), ``ja``, ``jb`` the joints of the spring ends."""
+    for s in range(a.shape[0]):
+        ma = np.inf if ja[s] == 0 else mass[ja[s]]
+        mb = np.inf if jb[s] == 0 else mass[jb[s]]
+        spring_shift(X, a, b, k, L0, explicit, dX, ma, mb, hh, s, out[s])
+
+
 @njit
 def geometric_blocks_kernel(ja, pa, jb, pb, f, explicit, scale, I, blocks):
     """The lever-arm (geometric) part of the full maximal spring stiffness K_m, added as per-body 6x6 blocks:

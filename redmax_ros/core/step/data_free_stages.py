@@ -32,7 +32,7 @@ from redmax_ros.core.dynamics import constraints
 from redmax_ros.core.dynamics import tree_forces as tf
 from redmax_ros.core.solvers.problem import Constraints
 from redmax_ros.core.solvers.problem import LinearSystem
-from redmax_ros.core.dynamics.springs import needs_velocities, spring_forces
+from redmax_ros.core.dynamics.springs import geometric_blocks_kernel, needs_velocities, spring_forces, spring_shift_kernel
 from redmax_ros.core.errors import StepError
 from redmax_ros.core.solvers.direct import solve_direct
 from redmax_ros.core.solvers.lockstep_pcg import DEFAULT_RTOL, Fallback, Ops, active_set, block_pcg, default_max_iter, spd_solve
@@ -192,7 +192,7 @@ def data_free_velocity(mech, ws, state, cmd, tau, h, solver="pcg", rtol=DEFAULT_
     q_base = state.q if pt is None else pt.q_base  # joint springs and joint limits act from q^
     v_r = ws.to_reduced(state.v)
     rws = ctx.fk(state.q, v_r)
-    springs = None
+    springs = rhs_springs = None
     K = D = None
     if len(mech.spring_ab):
         X = ctx.jac_positions()  # at q*: where the spring forces act (their Jacobians)
@@ -200,14 +200,26 @@ def data_free_velocity(mech, ws, state, cmd, tau, h, solver="pcg", rtol=DEFAULT_
         if needs_velocities(mech):  # site velocities v_o + w x x of explicit spring dampers (implicit: false)
             ov = rws.ov[ctx.jac_jid]
             V = ov[:, :3] + np.cross(ov[:, 3:], X)
-        # BDF2: the forces of the sites at q^, x(q^) ~ x(q*) - J (q* (-) q^) (O(n + m)), applied at x(q*)
-        Xf = X if pt is None else X - rc.site_jv(ctx.topo, rws, ctx.jac_jid, X, pt.back)
-        fs, K, D, _ = spring_forces(mech, Xf, V)
-        springs = (fs, X)
+        fs, K, D, _ = spring_forces(mech, X, V)
+        springs = rhs_springs = (fs, X)
+        if pt is not None:  # BDF2: f(q+) ~ f(q*) + K' (q* (-) q^) - K hat h qdot+ (springs.spring_shift), O(n + m)
+            rows = mech.spring_rows
+            corr = np.empty_like(fs)
+            ex = np.zeros(len(fs), np.int64) if mech.spring_explicit is None else mech.spring_explicit.astype(np.int64)
+            spring_shift_kernel(X, rows[:, 0].copy(), rows[:, 1].copy(), mech.spring_k, mech.spring_rest, ex,
+                                rc.site_jv(ctx.topo, rws, ctx.jac_jid, X, pt.back), ctx.spring_ja, ctx.spring_jb,
+                                ctx.topo.mass, h * h, corr)
+            rhs_springs = (fs + corr, X)
     sf = {mech.site_index[n]: f for n, f in cmd.site_forces.items()} if cmd.site_forces else None
-    b = tf.rhs(ctx, q_base, v_r, tau, h, sf, springs)
+    b = tf.rhs(ctx, q_base, v_r, tau, h, sf, rhs_springs)
     if pt is not None:  # RHS M v^ + hat h f: the momentum of v^ instead of v*
         b += rc.mass_matrix_product(ctx.topo, rws, pt.v_mom - v_r)
+        if springs is not None:  # ... and the turn of the lever arms, B (q* (-) q^), unclamped lever blocks at q*
+            B = np.zeros((ctx.topo.njoints, 6, 6))
+            geometric_blocks_kernel(ctx.spring_ja, np.ascontiguousarray(X[rows[:, 0]]), ctx.spring_jb,
+                                    np.ascontiguousarray(X[rows[:, 1]]), np.ascontiguousarray(fs),
+                                    ex, 1.0, rws.I, B)
+            b += h * rc.jtw(ctx.topo, rws, np.einsum("jab,jb->ja", B, rc.jv(ctx.topo, rws, pt.back)))
     if not math.isfinite(float(b.sum())):
         raise StepError("non-finite right-hand side of Eq. (2) (state or forces out of range)")
     ps = PointSprings(ctx.spring_ja, ctx.spring_oa, ctx.spring_jb, ctx.spring_ob, K, D) if K is not None else None

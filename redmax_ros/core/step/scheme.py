@@ -19,8 +19,13 @@ So a BDF2 step is the step of Eq. (2) with
 
     * kinematics, mass matrix, bias forces, Jacobians and constraint rows at (q*, v*), at time t_k+1;
     * step size hat h in the LHS, (M + hat h D + hat h^2 K) qdot+ (the notes' Eq. 3.81 Hessian);
-    * RHS M v^ + hat h (f(q*, v*) - nle(q*, v*)), joint springs at q^, and maximal springs with the
-      forces of their end points at q^, x(q^) ~ x(q*) - J (q* (-) q^), applied through the Jacobians at q*;
+    * RHS M v^ + hat h (f(q*, v*) - nle(q*, v*)), joint springs at q^, and maximal springs linearised about
+      q*: f(q+) ~ f(q*) + K' (q* (-) q^) - K hat h qdot+ (dynamics/springs.spring_shift; K' = K, the LHS's
+      stiffness, unless a compressed spring's negative transverse stiffness, which the LHS leaves out, is stiff
+      at this step, then the exact Jacobian), plus the turn of their lever arms, B (q* (-) q^). Linearising
+      about q^ instead, f(q^) - K hat h qdot+, misses 1/2 f'' (hat h qdot+)^2, which for a stiff spring on a
+      swinging body is k/l (hat h v)^2 along the spring every step: on the issue-14 slow kick (k = 1e6) that
+      was 60-95x the error of the linearisation about q* (docs/bdf2.md, "Stiff maximal springs");
     * q+ = q^ (+) hat h qdot+, joint limits lower <= q^ + hat h qdot+ <= upper, trajectories aiming from q^;
     * required torques -*G^T lam / hat h (the constraint force at t_k+1 of the discrete equation above).
 

@@ -6,9 +6,15 @@ from __future__ import annotations
 import dataclasses
 
 import numpy as np
+import pinocchio as pin
 import pytest
 
+from redmax_bench.methods import static_equilibrium
 from redmax_ros.core import Simulator
+from redmax_ros.core.dynamics.kinematics import site_positions
+from redmax_ros.core.step.backends import make_backend
+from redmax_ros.core.step.compiled.data import OUT_ORDER
+from redmax_ros.core.step.state import State
 
 BDF2 = "integrator.scheme=bdf2"
 # (scene, overrides, steps): mass_springs is chaotic under BDF2 (less numerical dissipation than BDF1: a
@@ -99,3 +105,47 @@ def test_compiled_order_control_redoes_the_same_steps_as_bdf1(h, k):
         assert _rel(a.q, b.q) <= 1e-9 and _rel(a.v, b.v) <= 1e-9
     run.step(100)
     assert _rel(run.state.q, comp.state.q) <= 1e-12 and _rel(run.state.v, comp.state.v) <= 1e-12
+
+
+def test_stiffly_compressed_springs_match_the_reference():
+    """mass_springs with k = 1e8 N/m at h = 1e-2, its ties compressed 7 % at rest: springs.spring_shift takes their
+    exact Jacobian (the stiff branch). Compiled and reference agree to 1e-7 relative over 100 steps (measured 8.5e-9
+    in q, 2.1e-8 in v: the LHS's condition number is 2e7, and the BDF1 start-up step already differs by 1.1e-9 in
+    v)."""
+    over = [BDF2, "params.k=100000000.", "dt=1e-2"]
+    ref = Simulator.load("mass_springs", over, solver="reference")
+    comp = Simulator.load("mass_springs", over, solver="compiled")
+    for _ in range(100):
+        a, b = ref.step(), comp.step()
+        assert b.diagnostics.solver == "compiled"
+    assert _rel(a.q, b.q) <= 1e-7 and _rel(a.v, b.v) <= 1e-7
+
+
+def test_slow_kick_stiff_springs_match_the_reference():
+    """redmax_bench accuracy's 'mass_springs k=1e+06' (springs unloaded at the initial pose, static equilibrium,
+    0.5 m/s sideways kick) at h = 1e-2: the maximal springs linearised about q* with the ties' soft negative
+    transverse stiffness left to the LHS's K (springs.spring_shift, the soft branch): compiled and reference agree
+    to 1e-9 relative over 100 steps, every step of both a BDF2 step after the start-up."""
+    sims = []
+    for solver in ("reference", "compiled"):
+        sim = Simulator.load("mass_springs", [BDF2, "dt=1e-2", "params.k=1000000."], solver=solver)
+        mech = sim.mech
+        data = mech.model.createData()
+        pin.forwardKinematics(mech.model, data, mech.q0)
+        X = site_positions(mech, data)
+        mech.spring_rest[:] = np.linalg.norm(X[mech.spring_ab[:, 0]] - X[mech.spring_ab[:, 1]], axis=1)
+        sim.backend = make_backend(mech, solver)  # the compiled Model packs the rest lengths when it is made
+        q, _ = static_equilibrium(mech, mech.q0.copy())
+        v = np.zeros(mech.nv)
+        for j in mech.joints:
+            R = pin.Quaternion(q[j.idx_q + 6], *q[j.idx_q + 3:j.idx_q + 6]).toRotationMatrix()
+            v[j.idx_v:j.idx_v + 3] = R.T @ np.array([0.0, 0.5, 0.0])
+        sim.set_state(State(0.0, q, v))
+        sims.append(sim)
+    ref, comp = sims
+    for i in range(100):
+        a, b = ref.step(), comp.step()
+        assert b.diagnostics.solver == "compiled"
+        d = next(iter(comp.backend._data.values()))  # the step's Data (no commands: one)
+        assert d["out"][OUT_ORDER] == (1.0 if i == 0 else 2.0)
+        assert _rel(a.q, b.q) <= 1e-9 and _rel(a.v, b.v) <= 1e-9

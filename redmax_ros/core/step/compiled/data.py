@@ -51,7 +51,7 @@ DATA_SPEC = (
     ("Gx", "f", 2), ("gx", "f", 1), ("lamx", "f", 1), ("kkt_Yx", "f", 2), ("kkt_Sx", "f", 2), ("kkt_LSx", "f", 2),
     ("wset", "f", 1),
     # BDF2 (step/scheme.py, compiled/scheme.py): q^ and q* (nq,), v* and v^ hyper-reduced (ndof,), v^ reduced,
-    # q* (-) q^ and q_k (-) q_k-1 (nv,), twists of v^ and of q* (-) q^ (njoints, 6), spring sites at q^ (S, 3)
+    # q* (-) q^ and q_k (-) q_k-1 (nv,), twists of v^ and of q* (-) q^ (njoints, 6), site displacements x* - x^ (S, 3)
     ("q_base", "f", 1), ("q_lin", "f", 1), ("v_lin", "f", 1), ("v_mom_h", "f", 1), ("v_mom", "f", 1),
     ("back", "f", 1), ("bdf_d", "f", 1), ("ovm", "f", 2), ("ovb", "f", 2), ("Xf", "f", 2),
 )

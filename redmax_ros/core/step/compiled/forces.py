@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from redmax_ros.core.dynamics.springs import clamp_lever_blocks, geometric_blocks_kernel, spring_kernel
+from redmax_ros.core.dynamics.springs import clamp_lever_blocks, geometric_blocks_kernel, spring_kernel, spring_shift
 from redmax_ros.core.dynamics.tree_forces import crba_lower_kernel, nle_wrench_kernel, spring_cross_lower_kernel
 from redmax_ros.core.jit import njit, njit_inline
 from redmax_ros.core.linalg import mirror_lower
@@ -37,23 +37,23 @@ def _add_point_wrench(W, j, x, f, sign):
 
 @njit_inline
 def shifted_sites(m, d):
-    """BDF2: d.Xf = x(q*) - J (q* (-) q^), the site positions of q^ to O(h^2) (step/scheme.py): the world twists
-    of d.back by one J pass, then v_o + w x x per site."""
+    """BDF2: d.Xf = J (q* (-) q^), the displacements x* - x^ of the sites from q^ to q* (step/scheme.py): the world
+    twists of d.back (d.ovb) by one J pass, then v_o + w x x per site."""
     jv_kernel(m.parents, m.idx_v, m.nv_j, d.St, d.back, d.ovb)
     for s in range(d.X.shape[0]):
         y = d.ovb[m.site_jid[s]]
         x = d.X[s]
-        d.Xf[s, 0] = x[0] - (y[0] + y[4] * x[2] - y[5] * x[1])
-        d.Xf[s, 1] = x[1] - (y[1] + y[5] * x[0] - y[3] * x[2])
-        d.Xf[s, 2] = x[2] - (y[2] + y[3] * x[1] - y[4] * x[0])
+        d.Xf[s, 0] = y[0] + y[4] * x[2] - y[5] * x[1]
+        d.Xf[s, 1] = y[1] + y[5] * x[0] - y[3] * x[2]
+        d.Xf[s, 2] = y[2] + y[3] * x[1] - y[4] * x[0]
 
 
 @njit_inline
 def spring_terms(m, d, h, shifted):
     """Per maximal spring (dynamics/springs.spring_kernel, the formulas of every pipeline): force on end a
     (d.spring_f), C = h D + h^2 K (d.spring_C), end positions (d.pa, d.pb); site velocities v_o + w x x first
-    when an explicit spring has damping. ``shifted`` (BDF2): forces, K and D of the site positions of q^
-    (:func:`shifted_sites`), applied at those of q* (d.X) as the pipelines do."""
+    when an explicit spring has damping; all at the sites of q* (d.X). ``shifted`` (BDF2): also the sites'
+    displacements from q^ (:func:`shifted_sites`), for :func:`rhs`."""
     P = m.spring_a.shape[0]
     if P == 0:
         return
@@ -66,11 +66,8 @@ def spring_terms(m, d, h, shifted):
             d.V[s, 2] = y[2] + y[3] * x[1] - y[4] * x[0]
     if shifted:
         shifted_sites(m, d)
-        spring_kernel(d.Xf, m.spring_a, m.spring_b, m.spring_k, m.spring_d, m.spring_rest, m.spring_explicit, d.V,
-                      d.spring_f, d.spring_K, d.spring_D, d.spring_l)
-    else:
-        spring_kernel(d.X, m.spring_a, m.spring_b, m.spring_k, m.spring_d, m.spring_rest, m.spring_explicit, d.V,
-                      d.spring_f, d.spring_K, d.spring_D, d.spring_l)
+    spring_kernel(d.X, m.spring_a, m.spring_b, m.spring_k, m.spring_d, m.spring_rest, m.spring_explicit, d.V,
+                  d.spring_f, d.spring_K, d.spring_D, d.spring_l)
     hh = h * h
     for s in range(P):
         a, b = m.spring_a[s], m.spring_b[s]
@@ -82,10 +79,12 @@ def spring_terms(m, d, h, shifted):
 
 
 @njit_inline
-def rhs(m, d, q, v, vm, ovm, tau, h):
+def rhs(m, d, q, v, vm, ovm, tau, h, shifted):
     """b of Eq. (2), reduced coordinates (tree_forces.rhs): J^T (I ovm - h W_nle + h W_ext) + armature vm
     + h (tau - K_r (q - q_rest)), the bias forces of the velocity v (its twists d.ov), the momentum of vm (its
-    twists ovm; BDF2's v^, else v and d.ov). Needs kinematics and spring_terms."""
+    twists ovm; BDF2's v^, else v and d.ov). ``shifted`` (BDF2): the maximal springs linearised about q*, their
+    forces plus K' (x* - x^) (springs.spring_shift) and the lever blocks' B (q* (-) q^) (unclamped, scratch
+    d.blocks, which :func:`lhs` rebuilds), as forces.assemble. Needs kinematics and spring_terms."""
     nj = m.parents.shape[0]
     bias_kernel(m.parents, m.idx_v, m.nv_j, d.St, d.ov, v, d.R, d.p, d.c_local, d.acc)
     nle_wrench_kernel(d.I, d.ov, d.acc, m.gravity, d.W)
@@ -93,6 +92,25 @@ def rhs(m, d, q, v, vm, ovm, tau, h):
     for s in range(m.spring_a.shape[0]):
         _add_point_wrench(d.ext, m.spring_ja[s], d.pa[s], d.spring_f[s], 1.0)
         _add_point_wrench(d.ext, m.spring_jb[s], d.pb[s], d.spring_f[s], -1.0)
+    if shifted and m.spring_a.shape[0]:
+        hh = h * h
+        for s in range(m.spring_a.shape[0]):
+            ja, jb = m.spring_ja[s], m.spring_jb[s]
+            ma = np.inf if ja == 0 else m.mass[ja]
+            mb = np.inf if jb == 0 else m.mass[jb]
+            spring_shift(d.X, m.spring_a, m.spring_b, m.spring_k, m.spring_rest, m.spring_explicit, d.Xf, ma, mb, hh,
+                         s, d.x3)
+            _add_point_wrench(d.ext, ja, d.pa[s], d.x3, 1.0)
+            _add_point_wrench(d.ext, jb, d.pb[s], d.x3, -1.0)
+        d.blocks[:, :, :] = 0.0
+        geometric_blocks_kernel(m.spring_ja, d.pa, m.spring_jb, d.pb, d.spring_f, m.spring_explicit, 1.0, d.I,
+                                d.blocks)
+        for j in range(1, nj):
+            for r in range(6):
+                t = 0.0
+                for c in range(6):
+                    t += d.blocks[j, r, c] * d.ovb[j, c]
+                d.ext[j, r] += t
     x = d.x3
     for w in range(m.wrench_jid.shape[0]):
         j = m.wrench_jid[w]
@@ -193,10 +211,10 @@ def hyper_reduce(T_col, T_ratio, A, b, AR, bR):
 @njit_inline
 def assemble(m, d, q, v, vm, ovm, tau, h, shifted):
     """Stage 2: d.AR, d.bR of Eq. (2) at the kinematics in d; ``q`` the configuration of the joint springs,
-    ``vm``/``ovm`` the momentum's velocity and twists, ``shifted`` the springs at q^ (BDF2, :func:`rhs`,
-    :func:`spring_terms`)."""
+    ``vm``/``ovm`` the momentum's velocity and twists, ``shifted`` the springs linearised about q* from q^ (BDF2,
+    :func:`rhs`, :func:`spring_terms`)."""
     spring_terms(m, d, h, shifted)
-    rhs(m, d, q, v, vm, ovm, tau, h)
+    rhs(m, d, q, v, vm, ovm, tau, h, shifted)
     coupled = m.T_col.shape[0] != 0
     lhs(m, d, h, d.A if coupled else d.AR)  # without couplings (T = I) straight into A_R
     if coupled:

@@ -127,7 +127,7 @@ def rigid_stages(m, d, q, vR, tau, h, gj, sv, qp, vp, hist):
     hh = 2.0 * h / 3.0 if hist else h
     point(m, d, q, vR, qp, vp, hist, hh)  # 0
     kinematics(m, d, d.q_lin, d.v_r)  # 1
-    if hist:  # 2, BDF2: the momentum of v^, springs at q^
+    if hist:  # 2, BDF2: the momentum of v^, maximal springs linearised about q* (springs.spring_shift)
         jv_kernel(m.parents, m.idx_v, m.nv_j, d.St, d.v_mom, d.ovm)
         vm, ovm = d.v_mom, d.ovm
     else:
