@@ -118,7 +118,7 @@ fi
 # keeps the first node, run or test from spending that time inside a step. Two background processes beside
 # steps 4-5 (the colcon build), waited for at the end: the rigid step (step_n_kernel) and the
 # deformable step's contact loop (solvers/coupled_kernel.py) in one; the friction step (friction_step_n_kernel:
-# contact and joint friction, the largest) in the other. Measured 2026-12-04 in one process at load ~2: 1073 s.
+# contact and joint friction) in the other. Measured 2026-12-04 in a clean clone: 732 s beside the colcon build.
 say "compiling the step kernels in the background (numba, cached on disk)"
 KERNEL_LOG="$(mktemp)"
 FRICTION_LOG="$(mktemp)"
