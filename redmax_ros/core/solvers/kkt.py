@@ -3,8 +3,11 @@
     [A  G^T] [qdot+]   [b]
     [G   0 ] [ lam ] = [g]        A symmetric positive definite (LHS of Eq. 2), G full row rank
 
-by the Schur complement: A = L L^T, Y = A^-1 G^T, S = G Y = L_S L_S^T,
-lam = S^-1 (G A^-1 b - g), qdot+ = A^-1 b - Y lam (sign convention of solvers/direct.py: A qdot = b - G^T lam).
+by the Schur complement: A = L L^T, W = L^-1 G^T, S = G A^-1 G^T = W^T W = L_S L_S^T,
+lam = S^-1 (G A^-1 b - g), qdot+ = A^-1 b - L^-T (W lam) (sign convention of solvers/direct.py:
+A qdot = b - G^T lam). W is formed by one forward substitution for all m rows at once and S as a sum of
+rank-one rows of W, both as axpys over contiguous rows (linalg.py's rule for loops LLVM vectorises); the
+correction needs one back substitution, not m.
 
 For the small systems of hands, legs and short chains (n <= SMALL_N) the NumPy/Eigen route costs
 a dozen interpreter round trips of 1-5 us each while the arithmetic is a few thousand flops; this
@@ -47,8 +50,25 @@ def max_row_residual(G, v, g):
 
 
 @njit
-def _correct(G, g, Y, lam, v):
-    """v <- v - Y lam (qdot+ of the Schur complement); returns max|G v - g| afterwards."""
+def _correct(G, g, L, W, lam, z, v):
+    """v <- v - L^-T (W lam) (qdot+ of the Schur complement, z scratch (n,)); returns max|G v - g| afterwards."""
+    n = L.shape[0]
+    for k in range(n):
+        z[k] = dot(W[k], lam)
+    for i in range(n - 1, -1, -1):  # L^T x = z, x into z: axpys over the rows of L
+        xi = z[i] / L[i, i]
+        z[i] = xi
+        Li = L[i, :i]
+        for k in range(Li.shape[0]):
+            z[k] -= xi * Li[k]
+    for k in range(n):
+        v[k] -= z[k]
+    return max_row_residual(G, v, g)
+
+
+@njit
+def _correct_by(G, g, Y, lam, v):
+    """v <- v - Y lam with Y = A^-1 G^T (kkt_solve_lu); returns max|G v - g| afterwards."""
     n, m = Y.shape
     for k in range(n):
         s = 0.0
@@ -56,6 +76,38 @@ def _correct(G, g, Y, lam, v):
             s += Y[k, r] * lam[r]
         v[k] -= s
     return max_row_residual(G, v, g)
+
+
+@njit
+def _forward_rows(L, G, W):
+    """W = L^-1 G^T (n, m): forward substitution for the m columns at once, row i of W from the rows above it."""
+    n, m = W.shape
+    for i in range(n):
+        Wi = W[i]
+        for r in range(m):
+            Wi[r] = G[r, i]
+        for k in range(i):
+            lik = L[i, k]
+            Wk = W[k]
+            for r in range(m):
+                Wi[r] -= lik * Wk[r]
+        d = L[i, i]
+        for r in range(m):
+            Wi[r] /= d
+
+
+@njit
+def _gram(W, S):
+    """S = W^T W (m, m), a sum over the rows of W of their outer products."""
+    n, m = W.shape
+    S[:, :] = 0.0
+    for k in range(n):
+        Wk = W[k]
+        for r in range(m):
+            wr = Wk[r]
+            Sr = S[r]
+            for c in range(m):
+                Sr[c] += wr * Wk[c]
 
 
 @njit
@@ -89,8 +141,9 @@ def kkt_solve(A, b, G, g, C, lo, hi):
 
 @njit
 def kkt_solve_into(A, b, G, g, C, lo, hi, L, Y, S, LS, y, v, lam):
-    """kkt_solve without allocation: the factors and scratch in L (n,n), Y (n,m), S (m,m), LS (m,m), y (n,);
-    qdot+ into v (n,), the multipliers into lam (m,). Returns (status, pivot ratio, max|G qdot+ - g|, limits_ok)."""
+    """kkt_solve without allocation: the factors and scratch in L (n,n), Y (n,m: W = L^-1 G^T), S (m,m),
+    LS (m,m), y (n,); qdot+ into v (n,), the multipliers into lam (m,). Returns (status, pivot ratio,
+    max|G qdot+ - g|, limits_ok)."""
     n, m = A.shape[0], G.shape[0]
     v[:] = b
     lam[:] = 0.0
@@ -99,17 +152,8 @@ def kkt_solve_into(A, b, G, g, C, lo, hi, L, Y, S, LS, y, v, lam):
     chol_solve(L, v)
     ratio, viol = 1.0, 0.0
     if m:
-        for r in range(m):
-            y[:] = G[r]
-            chol_solve(L, y)
-            Y[:, r] = y
-        for r in range(m):
-            for c in range(r + 1):
-                s = 0.0
-                for k in range(n):
-                    s += G[r, k] * Y[k, c]
-                S[r, c] = s
-                S[c, r] = s
+        _forward_rows(L, G, Y)  # W
+        _gram(Y, S)  # S = W^T W = G A^-1 G^T
         if not cholesky(S, LS):
             return 2, 0.0, 0.0, False
         dmin, dmax = LS[0, 0], LS[0, 0]
@@ -120,7 +164,7 @@ def kkt_solve_into(A, b, G, g, C, lo, hi, L, Y, S, LS, y, v, lam):
         ratio = dmin / dmax
         _rows_minus(G, v, g, lam)
         chol_solve(LS, lam)
-        viol = _correct(G, g, Y, lam, v)
+        viol = _correct(G, g, L, Y, lam, y, v)
     return 0, ratio, viol, _limits_ok(C, v, lo, hi)
 
 
@@ -219,7 +263,7 @@ def kkt_solve_lu(A, b, G, g, C, lo, hi):
         ratio = np.sqrt(umin / umax)
         _rows_minus(G, v, g, lam)
         _lu_solve(LUS, pivS, lam)
-        viol = _correct(G, g, Y, lam, v)
+        viol = _correct_by(G, g, Y, lam, v)
     return 0, v, lam, S, ratio, viol, _limits_ok(C, v, lo, hi)
 
 
