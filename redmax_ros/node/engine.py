@@ -81,6 +81,20 @@ class NullSink:
     def quit(self): ...
 
 
+RUN_WALL = 0.01  # [s wall] a run of steps in _advance aims at about this long (cancel and shutdown latency)
+RUN_CAP_MAX = 4096  # steps in one run at most
+
+
+def _next_cap(cap: int, k: int, wall: float) -> int:
+    """The run cap after a run of k steps took ``wall`` seconds: doubled while runs at the cap stay under
+    RUN_WALL / 2, halved when a run took over 2 RUN_WALL (a scene or state whose steps got dearer)."""
+    if wall > 2 * RUN_WALL:
+        return max(1, cap // 2)
+    if k >= cap and wall < RUN_WALL / 2:
+        return min(RUN_CAP_MAX, 2 * cap)
+    return cap
+
+
 class Engine:
     def __init__(self, sink, scene="hand", overrides=(), *, initial_state=PLAYING, real_time_factor=1.0,
                  publish_rate=0.0, marker_rate=0.0, command_timeout=0.0, diagnostics_period=1.0,
@@ -118,6 +132,7 @@ class Engine:
         self._pending_lock = threading.Lock()
         self._batch = None  # the open batch of pending commands: ("joint" | "torque" | "site" | "body", name) -> value
         self._batch_job = False  # a queued job will apply the open batch
+        self._run_cap = 1  # steps a run may take (_advance, _next_cap)
         self._adopt(self.sim)
 
     # ------------------------------------------------------------------ thread and job queue
@@ -342,34 +357,66 @@ class Engine:
         self._publish_prescriptions()
 
     def _advance(self, n, lockstep, feedback=None, cancelled=None) -> Outcome:
+        """n steps, in runs (Simulator.step(k): one kernel call for k steps on the compiled path, issue 12
+        point 2) that end wherever something has to happen between steps: a published state, markers or
+        frames, the last step of a lockstep request, a command's timeout, and the feedback of an action
+        (then every step is a run of one). A run is also kept under ~RUN_WALL wall seconds, so a
+        cancel or shutdown is seen within about that time. A failed step reports the steps done before it
+        (in its run too); the state is that after them."""
         sim, sink = self.sim, self.sink
-        for i in range(n):
+        i = 0
+        while i < n:
             if cancelled is not None and cancelled():
                 return Outcome(OK, "canceled", steps=i, t=sim.time, extra={"canceled": True})
             if not self._running:  # the node is shutting down (SIGINT/SIGTERM): end a long request now
                 return Outcome(OPERATION_FAILED, f"the node is shutting down: stopped after {i} of {n} steps",
                                steps=i, t=sim.time)
             self._expire_commands()
+            k = 1 if feedback is not None else self._run_length(n - i)
+            w0 = time.perf_counter()
             try:
-                res = sim.step(1)
+                res = sim.step(k)
             except StepError as e:
+                done = int(getattr(e, "steps_done", 0))
+                self.step_index += done
+                i += done
                 self.failures += 1
                 return Outcome(OPERATION_FAILED, f"step {i + 1} of {n} failed, state kept at t = {sim.time:.6g} s: "
                                f"{e.reason if hasattr(e, 'reason') else e}", steps=i, t=sim.time)
-            self.step_index += 1
-            k = self.step_index
+            wall = time.perf_counter() - w0
+            self._run_cap = _next_cap(self._run_cap, k, wall)
+            i += k
+            self.step_index += k
+            idx = self.step_index
             d = res.diagnostics
-            self.meter.add(d.iterations, d.wall_time)
+            self.meter.add(d.iterations * k, wall, k)
             self.last_diag = d
-            if k % self.publish_every == 0 or (lockstep and i == n - 1):
-                sink.state(res.t, res.q, res.v, res.effort, res.site_forces, d, k, self._body_wrenches(res))
-            if self.marker_every and k % self.marker_every == 0:
+            if idx % self.publish_every == 0 or (lockstep and i == n):
+                sink.state(res.t, res.q, res.v, res.effort, res.site_forces, d, idx, self._body_wrenches(res))
+            if self.marker_every and idx % self.marker_every == 0:
                 self._markers(res.t, getattr(d.solution, "contacts", None))
-            if self.tf_every and (k % self.tf_every == 0 or (lockstep and i == n - 1)):
+            if self.tf_every and (idx % self.tf_every == 0 or (lockstep and i == n)):
                 sink.frames(res.t, sim)
             if feedback is not None:
-                feedback(i + 1, n, res.t)
+                feedback(i, n, res.t)
         return Outcome(OK, "", steps=n, t=sim.time)
+
+    def _run_length(self, left: int) -> int:
+        """Steps of the next run (at most ``left``): up to the next published state, markers, frames or
+        command timeout, and at most the current run cap (_next_cap)."""
+        k = min(left, self._run_cap)
+        idx = self.step_index
+        for every in (self.publish_every, self.marker_every, self.tf_every):
+            if every and every > 1:
+                k = min(k, every - idx % every)
+            elif every == 1:
+                return 1
+        if self.command_timeout > 0 and self.cmd_times:
+            # the run ends at least one step before the first timeout is due, so _expire_commands
+            # sees it before the step it would have seen it before, stepping one at a time
+            due = min(self.cmd_times.values()) + self.command_timeout - self.sim.time
+            k = min(k, max(1, int(due / self.sim.dt) - 1))
+        return max(1, k)
 
     def _body_wrenches(self, res) -> dict:
         """body -> (frame, required wrench (6,) [torque N m; force N]) of a StepResult; {} when no body

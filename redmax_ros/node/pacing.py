@@ -59,8 +59,9 @@ class RateMeter:
         self.iterations = 0
         self.step_wall = 0.0
 
-    def add(self, iterations: int, step_wall: float):
-        self.steps += 1
+    def add(self, iterations: int, step_wall: float, steps: int = 1):
+        """``steps`` steps (a run) that took ``step_wall`` seconds and ``iterations`` solver iterations in all."""
+        self.steps += int(steps)
         self.iterations += int(iterations)
         self.step_wall += float(step_wall)
 

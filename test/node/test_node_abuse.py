@@ -339,7 +339,7 @@ def _set_param(client, name, value):
 
 
 def test_a_million_node_steps_end_at_exact_time_in_clock_headers_and_log(ros, tmp_path):
-    """1e6 lockstep steps of the pendulum (h = 1 ms; published at 10 Hz of sim time, logged): the
+    """1e6 lockstep steps of the pendulum (h = 1 ms; published at 10 Hz of sim time, logged, no /tf): the
     service's sim_time, the last /clock and joint_states stamps received and those in the MCAP log are
     all exactly 1e6 x 1 000 000 ns, and every logged stamp is a whole number of steps."""
     from mcap.reader import make_reader
@@ -347,8 +347,8 @@ def test_a_million_node_steps_end_at_exact_time_in_clock_headers_and_log(ros, tm
 
     ns = f"/exact{os.getpid()}"
     node, shutdown = run_node_in_thread({"scene": "pendulum", "mode": "lockstep", "dt": 1e-3, "publish_rate": 10.0,
-                                         "marker_rate": 0.0, "command_timeout": 0.0, "log_path": str(tmp_path)},
-                                        namespace=ns)
+                                         "marker_rate": 0.0, "tf_rate": 0.0, "command_timeout": 0.0,
+                                         "log_path": str(tmp_path)}, namespace=ns)
     c = Client("exact_client", ns=ns)
     clocks = []
     c.node.create_subscription(Clock, "/clock", clocks.append, QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE))

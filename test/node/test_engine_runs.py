@@ -1,0 +1,98 @@
+"""The engine steps a lockstep request in runs (Simulator.step(k), engine._advance): the states, the
+published steps, command timeouts and a failure's step count must be those of stepping one step at a
+time (an action's feedback makes every run one step, so the same engine gives the reference)."""
+import numpy as np
+import pytest
+
+from redmax_ros.node import engine as eng
+from redmax_ros.node.engine import PAUSED, Engine, NullSink
+
+
+class Recorder(NullSink):
+    def __init__(self):
+        self.states, self.warnings = [], []
+
+    def state(self, t, q, v, effort, site_forces, diag, step_index, body_wrenches):
+        self.states.append((step_index, t, q.copy(), v.copy(), np.asarray(effort).copy()))
+
+    def warn(self, text):
+        self.warnings.append(text)
+
+
+def _engine(scene, overrides=(), **kw):
+    sink = Recorder()
+    e = Engine(sink, scene, overrides, initial_state=PAUSED, **kw)
+    e.start()
+    return e, sink
+
+
+def _run(scene, n, per_step, overrides=(), before=None, **kw):
+    """(Outcome, sink, engine) of one lockstep request of n steps; ``per_step``: with an action's feedback
+    (runs of one step), else plain runs."""
+    e, sink = _engine(scene, overrides, **kw)
+    try:
+        if before is not None:
+            before(e)
+        fb = (lambda done, total, t: None) if per_step else None
+        out = e.step(n, fb)
+        return out, sink, e
+    finally:
+        e.stop()
+
+
+@pytest.mark.parametrize("scene", ["hand", "klann_leg"])
+def test_runs_publish_the_same_states_at_the_same_steps_bitwise(scene):
+    n = 1234  # h = 1 ms, published at 20 Hz of sim time: steps 50, 100, ..., 1200 and the last
+    a, ra, ea = _run(scene, n, per_step=True, publish_rate=20.0)
+    b, rb, eb = _run(scene, n, per_step=False, publish_rate=20.0)
+    assert a.ok and b.ok and a.steps == b.steps == n
+    assert [s[0] for s in rb.states] == [s[0] for s in ra.states] == list(range(50, n, 50)) + [n]
+    for sa, sb in zip(ra.states, rb.states):
+        assert sa[1] == sb[1]
+        for xa, xb in zip(sa[2:], sb[2:]):
+            assert np.array_equal(xa, xb)
+    assert eb._run_cap > 1  # the runs did take more than one step
+    assert ea.sim.state.k == eb.sim.state.k == n
+
+
+def test_a_command_times_out_at_the_same_step_in_runs():
+    """A held torque with command_timeout 0.0375 s sim time goes back to zero at the same step either way."""
+    from sensor_msgs.msg import JointState
+
+    def command(e):
+        msg = JointState()
+        msg.name = ["hinge"]
+        msg.effort = [0.5]
+        e.joint_command(msg)
+
+    n = 200
+    a, ra, ea = _run("pendulum", n, True, before=command, command_timeout=0.0375, publish_rate=100.0)
+    b, rb, eb = _run("pendulum", n, False, before=command, command_timeout=0.0375, publish_rate=100.0)
+    assert a.ok and b.ok
+    assert [w for w in ra.warnings if "timeout" in w] == [w for w in rb.warnings if "timeout" in w] != []
+    assert np.array_equal(ea.sim.state.q, eb.sim.state.q) and np.array_equal(ea.sim.state.v, eb.sim.state.v)
+    for sa, sb in zip(ra.states, rb.states):
+        assert sa[0] == sb[0] and np.array_equal(sa[4], sb[4])
+
+
+def test_a_failing_step_inside_a_run_reports_the_steps_before_it():
+    """A free body under 1e7 m/s^2 passes the divergence limit (1e6 m/s) at its 101st step: the request
+    says so, 100 steps were taken, and the state is that after them, as stepping one at a time."""
+    ov = ["gravity=[0,0,-1e7]"]
+    a, _, ea = _run("catalogue/free3d", 500, True, ov, publish_rate=10.0)
+    b, _, eb = _run("catalogue/free3d", 500, False, ov, publish_rate=10.0)
+    assert a.code == b.code == eng.OPERATION_FAILED
+    assert a.steps == b.steps == 100 and "step 101 of 500 failed" in b.message and "diverged" in b.message
+    assert a.message == b.message
+    assert eb.step_index == 100 and eb.failures == 1
+    assert np.array_equal(ea.sim.state.q, eb.sim.state.q) and np.array_equal(ea.sim.state.v, eb.sim.state.v)
+
+
+def test_run_cap_grows_for_cheap_steps_and_halves_for_slow_ones():
+    cap = 1
+    for _ in range(20):
+        cap = eng._next_cap(cap, cap, 1e-5)
+    assert cap == eng.RUN_CAP_MAX
+    assert eng._next_cap(cap, 10, 1e-5) == cap  # a run cut short (a publish point) says nothing
+    assert eng._next_cap(64, 64, 3 * eng.RUN_WALL) == 32
+    assert eng._next_cap(1, 1, 1.0) == 1
