@@ -33,6 +33,7 @@ from xml.sax.saxutils import escape, quoteattr
 
 import numpy as np
 import pinocchio as pin
+from numba import njit
 
 ONE_DOF = ("revolute", "prismatic")
 FLOATING_BASE = ("free", "planar", "free2d", "free3d", "free3d_exp")  # a body on one of these to the world: odom
@@ -252,34 +253,39 @@ def _mimics(sim) -> dict:
 
 def quaternions(R: np.ndarray) -> np.ndarray:
     """Unit quaternions xyzw (n,4) of rotation matrices R (n,3,3) (the largest of w, x, y, z is
-    computed from the diagonal, the others from the off-diagonal terms; w >= 0 where w is largest)."""
-    n = len(R)
-    q = np.empty((n, 4))
-    tr = R[:, 0, 0] + R[:, 1, 1] + R[:, 2, 2]
-    diag = np.stack([tr, R[:, 0, 0], R[:, 1, 1], R[:, 2, 2]], axis=1)
-    k = np.argmax(diag, axis=1)
-    for case in range(4):
-        i = np.nonzero(k == case)[0]
-        if not len(i):
-            continue
-        r = R[i]
+    computed from the diagonal, the others from the off-diagonal terms; w >= 0 where w is largest).
+    One compiled loop (_quaternions_into): /tf converts every moving body at tf_rate, and the same
+    formulas as batched numpy cost ~110 us a call at any n (numpy's fixed cost per operation) against
+    ~1 us."""
+    R = np.ascontiguousarray(R, dtype=float).reshape(-1, 3, 3)
+    q = np.empty((len(R), 4))
+    _quaternions_into(R, q)
+    return q
+
+
+@njit(cache=True, nogil=True)
+def _quaternions_into(R, q):
+    for n in range(R.shape[0]):
+        r = R[n]
+        tr = r[0, 0] + r[1, 1] + r[2, 2]
+        case, big = 0, tr  # argmax of (tr, R00, R11, R22), the first on ties
+        for c in range(1, 4):
+            if r[c - 1, c - 1] > big:
+                case, big = c, r[c - 1, c - 1]
         if case == 0:
-            s = 2.0 * np.sqrt(1.0 + tr[i])
-            q[i] = np.stack([(r[:, 2, 1] - r[:, 1, 2]) / s, (r[:, 0, 2] - r[:, 2, 0]) / s,
-                             (r[:, 1, 0] - r[:, 0, 1]) / s, 0.25 * s], axis=1)
+            s = 2.0 * math.sqrt(1.0 + tr)
+            x, y, z, w = (r[2, 1] - r[1, 2]) / s, (r[0, 2] - r[2, 0]) / s, (r[1, 0] - r[0, 1]) / s, 0.25 * s
         elif case == 1:
-            s = 2.0 * np.sqrt(1.0 + r[:, 0, 0] - r[:, 1, 1] - r[:, 2, 2])
-            q[i] = np.stack([0.25 * s, (r[:, 0, 1] + r[:, 1, 0]) / s, (r[:, 0, 2] + r[:, 2, 0]) / s,
-                             (r[:, 2, 1] - r[:, 1, 2]) / s], axis=1)
+            s = 2.0 * math.sqrt(1.0 + r[0, 0] - r[1, 1] - r[2, 2])
+            x, y, z, w = 0.25 * s, (r[0, 1] + r[1, 0]) / s, (r[0, 2] + r[2, 0]) / s, (r[2, 1] - r[1, 2]) / s
         elif case == 2:
-            s = 2.0 * np.sqrt(1.0 + r[:, 1, 1] - r[:, 0, 0] - r[:, 2, 2])
-            q[i] = np.stack([(r[:, 0, 1] + r[:, 1, 0]) / s, 0.25 * s, (r[:, 1, 2] + r[:, 2, 1]) / s,
-                             (r[:, 0, 2] - r[:, 2, 0]) / s], axis=1)
+            s = 2.0 * math.sqrt(1.0 + r[1, 1] - r[0, 0] - r[2, 2])
+            x, y, z, w = (r[0, 1] + r[1, 0]) / s, 0.25 * s, (r[1, 2] + r[2, 1]) / s, (r[0, 2] - r[2, 0]) / s
         else:
-            s = 2.0 * np.sqrt(1.0 + r[:, 2, 2] - r[:, 0, 0] - r[:, 1, 1])
-            q[i] = np.stack([(r[:, 0, 2] + r[:, 2, 0]) / s, (r[:, 1, 2] + r[:, 2, 1]) / s, 0.25 * s,
-                             (r[:, 1, 0] - r[:, 0, 1]) / s], axis=1)
-    return q / np.linalg.norm(q, axis=1, keepdims=True)
+            s = 2.0 * math.sqrt(1.0 + r[2, 2] - r[0, 0] - r[1, 1])
+            x, y, z, w = (r[0, 2] + r[2, 0]) / s, (r[1, 2] + r[2, 1]) / s, 0.25 * s, (r[1, 0] - r[0, 1]) / s
+        nrm = math.sqrt(x * x + y * y + z * z + w * w)
+        q[n, 0], q[n, 1], q[n, 2], q[n, 3] = x / nrm, y / nrm, z / nrm, w / nrm
 
 
 class BodyPoses:
