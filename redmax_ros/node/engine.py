@@ -241,7 +241,9 @@ class Engine:
                 elif step_due and self.state == PLAYING:
                     try:
                         self._apply_open_batch()
-                        out = self._advance(1, lockstep=False)
+                        # one run of the steps due (pacer), ending where _run_length ends runs
+                        due = self.pacer.steps_due(self.sim.time, self.sim.dt, RUN_CAP_MAX)
+                        out = self._advance(self._run_length(due), lockstep=False)
                     except Exception as e:  # a sink failure must not kill the simulation thread
                         out = Outcome(OPERATION_FAILED, f"{type(e).__name__}: {e}")
                     if not out.ok:
@@ -362,7 +364,8 @@ class Engine:
         frames, the last step of a lockstep request, a command's timeout, and the feedback of an action
         (then every step is a run of one). A run is also kept under ~RUN_WALL wall seconds, so a
         cancel or shutdown is seen within about that time. A failed step reports the steps done before it
-        (in its run too); the state is that after them."""
+        (in its run too); the state is that after them. Free-run calls this with one run of the steps
+        the pacer has due (_loop), so requests and commands wait for at most that run."""
         sim, sink = self.sim, self.sink
         i = 0
         while i < n:

@@ -26,6 +26,14 @@ class Pacer:
         self.rtf = float(rtf)
         self.anchor(sim_t)
 
+    def steps_due(self, sim_t: float, dt: float, most: int) -> int:
+        """Steps of dt from ``sim_t`` that are due now (at least 1: called once the next one is due; at
+        most ``most``; rtf 0: ``most``)."""
+        if self.rtf <= 0:
+            return int(most)
+        ahead = (self.clock() - self.wall0) * self.rtf - (sim_t - self.sim0)  # sim seconds due beyond sim_t
+        return int(min(most, max(1.0, ahead // dt)))
+
     def wait_time(self, next_sim_t: float) -> float:
         """Wall seconds until the step that reaches ``next_sim_t`` is due (<= 0: due now)."""
         if self.rtf <= 0:

@@ -5,7 +5,10 @@ import numpy as np
 import pytest
 
 from redmax_ros.node import engine as eng
-from redmax_ros.node.engine import PAUSED, Engine, NullSink
+import time
+
+from redmax_ros.core import Simulator
+from redmax_ros.node.engine import PAUSED, PLAYING, Engine, NullSink
 
 
 class Recorder(NullSink):
@@ -19,9 +22,9 @@ class Recorder(NullSink):
         self.warnings.append(text)
 
 
-def _engine(scene, overrides=(), **kw):
+def _engine(scene, overrides=(), initial_state=PAUSED, **kw):
     sink = Recorder()
-    e = Engine(sink, scene, overrides, initial_state=PAUSED, **kw)
+    e = Engine(sink, scene, overrides, initial_state=initial_state, **kw)
     e.start()
     return e, sink
 
@@ -86,6 +89,24 @@ def test_a_failing_step_inside_a_run_reports_the_steps_before_it():
     assert a.message == b.message
     assert eb.step_index == 100 and eb.failures == 1
     assert np.array_equal(ea.sim.state.q, eb.sim.state.q) and np.array_equal(ea.sim.state.v, eb.sim.state.v)
+
+
+def test_free_run_in_runs_publishes_the_core_states_at_every_tenth_step():
+    """Free-run as fast as possible, publishing at 100 Hz of sim time (h = 1 ms): the steps due go in
+    runs that end at every 10th step, and each published state is bitwise the core's, stepped one at a time."""
+    e, sink = _engine("hand", initial_state=PLAYING, publish_rate=100.0, real_time_factor=0.0)
+    time.sleep(1.0)
+    e.stop()
+    got = sink.states
+    assert len(got) >= 5 and e._run_cap > 1
+    assert all(idx % 10 == 0 for idx, *_ in got)
+    sim = Simulator.load("hand")
+    k = 0
+    for idx, t, q, v, _ in got[:50]:
+        while k < idx:
+            sim.step()
+            k += 1
+        assert sim.time == t and np.array_equal(sim.state.q, q)
 
 
 def test_run_cap_grows_for_cheap_steps_and_halves_for_slow_ones():
