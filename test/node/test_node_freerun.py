@@ -95,7 +95,7 @@ def test_console_status_line_and_silencing_it(client):
     line = lines()[-1]
     assert line.startswith("hand: t = ") and "step failure(s)" in line
     rtf = float(line.split("RTF ")[1].split(",")[0])
-    assert 0.5 < rtf < 2.5  # paced at real_time_factor 2
+    assert 0 < rtf < 2.5  # paced at real_time_factor 2: never faster (how much slower depends on the machine's load)
     cli = c.node.create_client(SetParameters, f"{NS}/redmax/set_parameters")
     assert cli.wait_for_service(timeout_sec=10)
     fut = cli.call_async(SetParameters.Request(parameters=[Parameter("status_period", value=0.0).to_parameter_msg()]))
