@@ -6,12 +6,10 @@ from __future__ import annotations
 import dataclasses
 
 import numpy as np
-import pinocchio as pin
 import pytest
 
-from redmax_bench.methods import static_equilibrium
+from redmax_bench.accuracy import slow_kick
 from redmax_ros.core import Simulator
-from redmax_ros.core.dynamics.kinematics import site_positions
 from redmax_ros.core.step.backends import make_backend
 from redmax_ros.core.step.compiled.data import OUT_ORDER
 from redmax_ros.core.step.state import State
@@ -129,17 +127,8 @@ def test_slow_kick_stiff_springs_match_the_reference():
     sims = []
     for solver in ("reference", "compiled"):
         sim = Simulator.load("mass_springs", [BDF2, "dt=1e-2", "params.k=1000000."], solver=solver)
-        mech = sim.mech
-        data = mech.model.createData()
-        pin.forwardKinematics(mech.model, data, mech.q0)
-        X = site_positions(mech, data)
-        mech.spring_rest[:] = np.linalg.norm(X[mech.spring_ab[:, 0]] - X[mech.spring_ab[:, 1]], axis=1)
-        sim.backend = make_backend(mech, solver)  # the compiled Model packs the rest lengths when it is made
-        q, _ = static_equilibrium(mech, mech.q0.copy())
-        v = np.zeros(mech.nv)
-        for j in mech.joints:
-            R = pin.Quaternion(q[j.idx_q + 6], *q[j.idx_q + 3:j.idx_q + 6]).toRotationMatrix()
-            v[j.idx_v:j.idx_v + 3] = R.T @ np.array([0.0, 0.5, 0.0])
+        q, v = slow_kick(0.5)(sim.mech, sim.mech.q0.copy(), None)
+        sim.backend = make_backend(sim.mech, solver)  # the compiled Model packs the rest lengths when it is made
         sim.set_state(State(0.0, q, v))
         sims.append(sim)
     ref, comp = sims

@@ -6,9 +6,8 @@ import numpy as np
 import pinocchio as pin
 import pytest
 
-from redmax_bench.methods import static_equilibrium
+from redmax_bench.accuracy import slow_kick
 from redmax_ros.core import SceneError, Simulator
-from redmax_ros.core.dynamics.kinematics import site_positions
 from redmax_ros.core.step.state import State
 
 BDF2 = "integrator.scheme=bdf2"
@@ -104,16 +103,7 @@ def _slow_kick(scheme, h, k="1000000.", T=1.0):
     the initial pose, static equilibrium under gravity, every box kicked 0.5 m/s sideways (y); T s of steps of h
     on the Pinocchio pipeline. Returns (simulator, E0, energies after each step)."""
     sim = Simulator.load("mass_springs", [f"integrator.scheme={scheme}", f"dt={h}", f"params.k={k}"], solver="reference")
-    mech = sim.mech
-    data = mech.model.createData()
-    pin.forwardKinematics(mech.model, data, mech.q0)
-    X = site_positions(mech, data)
-    mech.spring_rest[:] = np.linalg.norm(X[mech.spring_ab[:, 0]] - X[mech.spring_ab[:, 1]], axis=1)
-    q, _ = static_equilibrium(mech, mech.q0.copy())
-    v = np.zeros(mech.nv)
-    for j in mech.joints:
-        R = pin.Quaternion(q[j.idx_q + 6], *q[j.idx_q + 3:j.idx_q + 6]).toRotationMatrix()
-        v[j.idx_v:j.idx_v + 3] = R.T @ np.array([0.0, 0.5, 0.0])
+    q, v = slow_kick(0.5)(sim.mech, sim.mech.q0.copy(), None)  # the reference reads the rest lengths it sets
     sim.set_state(State(0.0, q, v))
     E0 = sum(sim.energies())
     return sim, E0, np.array([sim.step().diagnostics.E_total for _ in range(int(round(T / h)))])
