@@ -186,8 +186,9 @@ def attached_blocks(ad_indptr, ad_indices, dof, vertices):
                 continue
             b = np.empty((3, 3), dtype=np.int64)
             for c in range(3):
-                at = np.searchsorted(rows[c], col + np.arange(3))
-                if np.any(at >= len(rows[c])) or np.any(rows[c][np.minimum(at, len(rows[c]) - 1)] != col + np.arange(3)):
+                want = col + np.arange(3)
+                at = np.minimum(np.searchsorted(rows[c], want), len(rows[c]) - 1)
+                if np.any(rows[c][at] != want):
                     raise ValueError("A_d's pattern is not made of 3 x 3 vertex blocks")
                 b[c] = ad_indptr[3 * v + c] + at
             blk.append(b)
@@ -350,16 +351,20 @@ def hold(indptr, indices, diag, tpos, data, b, dofs, vals):
     ``diag`` (n,) is each row's diagonal position, ``tpos`` (nnz,) each entry's transpose position. Returns the
     held rows' original values (concatenated, in ``dofs`` order) and b[dofs], for their reactions
     (``reactions``)."""
-    dofs = np.asarray(dofs, dtype=np.int64)
-    lens = indptr[dofs + 1] - indptr[dofs]
-    saved = np.empty(int(lens.sum()))
-    b_saved = b[dofs].copy()
-    hold_kernel(indptr, indices, diag, tpos, data, b, dofs, np.asarray(vals, dtype=float), saved)
-    return saved, b_saved
+    return hold_kernel(indptr, indices, diag, tpos, data, b, np.asarray(dofs, dtype=np.int64),
+                       np.asarray(vals, dtype=float))
 
 
 @njit
-def hold_kernel(indptr, indices, diag, tpos, data, b, dofs, vals, saved):
+def hold_kernel(indptr, indices, diag, tpos, data, b, dofs, vals):
+    """``hold`` in one call (its outputs allocated here: the numpy calls sizing them cost more than the loops)."""
+    total = 0
+    for j in dofs:
+        total += indptr[j + 1] - indptr[j]
+    saved = np.empty(total)
+    b_saved = np.empty(len(dofs))
+    for i in range(len(dofs)):
+        b_saved[i] = b[dofs[i]]
     k = 0
     for i in range(len(dofs)):  # b -= A[:, j] v_j, A symmetric: the column is the row
         j = dofs[i]
@@ -374,6 +379,7 @@ def hold_kernel(indptr, indices, diag, tpos, data, b, dofs, vals, saved):
             data[tpos[e]] = 0.0
         data[diag[j]] = 1.0
         b[j] = vals[i]
+    return saved, b_saved
 
 
 def reactions(indptr, indices, dofs, saved, b_saved, z):
