@@ -306,13 +306,12 @@ def newton_polar_batch(x, tets, B, Fb, Rb, s2, ok):
     needs no zero test. Returns the number of accepted tetrahedra."""
     T = len(tets)
     nok = 0
-    for t in range(T):
-        for i in range(3):
+    for t in range(T):  # F = sum_a x_a b_a^T, each entry's four terms in vertex order (as deformation_gradient)
+        v0, v1, v2, v3 = np.uint64(tets[t, 0]), np.uint64(tets[t, 1]), np.uint64(tets[t, 2]), np.uint64(tets[t, 3])
+        for i in range(3):  # the vertices' coordinates read once, unsigned (no wrap-around test): 43 -> 33 us
+            x0, x1, x2, x3 = x[v0, i], x[v1, i], x[v2, i], x[v3, i]
             for k in range(3):
-                v = 0.0
-                for a in range(4):
-                    v += x[tets[t, a], i] * B[t, a, k]
-                Fb[3 * i + k, t] = v
+                Fb[3 * i + k, t] = 0.0 + x0 * B[t, 0, k] + x1 * B[t, 1, k] + x2 * B[t, 2, k] + x3 * B[t, 3, k]
         r00, r01, r02, r10, r11, r12, r20, r21, r22 = (Fb[0, t], Fb[1, t], Fb[2, t], Fb[3, t], Fb[4, t], Fb[5, t],
                                                        Fb[6, t], Fb[7, t], Fb[8, t])
         n2 = r00 * r00 + r01 * r01 + r02 * r02 + r10 * r10 + r11 * r11 + r12 * r12 + r20 * r20 + r21 * r21 + r22 * r22
