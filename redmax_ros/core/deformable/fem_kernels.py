@@ -26,7 +26,10 @@ from __future__ import annotations
 import numpy as np
 
 from redmax_ros.core.deformable.sparsity import add_block
-from redmax_ros.core.jit import njit, njit_inline
+from redmax_ros.core.jit import drop_stale_caches, njit, njit_inline
+
+# the kernels below inline sparsity.add_block: an edit of sparsity.py recompiles them
+drop_stale_caches("deformable/fem_kernels.py", ("deformable/fem_kernels.py", "deformable/sparsity.py", "jit.py"))
 
 
 @njit_inline
@@ -301,16 +304,17 @@ def newton_polar_batch(x, tets, B, Fb, Rb, s2, ok):
     left the core idle: 3.6 iterations at ~100 ns each on the starfish), until the largest step of the accepted
     ones is below 1e-8 (Frobenius; at most 30 iterations). A tetrahedron that converged earlier takes the extra
     iterations at its fixed point, which move R by round-off (~1e-16): R is the polar factor to the same
-    accuracy as newton_polar3's, not bit for bit the same numbers. Returns the number of accepted tetrahedra."""
+    accuracy as newton_polar3's, not bit for bit the same numbers. The iterates' determinants stay positive
+    (each singular value s goes to (s + 1/s) / 2; a rejected F iterates from the identity), so the division
+    needs no zero test. Returns the number of accepted tetrahedra."""
     T = len(tets)
     nok = 0
-    for t in range(T):
-        for i in range(3):
+    for t in range(T):  # F = sum_a x_a b_a^T, each entry's four terms in vertex order (as deformation_gradient)
+        v0, v1, v2, v3 = np.uint64(tets[t, 0]), np.uint64(tets[t, 1]), np.uint64(tets[t, 2]), np.uint64(tets[t, 3])
+        for i in range(3):  # the vertices' coordinates read once, unsigned (no wrap-around test): 43 -> 33 us
+            x0, x1, x2, x3 = x[v0, i], x[v1, i], x[v2, i], x[v3, i]
             for k in range(3):
-                v = 0.0
-                for a in range(4):
-                    v += x[tets[t, a], i] * B[t, a, k]
-                Fb[3 * i + k, t] = v
+                Fb[3 * i + k, t] = 0.0 + x0 * B[t, 0, k] + x1 * B[t, 1, k] + x2 * B[t, 2, k] + x3 * B[t, 3, k]
         r00, r01, r02, r10, r11, r12, r20, r21, r22 = (Fb[0, t], Fb[1, t], Fb[2, t], Fb[3, t], Fb[4, t], Fb[5, t],
                                                        Fb[6, t], Fb[7, t], Fb[8, t])
         n2 = r00 * r00 + r01 * r01 + r02 * r02 + r10 * r10 + r11 * r11 + r12 * r12 + r20 * r20 + r21 * r21 + r22 * r22
@@ -330,7 +334,9 @@ def newton_polar_batch(x, tets, B, Fb, Rb, s2, ok):
             c00, c01, c02 = r11 * r22 - r12 * r21, r12 * r20 - r10 * r22, r10 * r21 - r11 * r20
             c10, c11, c12 = r02 * r21 - r01 * r22, r00 * r22 - r02 * r20, r01 * r20 - r00 * r21
             c20, c21, c22 = r01 * r12 - r02 * r11, r02 * r10 - r00 * r12, r00 * r11 - r01 * r10
-            b = 0.5 / (r00 * c00 + r01 * c01 + r02 * c02)
+            # np.divide: IEEE division without the zero-divisor test (ZeroDivisionError) numba puts on a float
+            # '/', a branch that kept this loop from vectorising (the same quotient; 62 -> 41 us on the starfish)
+            b = np.divide(0.5, r00 * c00 + r01 * c01 + r02 * c02)
             s00, s01, s02 = 0.5 * r00 + b * c00, 0.5 * r01 + b * c01, 0.5 * r02 + b * c02
             s10, s11, s12 = 0.5 * r10 + b * c10, 0.5 * r11 + b * c11, 0.5 * r12 + b * c12
             s20, s21, s22 = 0.5 * r20 + b * c20, 0.5 * r21 + b * c21, 0.5 * r22 + b * c22

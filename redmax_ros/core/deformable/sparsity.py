@@ -77,11 +77,13 @@ def stack(patterns) -> tuple:
 
 @njit_inline
 def add_block(data, start, stride, scale, K):
-    """data[start + c * stride + d] += scale * K[c, d] for a 3 x 3 block K."""
+    """data[start + c * stride + d] += scale * K[c, d] for a 3 x 3 block K (start, stride >= 0; the positions
+    unsigned, without numba's wrap-around test of each signed index: the starfish's fem_add 195 -> 183 us)."""
     for c in range(3):
-        row = start + c * stride
-        for d in range(3):
-            data[row + d] += scale * K[c, d]
+        row = np.uint64(start) + np.uint64(c) * np.uint64(stride)
+        data[row] += scale * K[c, 0]
+        data[row + np.uint64(1)] += scale * K[c, 1]
+        data[row + np.uint64(2)] += scale * K[c, 2]
 
 
 @njit_inline

@@ -15,7 +15,10 @@ from __future__ import annotations
 import numpy as np
 
 from redmax_ros.core.deformable.sparsity import PatternElement, add_block
-from redmax_ros.core.jit import njit, njit_inline
+from redmax_ros.core.jit import drop_stale_caches, njit, njit_inline
+
+# the kernels below inline sparsity.add_block: an edit of sparsity.py recompiles them
+drop_stale_caches("deformable/string.py", ("deformable/string.py", "deformable/sparsity.py", "jit.py"))
 
 
 @njit_inline

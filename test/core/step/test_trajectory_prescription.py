@@ -195,6 +195,13 @@ def test_time_function_derivative_matches_finite_differences(d):
         assert f.derivative(t) == pytest.approx(fd, rel=1e-5, abs=1e-5), t
 
 
+@pytest.mark.parametrize("d", FUNCS, ids=lambda d: d["type"])
+def test_value_rate_is_the_value_and_the_derivative_bit_for_bit(d):
+    f = timefunctions.parse(_V(), "e", "k", d)
+    for t in np.linspace(-0.2, 1.5, 53):
+        assert f.value_rate(t) == (f(t), f.derivative(t)), t
+
+
 def test_cubic_waypoints_interpolate_with_continuous_acceleration():
     pts = [[0, 0], [0.4, 1.0], [0.7, 0.2], [1.2, 0.5]]
     f = timefunctions.parse(_V(), "e", "k", {"type": "cubic", "points": pts})
