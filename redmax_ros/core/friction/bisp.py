@@ -236,25 +236,31 @@ def _reaction_kernel(parents, idx_v, nv_j, St, I, ov, Z, g, acc0, Ax, E0, E, R, 
             F0[par, r] += F0[j, r]
             for col in range(nx):
                 FX[par, r, col] += FX[j, r, col]
+    tq = np.empty((3, nx))  # moments about the joint origin, per column
     for q in range(len(jids)):
         j = jids[q]
         px, py, pz = p[j, 0], p[j, 1], p[j, 2]
-        for col in range(-1, nx):
-            if col < 0:
-                fx, fy, fz, tx, ty, tz = F0[j, 0], F0[j, 1], F0[j, 2], F0[j, 3], F0[j, 4], F0[j, 5]
-            else:
-                fx, fy, fz = FX[j, 0, col], FX[j, 1, col], FX[j, 2, col]
-                tx, ty, tz = FX[j, 3, col], FX[j, 4, col], FX[j, 5, col]
-            tx -= py * fz - pz * fy
-            ty -= pz * fx - px * fz
-            tz -= px * fy - py * fx
-            for r in range(3):
-                lf = R[j, 0, r] * fx + R[j, 1, r] * fy + R[j, 2, r] * fz
-                lt = R[j, 0, r] * tx + R[j, 1, r] * ty + R[j, 2, r] * tz
-                if col < 0:
-                    W0[q, r], W0[q, 3 + r] = lf, lt
-                else:
-                    Wx[q, r, col], Wx[q, 3 + r, col] = lf, lt
+        fx, fy, fz, tx, ty, tz = F0[j, 0], F0[j, 1], F0[j, 2], F0[j, 3], F0[j, 4], F0[j, 5]
+        tx -= py * fz - pz * fy
+        ty -= pz * fx - px * fz
+        tz -= px * fy - py * fx
+        for r in range(3):
+            W0[q, r] = R[j, 0, r] * fx + R[j, 1, r] * fy + R[j, 2, r] * fz
+            W0[q, 3 + r] = R[j, 0, r] * tx + R[j, 1, r] * ty + R[j, 2, r] * tz
+        # the same per column x, as row operations over the columns (contiguous: vectorised)
+        Fx, Fy, Fz = FX[j, 0], FX[j, 1], FX[j, 2]
+        Tx, Ty, Tz = FX[j, 3], FX[j, 4], FX[j, 5]
+        mx, my, mz = tq[0], tq[1], tq[2]
+        for col in range(nx):
+            mx[col] = Tx[col] - (py * Fz[col] - pz * Fy[col])
+            my[col] = Ty[col] - (pz * Fx[col] - px * Fz[col])
+            mz[col] = Tz[col] - (px * Fy[col] - py * Fx[col])
+        for r in range(3):
+            r0, r1, r2 = R[j, 0, r], R[j, 1, r], R[j, 2, r]
+            Wf, Wt = Wx[q, r], Wx[q, 3 + r]
+            for col in range(nx):
+                Wf[col] = r0 * Fx[col] + r1 * Fy[col] + r2 * Fz[col]
+                Wt[col] = r0 * mx[col] + r1 * my[col] + r2 * mz[col]
 
 
 def static_external_world(mech, kin, ws, site_forces=None):

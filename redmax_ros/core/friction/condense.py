@@ -56,15 +56,23 @@ def fixed_row_weights(wT, T, Ainv):
     W_kk is zero up to round-off: the friction impulse no longer moves the velocity but still loads the
     drive (its required torque, Eq. 7), and a zero weight would declare the loop converged before the
     friction QP has run. Such rows (W_kk <= FIXED_ROW (T A^-1 T^T)_kk) are weighed by their
-    unconstrained mobility (T A^-1 T^T)_kk instead; every other row keeps W_kk."""
+    unconstrained mobility (T A^-1 T^T)_kk instead; every other row keeps W_kk. The double sum runs over
+    the row's nonzeros, listed once per row (the same terms in the same order as over all pairs)."""
+    nz = np.empty(T.shape[1], dtype=np.int64)
     for i in range(T.shape[0]):
-        u = 0.0
+        k = 0
         for a in range(T.shape[1]):
+            if T[i, a] != 0.0:
+                nz[k] = a
+                k += 1
+        u = 0.0
+        for p in range(k):
+            a = nz[p]
             ta = T[i, a]
-            if ta != 0.0:
-                for c in range(T.shape[1]):
-                    if T[i, c] != 0.0:
-                        u += ta * Ainv[a, c] * T[i, c]
+            Aa = Ainv[a]
+            for q in range(k):
+                c = nz[q]
+                u += ta * Aa[c] * T[i, c]
         if wT[i] <= FIXED_ROW * u:
             wT[i] = u
 
