@@ -32,14 +32,18 @@ def spd_inverse(A):
     L = np.zeros((n, n))
     if not cholesky(A, L):
         return L, False
-    Li = np.zeros((n, n))
-    for j in range(n):
-        Li[j, j] = 1.0 / L[j, j]
-        for i in range(j + 1, n):
-            s = 0.0
-            for k in range(j, i):
-                s -= L[i, k] * Li[k, j]
-            Li[i, j] = s / L[i, i]
+    Li = np.zeros((n, n))  # L^-1 by rows: row i accumulates -L[i, k] row k for k < i (each entry's terms in
+    for i in range(n):     # increasing k, as the column-by-column recurrence), contiguous rows: vectorised
+        Li[i, i] = 1.0 / L[i, i]
+        si = Li[i]
+        for k in range(i):
+            f = L[i, k]
+            rk = Li[k, :k + 1]
+            for j in range(rk.shape[0]):
+                si[j] -= f * rk[j]
+        d = L[i, i]
+        for j in range(i):
+            si[j] = si[j] / d
     return np.ascontiguousarray(Li.T) @ Li, True
 
 
@@ -108,15 +112,21 @@ def _sparse_left(R, ptr, idx, B):
 
 @njit(cache=True, nogil=True)
 def _sparse_right_t(B, R, ptr, idx):
-    """B @ R^T over the nonzeros of R (B (k,n), R (r,n) with pattern ptr/idx) -> (k, r)."""
-    out = np.zeros((B.shape[0], R.shape[0]))
+    """B @ R^T over the nonzeros of R (B (k,n), R (r,n) with pattern ptr/idx) -> (k, r): row j of the
+    transposed product accumulates R[j, c] times row c of B^T over the row's nonzeros (contiguous rows:
+    vectorised), each entry summed in the order of R's pattern."""
+    BT = np.ascontiguousarray(B.T)
+    k = B.shape[0]
+    outT = np.zeros((R.shape[0], k))
     for j in range(R.shape[0]):
+        oj = outT[j]
         for q in range(ptr[j], ptr[j + 1]):
             c = idx[q]
             rc = R[j, c]
-            for i in range(B.shape[0]):
-                out[i, j] += B[i, c] * rc
-    return out
+            bc = BT[c]
+            for i in range(k):
+                oj[i] += bc[i] * rc
+    return np.ascontiguousarray(outT.T)
 
 
 @njit(cache=True, nogil=True)
@@ -158,7 +168,7 @@ def condense(A, b, G, g, RX, nu):
         WX = _sparse_right_t(RXP, RX, rptr, ridx)
         Xv0 = RX @ v0
         if m:
-            LamX = Sinv @ np.ascontiguousarray(_sparse_right_t(GA, RX, rptr, ridx))  # S^-1 Y^T RX^T
+            LamX = _sparse_right_t(SG, RX, rptr, ridx)  # S^-1 Y^T RX^T
     W_U = np.ascontiguousarray(WX[:nu, :nu])
     X_UT = np.ascontiguousarray(-WX[:nu, nu:])
     X_TU = np.ascontiguousarray(X_UT.T)
