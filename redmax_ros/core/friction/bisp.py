@@ -175,11 +175,22 @@ def _external_kernel(nu, h, c_jid, c_X, c_n, c_t, pin_ja, pin_jb, pin_col0, pin_
         E0[jb, 3] += y[1] * f[2] - y[2] * f[1]
         E0[jb, 4] += y[2] * f[0] - y[0] * f[2]
         E0[jb, 5] += y[0] * f[1] - y[1] * f[0]
+        d0, d1, d2 = dF[lp, 0], dF[lp, 1], dF[lp, 2]  # _add_wrench's terms, as row operations over the columns
+        Ea, Eb = E[ja], E[jb]
         for col in range(nx):
-            for a in range(3):
-                f[a] = dF[lp, a, col]
-            _add_wrench(E, ja, col, x, f, -1.0)
-            _add_wrench(E, jb, col, y, f, 1.0)
+            f0, f1, f2 = d0[col], d1[col], d2[col]
+            Ea[0, col] += -1.0 * f0
+            Ea[1, col] += -1.0 * f1
+            Ea[2, col] += -1.0 * f2
+            Ea[3, col] += -1.0 * (x[1] * f2 - x[2] * f1)
+            Ea[4, col] += -1.0 * (x[2] * f0 - x[0] * f2)
+            Ea[5, col] += -1.0 * (x[0] * f1 - x[1] * f0)
+            Eb[0, col] += 1.0 * f0
+            Eb[1, col] += 1.0 * f1
+            Eb[2, col] += 1.0 * f2
+            Eb[3, col] += 1.0 * (y[1] * f2 - y[2] * f1)
+            Eb[4, col] += 1.0 * (y[2] * f0 - y[0] * f2)
+            Eb[5, col] += 1.0 * (y[0] * f1 - y[1] * f0)
 
 
 @njit(cache=True, nogil=True)
@@ -199,18 +210,22 @@ def _reaction_kernel(parents, idx_v, nv_j, St, I, ov, Z, g, acc0, Ax, E0, E, R, 
     A0[0, 0], A0[0, 1], A0[0, 2] = -g[0], -g[1], -g[2]
     a = np.empty(6)
     hm = np.empty(6)
-    for j in range(1, nj):
+    for j in range(1, nj):  # the per-x parts as row operations over the columns (contiguous rows: vectorised)
         par = parents[j]
+        AXj, AXp = AX[j], AX[par]
         for r in range(6):
             A0[j, r] = A0[par, r]
+            Rj, Rp = AXj[r], AXp[r]
             for col in range(nx):
-                AX[j, r, col] = AX[par, r, col]
+                Rj[col] = Rp[col]
         for c in range(idx_v[j], idx_v[j] + nv_j[j]):
+            Axc = Ax[c]
             for r in range(6):
                 sc = St[c, r]
                 A0[j, r] += sc * acc0[c]
+                Rj = AXj[r]
                 for col in range(nx):
-                    AX[j, r, col] += sc * Ax[c, col]
+                    Rj[col] += sc * Axc[col]
         for r in range(6):
             a[r] = A0[j, r] + Z[j, r]
         for r in range(6):
@@ -222,39 +237,47 @@ def _reaction_kernel(parents, idx_v, nv_j, St, I, ov, Z, g, acc0, Ax, E0, E, R, 
             F0[j, r] = s - E0[j, r]
             hm[r] = t
         rc.add_motion_cross_force(ov[j], hm, F0[j])  # F0 += v x* h (gyroscopic/bias wrench)
-        for r in range(6):
+        FXj = FX[j]
+        X0, X1, X2, X3, X4, X5 = AXj[0], AXj[1], AXj[2], AXj[3], AXj[4], AXj[5]
+        for r in range(6):  # FX_j = I_j AX_j - E_j, the six products of a row in one pass over the columns
+            Fr = FXj[r]
+            i0, i1, i2, i3, i4, i5 = I[j, r, 0], I[j, r, 1], I[j, r, 2], I[j, r, 3], I[j, r, 4], I[j, r, 5]
             for col in range(nx):
-                FX[j, r, col] = -FX[j, r, col]
-            for k in range(6):
-                ik = I[j, r, k]
-                if ik != 0.0:
-                    for col in range(nx):
-                        FX[j, r, col] += ik * AX[j, k, col]
+                Fr[col] = -Fr[col] + i0 * X0[col] + i1 * X1[col] + i2 * X2[col] + i3 * X3[col] + i4 * X4[col] \
+                    + i5 * X5[col]
     for j in range(nj - 1, 0, -1):
         par = parents[j]
+        FXj, FXp = FX[j], FX[par]
         for r in range(6):
             F0[par, r] += F0[j, r]
+            Fp, Fj = FXp[r], FXj[r]
             for col in range(nx):
-                FX[par, r, col] += FX[j, r, col]
+                Fp[col] += Fj[col]
+    tq = np.empty((3, nx))  # moments about the joint origin, per column
     for q in range(len(jids)):
         j = jids[q]
         px, py, pz = p[j, 0], p[j, 1], p[j, 2]
-        for col in range(-1, nx):
-            if col < 0:
-                fx, fy, fz, tx, ty, tz = F0[j, 0], F0[j, 1], F0[j, 2], F0[j, 3], F0[j, 4], F0[j, 5]
-            else:
-                fx, fy, fz = FX[j, 0, col], FX[j, 1, col], FX[j, 2, col]
-                tx, ty, tz = FX[j, 3, col], FX[j, 4, col], FX[j, 5, col]
-            tx -= py * fz - pz * fy
-            ty -= pz * fx - px * fz
-            tz -= px * fy - py * fx
-            for r in range(3):
-                lf = R[j, 0, r] * fx + R[j, 1, r] * fy + R[j, 2, r] * fz
-                lt = R[j, 0, r] * tx + R[j, 1, r] * ty + R[j, 2, r] * tz
-                if col < 0:
-                    W0[q, r], W0[q, 3 + r] = lf, lt
-                else:
-                    Wx[q, r, col], Wx[q, 3 + r, col] = lf, lt
+        fx, fy, fz, tx, ty, tz = F0[j, 0], F0[j, 1], F0[j, 2], F0[j, 3], F0[j, 4], F0[j, 5]
+        tx -= py * fz - pz * fy
+        ty -= pz * fx - px * fz
+        tz -= px * fy - py * fx
+        for r in range(3):
+            W0[q, r] = R[j, 0, r] * fx + R[j, 1, r] * fy + R[j, 2, r] * fz
+            W0[q, 3 + r] = R[j, 0, r] * tx + R[j, 1, r] * ty + R[j, 2, r] * tz
+        # the same per column x, as row operations over the columns (contiguous: vectorised)
+        Fx, Fy, Fz = FX[j, 0], FX[j, 1], FX[j, 2]
+        Tx, Ty, Tz = FX[j, 3], FX[j, 4], FX[j, 5]
+        mx, my, mz = tq[0], tq[1], tq[2]
+        for col in range(nx):
+            mx[col] = Tx[col] - (py * Fz[col] - pz * Fy[col])
+            my[col] = Ty[col] - (pz * Fx[col] - px * Fz[col])
+            mz[col] = Tz[col] - (px * Fy[col] - py * Fx[col])
+        for r in range(3):
+            r0, r1, r2 = R[j, 0, r], R[j, 1, r], R[j, 2, r]
+            Wf, Wt = Wx[q, r], Wx[q, 3 + r]
+            for col in range(nx):
+                Wf[col] = r0 * Fx[col] + r1 * Fy[col] + r2 * Fz[col]
+                Wt[col] = r0 * mx[col] + r1 * my[col] + r2 * mz[col]
 
 
 def static_external_world(mech, kin, ws, site_forces=None):

@@ -32,14 +32,18 @@ def spd_inverse(A):
     L = np.zeros((n, n))
     if not cholesky(A, L):
         return L, False
-    Li = np.zeros((n, n))
-    for j in range(n):
-        Li[j, j] = 1.0 / L[j, j]
-        for i in range(j + 1, n):
-            s = 0.0
-            for k in range(j, i):
-                s -= L[i, k] * Li[k, j]
-            Li[i, j] = s / L[i, i]
+    Li = np.zeros((n, n))  # L^-1 by rows: row i accumulates -L[i, k] row k for k < i (each entry's terms in
+    for i in range(n):     # increasing k, as the column-by-column recurrence), contiguous rows: vectorised
+        Li[i, i] = 1.0 / L[i, i]
+        si = Li[i]
+        for k in range(i):
+            f = L[i, k]
+            rk = Li[k, :k + 1]
+            for j in range(rk.shape[0]):
+                si[j] -= f * rk[j]
+        d = L[i, i]
+        for j in range(i):
+            si[j] = si[j] / d
     return np.ascontiguousarray(Li.T) @ Li, True
 
 
@@ -56,15 +60,23 @@ def fixed_row_weights(wT, T, Ainv):
     W_kk is zero up to round-off: the friction impulse no longer moves the velocity but still loads the
     drive (its required torque, Eq. 7), and a zero weight would declare the loop converged before the
     friction QP has run. Such rows (W_kk <= FIXED_ROW (T A^-1 T^T)_kk) are weighed by their
-    unconstrained mobility (T A^-1 T^T)_kk instead; every other row keeps W_kk."""
+    unconstrained mobility (T A^-1 T^T)_kk instead; every other row keeps W_kk. The double sum runs over
+    the row's nonzeros, listed once per row (the same terms in the same order as over all pairs)."""
+    nz = np.empty(T.shape[1], dtype=np.int64)
     for i in range(T.shape[0]):
-        u = 0.0
+        k = 0
         for a in range(T.shape[1]):
+            if T[i, a] != 0.0:
+                nz[k] = a
+                k += 1
+        u = 0.0
+        for p in range(k):
+            a = nz[p]
             ta = T[i, a]
-            if ta != 0.0:
-                for c in range(T.shape[1]):
-                    if T[i, c] != 0.0:
-                        u += ta * Ainv[a, c] * T[i, c]
+            Aa = Ainv[a]
+            for q in range(k):
+                c = nz[q]
+                u += ta * Aa[c] * T[i, c]
         if wT[i] <= FIXED_ROW * u:
             wT[i] = u
 
@@ -100,15 +112,21 @@ def _sparse_left(R, ptr, idx, B):
 
 @njit(cache=True, nogil=True)
 def _sparse_right_t(B, R, ptr, idx):
-    """B @ R^T over the nonzeros of R (B (k,n), R (r,n) with pattern ptr/idx) -> (k, r)."""
-    out = np.zeros((B.shape[0], R.shape[0]))
+    """B @ R^T over the nonzeros of R (B (k,n), R (r,n) with pattern ptr/idx) -> (k, r): row j of the
+    transposed product accumulates R[j, c] times row c of B^T over the row's nonzeros (contiguous rows:
+    vectorised), each entry summed in the order of R's pattern."""
+    BT = np.ascontiguousarray(B.T)
+    k = B.shape[0]
+    outT = np.zeros((R.shape[0], k))
     for j in range(R.shape[0]):
+        oj = outT[j]
         for q in range(ptr[j], ptr[j + 1]):
             c = idx[q]
             rc = R[j, c]
-            for i in range(B.shape[0]):
-                out[i, j] += B[i, c] * rc
-    return out
+            bc = BT[c]
+            for i in range(k):
+                oj[i] += bc[i] * rc
+    return np.ascontiguousarray(outT.T)
 
 
 @njit(cache=True, nogil=True)
@@ -150,7 +168,7 @@ def condense(A, b, G, g, RX, nu):
         WX = _sparse_right_t(RXP, RX, rptr, ridx)
         Xv0 = RX @ v0
         if m:
-            LamX = Sinv @ np.ascontiguousarray(_sparse_right_t(GA, RX, rptr, ridx))  # S^-1 Y^T RX^T
+            LamX = _sparse_right_t(SG, RX, rptr, ridx)  # S^-1 Y^T RX^T
     W_U = np.ascontiguousarray(WX[:nu, :nu])
     X_UT = np.ascontiguousarray(-WX[:nu, nu:])
     X_TU = np.ascontiguousarray(X_UT.T)

@@ -44,6 +44,7 @@ from redmax_ros.core.friction import bisp
 from redmax_ros.core.friction.condense import condense
 from redmax_ros.core.friction.contact import staggered_rows
 from redmax_ros.core.errors import StepError
+from redmax_ros.core.linalg import dot
 from redmax_ros.core.solvers.budget import qp_solve
 from redmax_ros.core.solvers.problem import LinearSystem
 from redmax_ros.core.solvers.direct import Solution
@@ -84,9 +85,7 @@ def _pgs(W, c, lo, hi, x, tol, max_sweeps):
             d = W[i, i]
             if d <= 1e-300:
                 continue
-            r = c[i]
-            for j in range(n):
-                r += W[i, j] * x[j]
+            r = c[i] + dot(W[i], x)  # four partial sums (linalg.dot): the row product is the sweep's cost
             xi = min(max(x[i] - r / d, lo[i]), hi[i])
             ch = abs(xi - x[i]) * d
             if ch > big:
@@ -125,6 +124,27 @@ def _small_solve(H, r):
             sacc -= A[i, c] * x[c]
         x[i] = sacc / A[i, i]
     return x, True
+
+
+@numba.njit(cache=True)
+def _abs_sum(a):
+    """sum_k |a_k| in four interleaved partial sums (as linalg.dot)."""
+    n = a.shape[0]
+    s0 = 0.0
+    s1 = 0.0
+    s2 = 0.0
+    s3 = 0.0
+    k = 0
+    while k + 4 <= n:
+        s0 += abs(a[k])
+        s1 += abs(a[k + 1])
+        s2 += abs(a[k + 2])
+        s3 += abs(a[k + 3])
+        k += 4
+    while k < n:
+        s0 += abs(a[k])
+        k += 1
+    return (s0 + s1) + (s2 + s3)
 
 
 @numba.njit(cache=True)
@@ -202,6 +222,11 @@ def staggered_kernel(W_U, X_UT, X_TU, U_v0, lo_U, W_T, T_v0, mu_g, a0, Mx, Lop, 
     cf = np.zeros(nf)
     converged = False
     per_it = 2.0 * nu * nf + len(a0) * nx + depth * (depth + 2) * nf + nx
+    Lt = np.empty((nw, 6, kmax))  # Lop with the points last: alpha_j = h L_j W_j as six axpys over the points
+    for j in range(nw):
+        for kk in range(kmax):
+            for e in range(6):
+                Lt[j, e, kk] = Lop[j, kk, e]
     while True:
         if it > it0 and work - work0 > work_cap:  # pause: the state is in sbuf/sint, alpha, beta
             sint[0], sint[1], sint[2] = it, k_hist, 1 if have_prev else 0
@@ -235,18 +260,16 @@ def staggered_kernel(W_U, X_UT, X_TU, U_v0, lo_U, W_T, T_v0, mu_g, a0, Mx, Lop, 
                     o = 6 * j
                     f0, f1, f2 = a0[o] + wr[o], a0[o + 1] + wr[o + 1], a0[o + 2] + wr[o + 2]
                     t0, t1, t2 = a0[o + 3] + wr[o + 3], a0[o + 4] + wr[o + 4], a0[o + 5] + wr[o + 5]
+                    aj = al[j * kmax:(j + 1) * kmax]
+                    L0, L1, L2, L3, L4, L5 = Lt[j, 0], Lt[j, 1], Lt[j, 2], Lt[j, 3], Lt[j, 4], Lt[j, 5]
                     for kk in range(kmax):
-                        Lk = Lop[j, kk]
-                        al[j * kmax + kk] = h * (Lk[0] * f0 + Lk[1] * f1 + Lk[2] * f2 + Lk[3] * t0 + Lk[4] * t1
-                                                 + Lk[5] * t2)
+                        aj[kk] = h * (L0[kk] * f0 + L1[kk] * f1 + L2[kk] * f2 + L3[kk] * t0 + L4[kk] * t1
+                                      + L5[kk] * t2)
             else:
                 al[:] = a0 + Mx @ x
             nj = len(bound_mu)
             for j in range(nj):
-                sacc = 0.0
-                for kk in range(kmax):
-                    sacc += abs(al[j * kmax + kk])
-                bound[ng + j] = bound_mu[j] * sacc
+                bound[ng + j] = bound_mu[j] * _abs_sum(al[j * kmax:(j + 1) * kmax])
         resid = 0.0
         for i in range(nu):
             resid = max(resid, abs(alpha[i] - prev_u[i]) * wU[i])
@@ -297,15 +320,10 @@ def staggered_kernel(W_U, X_UT, X_TU, U_v0, lo_U, W_T, T_v0, mu_g, a0, Mx, Lop, 
                     Df = np.empty(k_hist)
                     for r in range(k_hist):
                         for q in range(r + 1):
-                            sacc = 0.0
-                            for i in range(nf):
-                                sacc += D[r, i] * D[q, i]
+                            sacc = dot(D[r], D[q])
                             H[r, q] = sacc
                             H[q, r] = sacc
-                        sacc = 0.0
-                        for i in range(nf):
-                            sacc += D[r, i] * f[i]
-                        Df[r] = sacc
+                        Df[r] = dot(D[r], f)
                     tr = 0.0
                     for r in range(k_hist):
                         tr += H[r, r]
