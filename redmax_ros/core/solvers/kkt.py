@@ -25,6 +25,7 @@ from redmax_ros.core.jit import njit
 from redmax_ros.core.linalg import chol_solve, cholesky, dot
 
 SMALL_N = 64  # DOFs at or below which solve.solve_direct uses this kernel
+TREE_SHARE = 0.25  # kkt_solve_tree_into: the tree factorisation when its flops are below this share of the dense
 
 
 @njit
@@ -165,6 +166,182 @@ def kkt_solve_into(A, b, G, g, C, lo, hi, L, Y, S, LS, y, v, lam):
         _rows_minus(G, v, g, lam)
         chol_solve(LS, lam)
         viol = _correct(G, g, L, Y, lam, y, v)
+    return 0, ratio, viol, _limits_ok(C, v, lo, hi)
+
+
+# ------------------------------------------------------------------------------------------------
+# the same solve on A's branch-induced sparsity: Featherstone's L^T D L factorisation (RBDA section 6.5)
+
+
+@njit
+def tree_structure(A, par, allowed):
+    """par[n] = 1 if the L^T D L path pays (flops sum_k depth_k^2 below TREE_SHARE of the dense n^3 / 3: its
+    chain walks do not vectorise, so a chain or a spring-filled matrix stays with the dense Cholesky), else 0.
+    The elimination tree of A's nonzero pattern for the L^T D L factorisation below (eliminating from the
+    last DOF to the first): par[k] (-1 at a root) is the largest j < k joined to k once the DOFs after k are
+    eliminated (their fill included), and allowed[k, j] = 1 for the j on k's chain par[k], par[par[k]], ...
+    (and j = k): every nonzero of L (and of A) in row k is on that chain (RBDA section 6.5; for a kinematic
+    tree ordered parents first this is the tree itself and nothing fills). O(n^3) at most; run when A's
+    pattern leaves ``allowed`` (kkt_solve_tree_into)."""
+    n = A.shape[0]
+    F = np.zeros((n, n), dtype=np.bool_)
+    for i in range(n):
+        for j in range(i):
+            if A[i, j] != 0.0 or A[j, i] != 0.0:
+                F[i, j] = True
+    for k in range(n - 1, -1, -1):
+        p = -1
+        for j in range(k - 1, -1, -1):
+            if F[k, j]:
+                p = j
+                break
+        par[k] = p
+        for a in range(k):  # the lower neighbours of k become a clique (fill)
+            if F[k, a]:
+                for b in range(a):
+                    if F[k, b]:
+                        F[a, b] = True
+    allowed[:, :] = 0
+    work = 0
+    for k in range(n):
+        allowed[k, k] = 1
+        depth = 1
+        j = par[k]
+        while j != -1:
+            allowed[k, j] = 1
+            depth += 1
+            j = par[j]
+        work += depth * depth
+    par[n] = 1 if work < TREE_SHARE * n * n * n / 3.0 else 0
+
+
+@njit
+def _within(A, allowed):
+    """Whether every nonzero below A's diagonal is in ``allowed`` (the chains of tree_structure)."""
+    n = A.shape[0]
+    for i in range(n):
+        for j in range(i):
+            if A[i, j] != 0.0 and allowed[i, j] == 0:
+                return False
+    return True
+
+
+@njit
+def ltdl(A, par, H):
+    """A = L^T D L on the chains ``par`` (RBDA Table 6.3): H gets L below the diagonal (unit diagonal
+    implied) and D on it; entries off the chains are never read or written. False if a pivot is not
+    positive (A not positive definite)."""
+    n = A.shape[0]
+    for i in range(n):
+        for j in range(i + 1):
+            H[i, j] = A[i, j]
+    for k in range(n - 1, -1, -1):
+        d = H[k, k]
+        if not d > 0.0:
+            return False
+        i = par[k]
+        while i != -1:
+            a = H[k, i] / d
+            j = i
+            while j != -1:
+                H[i, j] -= a * H[k, j]
+                j = par[j]
+            H[k, i] = a
+            i = par[i]
+    return True
+
+
+@njit
+def _ltdl_solve(H, par, x):
+    """x <- A^-1 x = L^-1 D^-1 L^-T x with H from ltdl (RBDA Table 6.4)."""
+    n = H.shape[0]
+    for i in range(n - 1, -1, -1):  # L^T y = x
+        xi = x[i]
+        j = par[i]
+        while j != -1:
+            x[j] -= H[i, j] * xi
+            j = par[j]
+    for i in range(n):
+        x[i] /= H[i, i]
+    for i in range(n):  # L x = y
+        s = x[i]
+        j = par[i]
+        while j != -1:
+            s -= H[i, j] * x[j]
+            j = par[j]
+        x[i] = s
+
+
+@njit
+def kkt_solve_tree_into(A, b, G, g, C, lo, hi, par, allowed, L, Y, S, LS, y, v, lam):
+    """kkt_solve_into on A's tree sparsity: A = L^T D L (ltdl) instead of a dense Cholesky, Y = L^-T G^T (n, m)
+    by one back substitution along the chains for all m rows, S = Y^T D^-1 Y over each row's nonzeros (a
+    fingertip's rows are nonzero on its own chain only), and the correction v -= L^-1 D^-1 (Y lam). ``par``,
+    ``allowed``: tree_structure of A, recomputed here when A has a nonzero off its chains (par[0] == -2: not
+    yet made; par has n + 1 entries, the last one tree_structure's choice: 0 sends the solve to the dense
+    kkt_solve_into). Returns what kkt_solve_into returns, the pivot ratio from the Cholesky factor of S."""
+    n, m = A.shape[0], G.shape[0]
+    if par[0] == -2 or (par[n] == 1 and not _within(A, allowed)):
+        tree_structure(A, par, allowed)
+    if par[n] == 0:
+        return kkt_solve_into(A, b, G, g, C, lo, hi, L, Y, S, LS, y, v, lam)
+    v[:] = b
+    lam[:] = 0.0
+    if not ltdl(A, par, L):
+        return 1, 0.0, 0.0, False
+    _ltdl_solve(L, par, v)
+    ratio, viol = 1.0, 0.0
+    if m:
+        for i in range(n):
+            Yi = Y[i]
+            for r in range(m):
+                Yi[r] = G[r, i]
+        for i in range(n - 1, -1, -1):  # Y = L^-T G^T: row axpys up the chain
+            Yi = Y[i]
+            j = par[i]
+            while j != -1:
+                lij = L[i, j]
+                Yj = Y[j]
+                for r in range(m):
+                    Yj[r] -= lij * Yi[r]
+                j = par[j]
+        S[:, :] = 0.0
+        for k in range(n):  # S = Y^T D^-1 Y, each row's nonzero span only
+            Yk = Y[k]
+            r0, r1 = m, -1
+            for r in range(m):
+                if Yk[r] != 0.0:
+                    r0 = min(r0, r)
+                    r1 = r
+            dk = 1.0 / L[k, k]
+            for r in range(r0, r1 + 1):
+                w = Yk[r] * dk
+                if w != 0.0:
+                    Sr = S[r]
+                    for c in range(r0, r1 + 1):
+                        Sr[c] += w * Yk[c]
+        if not cholesky(S, LS):
+            return 2, 0.0, 0.0, False
+        dmin, dmax = LS[0, 0], LS[0, 0]
+        for r in range(1, m):
+            d = LS[r, r]
+            dmin = min(dmin, d)
+            dmax = max(dmax, d)
+        ratio = dmin / dmax
+        _rows_minus(G, v, g, lam)
+        chol_solve(LS, lam)
+        for k in range(n):  # v -= L^-1 D^-1 (Y lam)
+            y[k] = dot(Y[k], lam) / L[k, k]
+        for i in range(n):
+            s = y[i]
+            j = par[i]
+            while j != -1:
+                s -= L[i, j] * y[j]
+                j = par[j]
+            y[i] = s
+        for k in range(n):
+            v[k] -= y[k]
+        viol = max_row_residual(G, v, g)
     return 0, ratio, viol, _limits_ok(C, v, lo, hi)
 
 

@@ -14,7 +14,7 @@ from collections import namedtuple
 import numpy as np
 
 from redmax_ros.core.jit import njit_inline
-from redmax_ros.core.step.compiled.packing import f1, f2, f3, i1, pack
+from redmax_ros.core.step.compiled.packing import f1, f2, f3, i1, i2, pack
 
 DATA_SPEC = (
     # kinematics (world frame at the world origin, linear first: recursive.py's convention)
@@ -54,6 +54,9 @@ DATA_SPEC = (
     # q* (-) q^ and q_k (-) q_k-1 (nv,), twists of v^ and of q* (-) q^ (njoints, 6), site displacements x* - x^ (S, 3)
     ("q_base", "f", 1), ("q_lin", "f", 1), ("v_lin", "f", 1), ("v_mom_h", "f", 1), ("v_mom", "f", 1),
     ("back", "f", 1), ("bdf_d", "f", 1), ("ovm", "f", 2), ("ovb", "f", 2), ("Xf", "f", 2),
+    # A's elimination tree (ndof + 1: the last entry 1 = the L^T D L path) and chains, solvers/kkt.tree_structure;
+    # kkt_par[0] = -2 until first made
+    ("kkt_par", "i", 1), ("kkt_allowed", "i", 2),
 )
 
 Data = namedtuple("Data", [n for n, _, _ in DATA_SPEC])
@@ -87,7 +90,8 @@ def data_views(f, i, t):
                 f2(f, t, 67), f1(f, t, 68), f1(f, t, 69), f2(f, t, 70), f2(f, t, 71), f2(f, t, 72),
                 f1(f, t, 73),
                 f1(f, t, 74), f1(f, t, 75), f1(f, t, 76), f1(f, t, 77), f1(f, t, 78),
-                f1(f, t, 79), f1(f, t, 80), f2(f, t, 81), f2(f, t, 82), f2(f, t, 83))
+                f1(f, t, 79), f1(f, t, 80), f2(f, t, 81), f2(f, t, 82), f2(f, t, 83),
+                i1(i, t, 84), i2(i, t, 85))
 
 
 def build_data(mech, model, joints: tuple, sites: tuple, site_axes: dict, T) -> "Packed":
@@ -135,7 +139,8 @@ def build_data(mech, model, joints: tuple, sites: tuple, site_axes: dict, T) -> 
         v_hyper=np.zeros(ndof), q_new=np.zeros(nq), v_new=np.zeros(nv), effort=np.zeros(nv),
         site_force=np.zeros((len(sites), 3)), out=np.zeros(N_OUT),
         kkt_L=np.zeros((ndof, ndof)), kkt_Y=np.zeros((ndof, m)), kkt_S=np.zeros((m, m)), kkt_LS=np.zeros((m, m)),
-        kkt_y=np.zeros(ndof), site_rows=np.zeros((3, nv)),
+        kkt_y=np.zeros(ndof), kkt_par=np.full(ndof + 1, -2, np.int64), kkt_allowed=np.zeros((ndof, ndof), np.int64),
+        site_rows=np.zeros((3, nv)),
         phi=np.zeros(nl), dx=np.zeros(3 * len(mech.loop_ab)),
         chord_KK=np.zeros((nl + len(held), nl + len(held))), chord_L=np.zeros((nl + len(held), nl + len(held))),
         chord_y=np.zeros(nl + len(held)), chord_dq=np.zeros(ndof), chord_out=np.zeros(nv),

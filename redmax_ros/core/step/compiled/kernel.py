@@ -6,7 +6,7 @@ preallocated workspace):
     kinematics(m, d, q*, v*)               # 1  forward kinematics, twists, inertias, sites (kinematics.py)
     assemble(m, d, q^, v*, v^, tau, hh)    # 2  A_R, b_R of Eq. (2), Eq. (9-10) (forces.py)
     rows(m, d, q^, hh, gj, sv)             # 3  loops, prescribed joints and sites (Eq. 7), limits (rows.py)
-    kkt_solve_into(A_R, b_R, G, g, ...)    # 4  Cholesky + Schur complement of Eq. (6)/(7) (solvers/kkt.py)
+    kkt_solve_tree_into(A_R, b_R, G, g, ...)  # 4  L^T D L on the tree (or Cholesky) + Schur complement of Eq. (6)/(7) (solvers/kkt.py)
     active_set(m, d)                       # 4' joint limits of Eq. (5), when one is crossed (limits.py)
     friction_solve(m, d, c, h, cache, ...) # 4'' instead of 4: contact and joint friction, Alg. 2-3 (friction.py)
     update_configuration(m, d, q^, hh)     # 5  manifold update, loop post-stabilization (update.py)
@@ -31,7 +31,7 @@ from __future__ import annotations
 
 from redmax_ros.core.jit import njit, njit_inline
 from redmax_ros.core.step.compiled.cache import drop_stale
-from redmax_ros.core.solvers.kkt import kkt_residual, kkt_solve_into
+from redmax_ros.core.solvers.kkt import kkt_residual, kkt_solve_tree_into
 from redmax_ros.core.step.compiled.data import (OUT_ITERS, OUT_E_KIN, OUT_E_POT, OUT_E_SPRING, OUT_ORDER, OUT_RESIDUAL,
                                                 OUT_STAGE, OUT_VIOL_POS, OUT_VIOL_VEL, data_views)
 from redmax_ros.core.step.compiled.energy import energies
@@ -95,8 +95,9 @@ def stages(m, d, q, vR, tau, h, gj, sv, qp, vp, hist):
     status, hh = rigid_stages(m, d, q, vR, tau, h, gj, sv, qp, vp, hist)  # 0-3
     if status != OK:
         return status
-    status, ratio, viol, limits_ok = kkt_solve_into(d.AR, d.bR, d.G, d.g, m.limit_rows, d.lo, d.hi, d.kkt_L,
-                                                    d.kkt_Y, d.kkt_S, d.kkt_LS, d.kkt_y, d.v_hyper, d.lam)  # 4
+    status, ratio, viol, limits_ok = kkt_solve_tree_into(d.AR, d.bR, d.G, d.g, m.limit_rows, d.lo, d.hi, d.kkt_par,
+                                                         d.kkt_allowed, d.kkt_L, d.kkt_Y, d.kkt_S, d.kkt_LS, d.kkt_y,
+                                                         d.v_hyper, d.lam)  # 4
     if status == 1:
         return _handoff(d.out, STAGE_FACTOR)
     if status == 2 or ratio <= 1e-6:

@@ -7,12 +7,12 @@ bound, mu >= 0 at its upper bound and mu = 0 off its bounds (the sign convention
 ProxSuite's box multipliers). Starting from the solution with no limit active, each iteration adds the most
 violated limit row (at the bound it crosses) or, when every row is within its bounds, drops the active row
 whose multiplier has the wrong sign, and solves the KKT system of Eq. (6) with the working rows as equalities
-(kkt_solve_into). Few rows change per step, so it converges in a handful of iterations; if it does not within
+(kkt_solve_tree_into). Few rows change per step, so it converges in a handful of iterations; if it does not within
 4 p + 4 iterations, or a KKT solve fails, the step is handed to the reference (ProxSuite, solvers/direct.py)."""
 from __future__ import annotations
 
 from redmax_ros.core.jit import njit_inline
-from redmax_ros.core.solvers.kkt import kkt_solve_into, max_row_residual
+from redmax_ros.core.solvers.kkt import kkt_solve_tree_into, max_row_residual
 
 FEAS_TOL = 1e-12  # as kkt._limits_ok: lo - 1e-12 <= C qdot <= hi + 1e-12
 MU_TOL = 1e-13  # a multiplier within this (relative to the largest) of zero has the right sign
@@ -32,9 +32,9 @@ def _solve_working_set(m, d):
             d.Gx[r, :] = m.limit_rows[k]
             d.gx[r] = d.lo[k] if d.wset[k] < 0.0 else d.hi[k]
             r += 1
-    status, ratio, viol, ok = kkt_solve_into(d.AR, d.bR, d.Gx[:r], d.gx[:r], m.limit_rows[:0], d.lo[:0], d.hi[:0],
-                                             d.kkt_L, d.kkt_Yx[:ndof, :r], d.kkt_Sx[:r, :r], d.kkt_LSx[:r, :r],
-                                             d.kkt_y, d.v_hyper, d.lamx[:r])
+    status, ratio, viol, ok = kkt_solve_tree_into(d.AR, d.bR, d.Gx[:r], d.gx[:r], m.limit_rows[:0], d.lo[:0], d.hi[:0],
+                                                  d.kkt_par, d.kkt_allowed, d.kkt_L, d.kkt_Yx[:ndof, :r],
+                                                  d.kkt_Sx[:r, :r], d.kkt_LSx[:r, :r], d.kkt_y, d.v_hyper, d.lamx[:r])
     if status != 0 or ratio <= 1e-6:
         return 1
     # multipliers back to their rows
