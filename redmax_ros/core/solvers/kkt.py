@@ -112,6 +112,22 @@ def _gram(W, S):
 
 
 @njit
+def _multipliers(S, LS, G, v, g, lam):
+    """lam = S^-1 (G v - g) with v = A^-1 b, by S = L_S L_S^T into LS; returns the pivot ratio min/max diagonal
+    of L_S, or -1 when S is not positive definite."""
+    if not cholesky(S, LS):
+        return -1.0
+    dmin, dmax = LS[0, 0], LS[0, 0]
+    for r in range(1, S.shape[0]):
+        d = LS[r, r]
+        dmin = min(dmin, d)
+        dmax = max(dmax, d)
+    _rows_minus(G, v, g, lam)
+    chol_solve(LS, lam)
+    return dmin / dmax
+
+
+@njit
 def _limits_ok(C, v, lo, hi):
     """lo - 1e-12 <= C v <= hi + 1e-12 (no QP needed for the unilateral rows of Eq. 5)."""
     for r in range(C.shape[0]):
@@ -155,16 +171,9 @@ def kkt_solve_into(A, b, G, g, C, lo, hi, L, Y, S, LS, y, v, lam):
     if m:
         _forward_rows(L, G, Y)  # W
         _gram(Y, S)  # S = W^T W = G A^-1 G^T
-        if not cholesky(S, LS):
+        ratio = _multipliers(S, LS, G, v, g, lam)
+        if ratio < 0.0:
             return 2, 0.0, 0.0, False
-        dmin, dmax = LS[0, 0], LS[0, 0]
-        for r in range(1, m):
-            d = LS[r, r]
-            dmin = min(dmin, d)
-            dmax = max(dmax, d)
-        ratio = dmin / dmax
-        _rows_minus(G, v, g, lam)
-        chol_solve(LS, lam)
         viol = _correct(G, g, L, Y, lam, y, v)
     return 0, ratio, viol, _limits_ok(C, v, lo, hi)
 
@@ -320,16 +329,9 @@ def kkt_solve_tree_into(A, b, G, g, C, lo, hi, par, allowed, L, Y, S, LS, y, v, 
                     Sr = S[r]
                     for c in range(r0, r1 + 1):
                         Sr[c] += w * Yk[c]
-        if not cholesky(S, LS):
+        ratio = _multipliers(S, LS, G, v, g, lam)
+        if ratio < 0.0:
             return 2, 0.0, 0.0, False
-        dmin, dmax = LS[0, 0], LS[0, 0]
-        for r in range(1, m):
-            d = LS[r, r]
-            dmin = min(dmin, d)
-            dmax = max(dmax, d)
-        ratio = dmin / dmax
-        _rows_minus(G, v, g, lam)
-        chol_solve(LS, lam)
         for k in range(n):  # v -= L^-1 D^-1 (Y lam)
             y[k] = dot(Y[k], lam) / L[k, k]
         for i in range(n):
