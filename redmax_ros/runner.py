@@ -181,6 +181,9 @@ def csv_row(sim: Simulator, res) -> np.ndarray:
     return np.concatenate([np.atleast_1d(np.asarray(p, float)) for p in parts])
 
 
+CHUNK = 64  # steps per Simulator.step_results call of ``run`` (and per progress-bar update)
+
+
 def progress_bar(total: int, quiet: bool, unit: str = "step", desc: str | None = None):
     """A tqdm bar on stderr, shown only once the work has lasted 2 s of wall time (never when ``quiet``)."""
     return tqdm(total=total, disable=quiet, delay=2.0, mininterval=0.25, unit=unit, desc=desc, leave=False,
@@ -200,21 +203,25 @@ def run(sim: Simulator, n_steps: int, quiet=False, controller=None, on_step=None
     err = None
     t0 = time.perf_counter()
     k = 0
+    # without a controller, a callback or deformables (whose CSV columns are read from the simulator's
+    # state), steps go in runs of CHUNK: Simulator.step_results records them all in one kernel call
+    chunked = controller is None and on_step is None and sim.deformables is None
     with progress_bar(n_steps, quiet) as bar:
-        for k in range(1, n_steps + 1):
+        while k < n_steps and err is None:
             if controller is not None:
                 apply_commands(sim, controller(sim.time, sim.state))
             try:
-                res = sim.step()
+                results = sim.step_results(min(CHUNK, n_steps - k)) if chunked else [sim.step()]
             except StepError as e:
                 err = e
-                k -= 1
-                break
-            rows[k] = csv_row(sim, res)
-            if on_step is not None:
-                on_step(sim, res)
-            if k % 64 == 0:
-                bar.update(64)
+                results = getattr(e, "results", [])
+            for res in results:
+                k += 1
+                rows[k] = csv_row(sim, res)
+                if on_step is not None:
+                    on_step(sim, res)
+                if k % CHUNK == 0:
+                    bar.update(CHUNK)
     wall = time.perf_counter() - t0
     return header, rows[:k + 1], err, wall
 

@@ -417,6 +417,32 @@ class Simulator:
             self.last = res
         return res
 
+    def step_results(self, n: int = 1) -> list:
+        """Advance n steps; returns every step's StepResult, in order (``step`` returns the last one). On the
+        compiled path each run of steps is one kernel call that records every step's outputs, so a result
+        per step costs no step call of its own (the node publishing joint_states every step). The results are
+        those of n single steps (test_step_results.py). On StepError the state is that after the last
+        successful step (``err.steps_done`` of them) and ``err.results`` holds their results."""
+        if int(n) != n or n < 1:
+            raise CommandError(f"step count must be a positive integer, got {n}")
+        out = []
+        run = getattr(self.backend, "step_run", None)
+        while len(out) < n:
+            try:
+                if run is None:
+                    self.state, res = self.backend.step(self.state, self.commands, self.dt, self._budget)
+                    out.append(res)
+                else:
+                    self.state, res, _ = run(self.state, self.commands, self.dt, int(n) - len(out), self._budget,
+                                             record=True)
+                    out.extend(res)
+            except StepError as e:
+                err = StepError(f"step at t = {self.state.t:.6g} s failed: {e.reason}", steps_done=len(out))
+                err.results = out
+                raise err from None
+            self.last = out[-1]
+        return out
+
     def step_batch(self, states, n: int = 1):
         """Advance each of the independent ``states`` (of this scene) by n steps with this simulator's commands
         and dt; the simulator's own state is untouched. On the compiled path the instances run in parallel in

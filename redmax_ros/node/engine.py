@@ -243,7 +243,7 @@ class Engine:
                         self._apply_open_batch()
                         # one run of the steps due (pacer), ending where _run_length ends runs
                         due = self.pacer.steps_due(self.sim.time, self.sim.dt, RUN_CAP_MAX)
-                        out = self._advance(self._run_length(due), lockstep=False)
+                        out = self._advance(self._run_length(due, self._records(False)), lockstep=False)
                     except Exception as e:  # a sink failure must not kill the simulation thread
                         out = Outcome(OPERATION_FAILED, f"{type(e).__name__}: {e}")
                     if not out.ok:
@@ -362,7 +362,8 @@ class Engine:
         """n steps, in runs (Simulator.step(k): one kernel call for k steps on the compiled path, issue 12
         point 2) that end wherever something has to happen between steps: a published state, markers or
         frames, the last step of a lockstep request, a command's timeout, and the feedback of an action
-        (then every step is a run of one). A run is also kept under ~RUN_WALL wall seconds, so a
+        (then every step is a run of one). Publishing every step (publish_every 1), a run records every
+        step's result in its one kernel call (Simulator.step_results) and each is published. A run is also kept under ~RUN_WALL wall seconds, so a
         cancel or shutdown is seen within about that time. A failed step reports the steps done before it
         (in its run too); the state is that after them. Free-run calls this with one run of the steps
         the pacer has due (_loop), so requests and commands wait for at most that run."""
@@ -375,27 +376,42 @@ class Engine:
                 return Outcome(OPERATION_FAILED, f"the node is shutting down: stopped after {i} of {n} steps",
                                steps=i, t=sim.time)
             self._expire_commands()
-            k = 1 if feedback is not None else self._run_length(n - i)
+            k = 1 if feedback is not None else self._run_length(n - i, self._records(lockstep))
+            each = feedback is None and self._records(lockstep)  # every step published: a recorded run
             w0 = time.perf_counter()
             try:
-                res = sim.step(k)
+                if each:
+                    results = sim.step_results(k)
+                    res = results[-1]
+                else:
+                    res = sim.step(k)
             except StepError as e:
                 done = int(getattr(e, "steps_done", 0))
-                self.step_index += done
+                if each:  # the run's steps before the failing one, published as single steps publish them
+                    self._publish_each(getattr(e, "results", ())[:done])
+                else:
+                    self.step_index += done
                 i += done
                 self.failures += 1
                 return Outcome(OPERATION_FAILED, f"step {i + 1} of {n} failed, state kept at t = {sim.time:.6g} s: "
                                f"{e.reason if hasattr(e, 'reason') else e}", steps=i, t=sim.time)
             wall = time.perf_counter() - w0
-            self._run_cap = _next_cap(self._run_cap, k, wall)
             i += k
-            self.step_index += k
-            idx = self.step_index
             d = res.diagnostics
-            self.meter.add(d.iterations * k, wall, k)
             self.last_diag = d
-            if idx % self.publish_every == 0 or (lockstep and i == n):
-                sink.state(res.t, res.q, res.v, res.effort, res.site_forces, d, idx, self._body_wrenches(res))
+            if each:
+                self.meter.add(sum(r.diagnostics.iterations for r in results), wall, k)
+                self._publish_each(results)
+                idx = self.step_index
+                # the run's wall time with its publishing, which keeps a cancel or shutdown within ~RUN_WALL
+                self._run_cap = _next_cap(self._run_cap, k, time.perf_counter() - w0)
+            else:
+                self._run_cap = _next_cap(self._run_cap, k, wall)
+                self.meter.add(d.iterations * k, wall, k)
+                self.step_index += k
+                idx = self.step_index
+                if idx % self.publish_every == 0 or (lockstep and i == n):
+                    sink.state(res.t, res.q, res.v, res.effort, res.site_forces, d, idx, self._body_wrenches(res))
             if self.marker_every and idx % self.marker_every == 0:
                 self._markers(res.t, getattr(d.solution, "contacts", None))
             if self.tf_every and (idx % self.tf_every == 0 or (lockstep and i == n)):
@@ -404,12 +420,29 @@ class Engine:
                 feedback(i, n, res.t)
         return Outcome(OK, "", steps=n, t=sim.time)
 
-    def _run_length(self, left: int) -> int:
-        """Steps of the next run (at most ``left``): up to the next published state, markers, frames or
-        command timeout, and at most the current run cap (_next_cap)."""
+    def _publish_each(self, results):
+        """Publish the StepResults of a recorded run (Simulator.step_results), one state per step, and count
+        the steps (the engine publishes every step: publish_every 1)."""
+        sink = self.sink
+        for r in results:
+            self.step_index += 1
+            sink.state(r.t, r.q, r.v, r.effort, r.site_forces, r.diagnostics, self.step_index, self._body_wrenches(r))
+
+    def _records(self, lockstep: bool) -> bool:
+        """Whether runs record every step's result (Simulator.step_results) and publish them all: when every
+        step is published (publish_every 1) in a step request or in free-run as fast as possible. Paced
+        free-run (real_time_factor > 0) steps one at a time then, each published when it is due: a recorded
+        run hands DDS its states back to back (~20 in 1 ms), and a reliable Python subscriber at 1 kHz lost
+        up to 80 % of them that way on a loaded machine (test_node_freerun.py)."""
+        return self.publish_every == 1 and (lockstep or self.rtf <= 0)
+
+    def _run_length(self, left: int, record: bool = False) -> int:
+        """Steps of the next run (at most ``left``): up to the next published state (unless ``record``: the
+        run records them all, _advance), markers, frames or command timeout, and at most the current run cap
+        (_next_cap)."""
         k = min(left, self._run_cap)
         idx = self.step_index
-        for every in (self.publish_every, self.marker_every, self.tf_every):
+        for every in (0 if record else self.publish_every, self.marker_every, self.tf_every):
             if every and every > 1:
                 k = min(k, every - idx % every)
             elif every == 1:

@@ -58,6 +58,24 @@ def test_runs_publish_the_same_states_at_the_same_steps_bitwise(scene):
     assert ea.sim.state.k == eb.sim.state.k == n
 
 
+@pytest.mark.parametrize("scene,overrides", [("hand", ()), ("klann", ("friction.joint_mu=0.4",))])
+def test_runs_publishing_every_step_record_the_single_steps_bitwise(scene, overrides):
+    """joint_states every step (publish_rate 0): a run records each step's result in its one kernel call
+    (Simulator.step_results) and the engine publishes them all: the same states at the same steps as
+    stepping one at a time (the action's feedback path), with markers and frames still ending the runs."""
+    n = 345
+    a, ra, ea = _run(scene, n, True, overrides, publish_rate=0.0)
+    b, rb, eb = _run(scene, n, False, overrides, publish_rate=0.0)
+    assert a.ok and b.ok and a.steps == b.steps == n
+    assert [s[0] for s in rb.states] == [s[0] for s in ra.states] == list(range(1, n + 1))
+    for sa, sb in zip(ra.states, rb.states):
+        assert sa[1] == sb[1]
+        for xa, xb in zip(sa[2:], sb[2:]):
+            assert np.array_equal(xa, xb)
+    assert eb._run_cap > 1 and eb.step_index == n
+    assert ea.sim.state.k == eb.sim.state.k == n
+
+
 def test_a_command_times_out_at_the_same_step_in_runs():
     """A held torque with command_timeout 0.0375 s sim time goes back to zero at the same step either way."""
     from sensor_msgs.msg import JointState
@@ -91,6 +109,23 @@ def test_a_failing_step_inside_a_run_reports_the_steps_before_it():
     assert np.array_equal(ea.sim.state.q, eb.sim.state.q) and np.array_equal(ea.sim.state.v, eb.sim.state.v)
 
 
+@pytest.mark.parametrize("scene,g", [("catalogue/free3d", 1e7), ("mass_springs", 5e7)])
+def test_a_failing_step_inside_a_recorded_run_publishes_the_steps_before_it(scene, g):
+    """Publishing every step, bodies under huge gravity pass the divergence limit part-way (free3d at its 101st
+    step; mass_springs, on its springs, at about its 22nd): the run's steps before it are published (bitwise
+    those of single steps) and the request reports them (mass_springs: the compiled kernel's run, its failing
+    step handed to the reference)."""
+    ov = [f"gravity=[0,0,{-g}]"]
+    a, ra, ea = _run(scene, 500, True, ov, publish_rate=0.0)
+    b, rb, eb = _run(scene, 500, False, ov, publish_rate=0.0)
+    assert a.code == b.code == eng.OPERATION_FAILED and a.message == b.message
+    assert a.steps == b.steps == eb.step_index
+    assert 10 < b.steps < 500
+    assert [s[0] for s in rb.states] == [s[0] for s in ra.states] == list(range(1, b.steps + 1))
+    for sa, sb in zip(ra.states, rb.states):
+        assert sa[1] == sb[1] and np.array_equal(sa[2], sb[2]) and np.array_equal(sa[4], sb[4])
+
+
 def test_free_run_in_runs_publishes_the_core_states_at_every_tenth_step():
     """Free-run as fast as possible, publishing at 100 Hz of sim time (h = 1 ms): the steps due go in
     runs that end at every 10th step, and each published state is bitwise the core's, stepped one at a time."""
@@ -107,6 +142,24 @@ def test_free_run_in_runs_publishes_the_core_states_at_every_tenth_step():
             sim.step()
             k += 1
         assert sim.time == t and np.array_equal(sim.state.q, q)
+
+
+def test_free_run_as_fast_as_possible_publishes_every_recorded_step():
+    """Free-run at real_time_factor 0 publishing every step: runs record every step (Simulator.step_results)
+    and each is published, with contiguous step indices and states bitwise the core's one step at a time."""
+    e, sink = _engine("hand", initial_state=PLAYING, publish_rate=0.0, real_time_factor=0.0)
+    time.sleep(1.0)
+    e.stop()
+    got = sink.states
+    assert len(got) >= 50 and e._run_cap > 1
+    assert [idx for idx, *_ in got] == list(range(got[0][0], got[0][0] + len(got)))
+    sim = Simulator.load("hand")
+    k = 0
+    for idx, t, q, v, eff in got[:300]:
+        while k < idx:
+            res = sim.step()
+            k += 1
+        assert sim.time == t and np.array_equal(sim.state.q, q) and np.array_equal(res.effort, eff)
 
 
 def test_run_cap_grows_for_cheap_steps_and_halves_for_slow_ones():

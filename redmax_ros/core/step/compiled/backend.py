@@ -36,6 +36,22 @@ from redmax_ros.core.step.workspace import Workspace
 
 _NO_V = np.zeros(0)
 _NO_S = np.zeros((0, 3))
+_NO_REC = np.zeros((0, 0))  # the kernels' ``rec`` when nothing is recorded
+RECORD_FIELDS = ("q_new", "v_hyper", "v_new", "effort", "site_force", "out", "lam", "mu")  # kernel.record_step
+
+
+def record_layout(d, friction=None) -> dict:
+    """name -> slice of a run's record row (kernel.record_step: RECORD_FIELDS of the Data ``d``, then the
+    friction report ``rep`` (N_REP) and joint normal impulses ``jn`` with friction); "width" -> the row length."""
+    out, j = {}, 0
+    sizes = [(n, d[n].size) for n in RECORD_FIELDS]
+    if friction is not None:
+        sizes += [("rep", N_REP), ("jn", len(friction))]
+    for name, size in sizes:
+        out[name] = slice(j, j + size)
+        j += size
+    out["width"] = j
+    return out
 
 
 @dataclass
@@ -62,6 +78,7 @@ class CompiledBackend:
         self.model = build_model(mech)
         self.bdf2 = mech.scheme == "bdf2"  # integrator.scheme: the kernel keeps BDF2's history (step/scheme.py)
         self._data = {}
+        self._layouts = {}
         self.handoffs = Counter()
         fm = mech.friction  # contact / joint friction: the staggered solve in the kernel (friction.py)
         self.friction = None if fm is None else build_friction(mech)
@@ -137,7 +154,7 @@ class CompiledBackend:
             return self._friction_step(state, cmd, h, budget, inp, t0)
         qp, vp, hist = self._history_args(state, h)
         q, v = state.q.copy(), state.v.copy()  # a run of one step: the kernel advances them in place
-        if not step_n_kernel(*self.model.args, *d.args, q, v, tau, float(h), gj, sv, 1, qp, vp, hist, hist):
+        if not step_n_kernel(*self.model.args, *d.args, q, v, tau, float(h), gj, sv, 1, qp, vp, hist, hist, _NO_REC):
             self._handed_back(d)
             return self.reference_step(state, cmd, h, budget)
         if hist and cmd.joint_trajectories and d["out"][OUT_ORDER] == 1.0:
@@ -163,59 +180,101 @@ class CompiledBackend:
         cache, has, cache_new, jn, rep, cap = self._friction_args(state, budget)
         q, v = state.q.copy(), state.v.copy()  # a run of one step: the kernel advances them and the cache in place
         if not friction_step_n_kernel(*self.model.args, *d.args, *self.friction.args, q, v, tau, float(h), gj, sv, 1,
-                                      cache, has, cache_new, jn, rep, cap):
+                                      cache, has, cache_new, jn, rep, cap, _NO_REC):
             self._handed_back(d)
             return self.reference_step(state, cmd, h, budget)
         new = state.advanced(h, q, v, cache)
         return new, self._result(new, d, q.copy(), rcmd, t0)
 
-    def _friction_run(self, state, cmd, h, n, budget, inp):
+    def _friction_run(self, state, cmd, h, n, budget, inp, record=False):
         """step_run with contact or joint friction: up to n steps in one friction_step_n_kernel call."""
         t0 = time.perf_counter()
         rcmd, tau, d, gj, sv = inp
         cache, has, cache_new, jn, rep, cap = self._friction_args(state, budget)
         q, v = state.q.copy(), state.v.copy()
+        rec = np.empty((n, self._layout(d)["width"])) if record else _NO_REC
         k = friction_step_n_kernel(*self.model.args, *d.args, *self.friction.args, q, v, tau, float(h), gj, sv, n,
-                                   cache, has, cache_new, jn, rep, cap)
+                                   cache, has, cache_new, jn, rep, cap, rec)
         if k == 0:
             self._handed_back(d)
             new, res = self.reference_step(state, cmd, h, budget)
-            return new, res, 1
+            return new, [res] if record else res, 1
         new = state.advanced(h, q, v, cache, steps=k)
+        if record:
+            return new, self._recorded(state, h, d, rec, k, rcmd, time.perf_counter() - t0), k
         return new, self._result(new, d, q.copy(), rcmd, t0), k
 
     def friction_report(self):
         """The FrictionReport of the kernel's last frictional step (staggered.FrictionReport)."""
-        r = self._rep
+        return self._friction_report(self._rep, self._jn)
+
+    def _friction_report(self, r, jn):
+        """staggered.FrictionReport from a kernel's report ``r`` (N_REP) and joint normal impulses ``jn``."""
         rep = staggered.FrictionReport(int(r[REP_ITERS]), bool(r[REP_CONVERGED]), float(r[REP_RESIDUAL]), int(r[REP_CONTACTS]),
                              int(r[REP_ACTIVE]), float(r[REP_PENETRATION]), int(r[REP_STICKING]))
-        if len(self._jn):
+        if len(jn):
             rep._jn_names = self.mech.friction.fj_names
-            rep._jn_values = self._jn.copy()
+            rep._jn_values = jn.copy()
         return rep
 
-    def step_run(self, state, cmd, h, n, budget=None):
+    def step_run(self, state, cmd, h, n, budget=None, record=False):
         """Advance by k in [1, n] steps with the same commands: a run of up to n steps in one kernel call
         (kernel.step_n_kernel), or, when the kernel cannot take the next step (or trajectory prescriptions
-        change the rows every step), one step by ``step``. Returns (State, last StepResult, k); a StepError
+        change the rows every step), one step by ``step``. Returns (State, last StepResult, k), with ``record``
+        (State, the k steps' StepResults, k): the kernel records each step's outputs (kernel.record_step) and
+        they are the results single steps give (diagnostics.wall_time: the run's wall time / k). A StepError
         comes only from a single step (the state before it is the input's)."""
         inp = None if cmd.joint_trajectories else self._inputs(state, cmd, h)
         if inp is None:
             new, res = self.step(state, cmd, h, budget)
-            return new, res, 1
+            return new, [res] if record else res, 1
         if self.friction is not None:
-            return self._friction_run(state, cmd, h, n, budget, inp)
+            return self._friction_run(state, cmd, h, n, budget, inp, record)
         t0 = time.perf_counter()
         rcmd, tau, d, gj, sv = inp
         q, v = state.q.copy(), state.v.copy()
         qp, vp, hist = self._history_args(state, h)
-        k = step_n_kernel(*self.model.args, *d.args, q, v, tau, float(h), gj, sv, n, qp, vp, hist, int(self.bdf2))
+        rec = np.empty((n, self._layout(d)["width"])) if record else _NO_REC
+        k = step_n_kernel(*self.model.args, *d.args, q, v, tau, float(h), gj, sv, n, qp, vp, hist, int(self.bdf2), rec)
         if k == 0:
             self._handed_back(d)
             new, res = self.reference_step(state, cmd, h, budget)
-            return new, res, 1
+            return new, [res] if record else res, 1
         new = self._advanced(state, h, q, v, qp, vp, steps=k)
+        if record:
+            return new, self._recorded(state, h, d, rec, k, rcmd, time.perf_counter() - t0), k
         return new, self._result(new, d, q.copy(), rcmd, t0), k
+
+    def _layout(self, d) -> dict:
+        """record_layout of the Data ``d`` (kept per Data)."""
+        lay = self._layouts.get(id(d))
+        if lay is None:
+            fm = self.mech.friction
+            lay = self._layouts[id(d)] = record_layout(d, None if fm is None else fm.fj_names)
+        return lay
+
+    def _recorded(self, state, h, d, rec, k, rcmd, wall) -> list:
+        """The StepResults of the first k rows of a run's record ``rec`` from ``state`` (the numbers _result
+        gives after each of those steps; t = t0 + (k0 + i) h as State.advanced computes it)."""
+        lay = self._layout(d)
+        sq, sh, sv, se, sf, so, sl, sm = (lay[n] for n in RECORD_FIELDS)
+        names = list(rcmd.site_velocities)
+        friction = self.friction is not None
+        t0 = state.t if state.t0 is None else state.t0
+        each = wall / k
+        out = []
+        for i in range(k):
+            r = rec[i]
+            o = r[so]
+            ek, ep, es = float(o[OUT_E_KIN]), float(o[OUT_E_POT]), float(o[OUT_E_SPRING])
+            sol = CompiledSolution(r[sh], r[sl], r[sm], float(o[OUT_RESIDUAL]))
+            diag = Diagnostics(ek, ep, es, ek + ep + es, float(o[OUT_VIOL_POS]), float(o[OUT_VIOL_VEL]),
+                               int(o[OUT_ITERS]), "compiled", each, sol,
+                               self._friction_report(r[lay["rep"]], r[lay["jn"]]) if friction else None)
+            forces = r[sf]
+            site_forces = {name: forces[3 * j:3 * j + 3] for j, name in enumerate(names)} if names else {}
+            out.append(StepResult(t0 + (state.k + i + 1) * h, r[sq], r[sv], r[se], site_forces, diag, {}))
+        return out
 
     def step_batch(self, states, cmd, h, n=1, budget=None) -> BatchResult:
         """n steps of each of the B states with the same commands (issue 12, point 4). Each instance runs
@@ -248,7 +307,7 @@ class CompiledBackend:
 
         def run(b):
             return step_n_kernel(*self.model.args, DF[b], d.i, d.tab, Q[b], V[b], tau, float(h), gj, sv, int(todo[b]),
-                                 QP[b], VP[b], int(HIST[b]), bdf2)
+                                 QP[b], VP[b], int(HIST[b]), bdf2, _NO_REC)
 
         while todo.any():
             live = [int(b) for b in np.flatnonzero(todo)]

@@ -186,17 +186,44 @@ def one_friction_step(m, d, c, q, vR, tau, h, gj, sv, cache, has_cache, cache_ne
     return tail_stages(m, d, tau, hh)  # 5-6
 
 
+@njit_inline
+def _put(row, j, a):
+    """row[j:j + len(a)] = a; returns j + len(a)."""
+    for i in range(a.shape[0]):
+        row[j + i] = a[i]
+    return j + a.shape[0]
+
+
+@njit_inline
+def record_step(row, d):
+    """A run's record of one step (the ``rec`` rows of the kernels below; backend.record_layout names the
+    fields): q_new, v_hyper, v_new, effort, site_force (row-major), out, lam, mu. Returns the next free column."""
+    j = _put(row, 0, d.q_new)
+    j = _put(row, j, d.v_hyper)
+    j = _put(row, j, d.v_new)
+    j = _put(row, j, d.effort)
+    for s in range(d.site_force.shape[0]):
+        j = _put(row, j, d.site_force[s])
+    j = _put(row, j, d.out)
+    j = _put(row, j, d.lam)
+    return _put(row, j, d.mu)
+
+
 @njit
 def friction_step_n_kernel(mf, mi, mt, df, di, dt, ff, fi, ft, q, vR, tau, h, gj, sv, n, cache, has_cache, cache_new,
-                           jn, rep, work_cap):
+                           jn, rep, work_cap, rec):
     """Up to n frictional steps with the same commands: (q, vR) and the friction ``cache`` advanced in place
-    after every step taken; returns the number of steps taken (as step_n_kernel)."""
+    after every step taken; returns the number of steps taken (as step_n_kernel). ``rec`` (rows, width): the
+    outputs of step k go to rec[k] when k < rows (record_step, then rep and jn); (0, 0) records nothing."""
     m = model_views(mf, mi, mt)
     d = data_views(df, di, dt)
     c = friction_views(ff, fi, ft)
     for k in range(n):
         if one_friction_step(m, d, c, q, vR, tau, h, gj, sv, cache, has_cache, cache_new, jn, rep, work_cap) != OK:
             return k
+        if k < rec.shape[0]:
+            j = record_step(rec[k], d)
+            _put(rec[k], _put(rec[k], j, rep), jn)
         q[:] = d.q_new
         vR[:] = d.v_hyper
         cache[:] = cache_new
@@ -205,16 +232,19 @@ def friction_step_n_kernel(mf, mi, mt, df, di, dt, ff, fi, ft, q, vR, tau, h, gj
 
 
 @njit
-def step_n_kernel(mf, mi, mt, df, di, dt, q, vR, tau, h, gj, sv, n, qp, vp, hist, bdf2):
+def step_n_kernel(mf, mi, mt, df, di, dt, q, vR, tau, h, gj, sv, n, qp, vp, hist, bdf2, rec):
     """Up to n steps with the same commands, (q, vR) advanced in place; returns the number of steps taken
     (< n: the next step was handed back, d.out[OUT_STAGE] says why). The Data holds the last step's outputs.
     ``bdf2`` nonzero: integrator.scheme bdf2, the history (qp, vp) kept in place (the state before the last
-    step taken; ``hist`` whether the input's history is valid for h), else every step is BDF1."""
+    step taken; ``hist`` whether the input's history is valid for h), else every step is BDF1. ``rec``
+    (rows, width): the outputs of step k go to rec[k] when k < rows (record_step); (0, 0) records nothing."""
     m = model_views(mf, mi, mt)
     d = data_views(df, di, dt)
     for k in range(n):
         if one_step(m, d, q, vR, tau, h, gj, sv, qp, vp, hist) != OK:
             return k
+        if k < rec.shape[0]:
+            record_step(rec[k], d)
         if bdf2:
             qp[:] = q
             vp[:] = vR
