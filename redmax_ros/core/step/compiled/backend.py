@@ -257,23 +257,22 @@ class CompiledBackend:
         """The StepResults of the first k rows of a run's record ``rec`` from ``state`` (the numbers _result
         gives after each of those steps; t = t0 + (k0 + i) h as State.advanced computes it)."""
         lay = self._layout(d)
-        sq, sh, sv, se, sf, so, sl, sm = (lay[n] for n in RECORD_FIELDS)
+        Q, H, V, E, F, _, L, M = (rec[:k, lay[n]] for n in RECORD_FIELDS)  # row i of each: step i's views
+        O = rec[:k, lay["out"]].tolist()  # Python floats of the outputs, all rows at once
         names = list(rcmd.site_velocities)
         friction = self.friction is not None
         t0 = state.t if state.t0 is None else state.t0
         each = wall / k
         out = []
         for i in range(k):
-            r = rec[i]
-            o = r[so]
-            ek, ep, es = float(o[OUT_E_KIN]), float(o[OUT_E_POT]), float(o[OUT_E_SPRING])
-            sol = CompiledSolution(r[sh], r[sl], r[sm], float(o[OUT_RESIDUAL]))
-            diag = Diagnostics(ek, ep, es, ek + ep + es, float(o[OUT_VIOL_POS]), float(o[OUT_VIOL_VEL]),
-                               int(o[OUT_ITERS]), "compiled", each, sol,
-                               self._friction_report(r[lay["rep"]], r[lay["jn"]]) if friction else None)
-            forces = r[sf]
-            site_forces = {name: forces[3 * j:3 * j + 3] for j, name in enumerate(names)} if names else {}
-            out.append(StepResult(t0 + (state.k + i + 1) * h, r[sq], r[sv], r[se], site_forces, diag, {}))
+            o = O[i]
+            ek, ep, es = o[OUT_E_KIN], o[OUT_E_POT], o[OUT_E_SPRING]
+            sol = CompiledSolution(H[i], L[i], M[i], o[OUT_RESIDUAL])
+            diag = Diagnostics(ek, ep, es, ek + ep + es, o[OUT_VIOL_POS], o[OUT_VIOL_VEL], int(o[OUT_ITERS]),
+                               "compiled", each, sol,
+                               self._friction_report(rec[i, lay["rep"]], rec[i, lay["jn"]]) if friction else None)
+            site_forces = {name: F[i, 3 * j:3 * j + 3] for j, name in enumerate(names)} if names else {}
+            out.append(StepResult(t0 + (state.k + i + 1) * h, Q[i], V[i], E[i], site_forces, diag, {}))
         return out
 
     def step_batch(self, states, cmd, h, n=1, budget=None) -> BatchResult:
