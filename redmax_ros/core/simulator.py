@@ -79,6 +79,7 @@ class SceneDescription:
     deformables: list = field(default_factory=list)  # (name, kind 'string'|'fem', vertices, elements) per deformable
 
 
+RECORD_ROWS = 4096  # steps recorded per kernel call by step_results (the record array: rows x ~10^2 floats)
 DEFAULT_BUDGET = StepBudget()  # 50 ms CPU time of the iterative solvers (JIT excluded), QP caps 1000 / 50
 
 
@@ -433,8 +434,8 @@ class Simulator:
                     self.state, res = self.backend.step(self.state, self.commands, self.dt, self._budget)
                     out.append(res)
                 else:
-                    self.state, res, _ = run(self.state, self.commands, self.dt, int(n) - len(out), self._budget,
-                                             record=True)
+                    self.state, res, _ = run(self.state, self.commands, self.dt, min(int(n) - len(out), RECORD_ROWS),
+                                             self._budget, record=True)
                     out.extend(res)
             except StepError as e:
                 err = StepError(f"step at t = {self.state.t:.6g} s failed: {e.reason}", steps_done=len(out))
