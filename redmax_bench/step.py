@@ -49,10 +49,11 @@ from redmax_bench.common import add_out_argument, best_rate, results_dir, write_
 TIPS = ["index_tip", "middle_tip", "ring_tip", "little_tip", "thumb_tip"]
 WARMUP = 50  # untimed steps per engine before the timed runs
 REF, COMPILED, SIE = "ours (reference)", "ours (compiled)", "SIE on pin.aba"
-COMPILED_1 = "ours (compiled, 1 step/call)"  # sim.step() once per step from Python, as the node steps
+COMPILED_1 = "ours (compiled, 1 step/call)"  # sim.step() once per step from Python, as paced free-run steps
+COMPILED_R = "ours (compiled, results)"  # sim.step_results(k): every step's StepResult, as the node's runs publish
 MUJOCO_INTEGRATORS = ("implicitfast", "discrete", "euler")
 MJ = {i: f"MuJoCo {i}" for i in MUJOCO_INTEGRATORS}
-COLUMNS = [REF, COMPILED, COMPILED_1, *MJ.values(), SIE]
+COLUMNS = [REF, COMPILED, COMPILED_1, COMPILED_R, *MJ.values(), SIE]
 RATIOS = {"compiled/MJ implicitfast": COMPILED, "compiled 1 step/call/MJ implicitfast": COMPILED_1,
           "reference/MJ implicitfast": REF}
 
@@ -123,9 +124,10 @@ class Engine:
     check: Callable[[], str | None] = lambda: None  # after a run: what went wrong in it, or None
 
 
-def ours_engine(sim: Simulator, per_call: bool = False) -> Engine:
-    """sim.step(k) (a run of k steps: one kernel call on the compiled path), or with ``per_call`` k calls of
-    sim.step() (the per-step Python cost included, as in the node's free run)."""
+def ours_engine(sim: Simulator, per_call: bool = False, results: bool = False) -> Engine:
+    """sim.step(k) (a run of k steps: one kernel call on the compiled path), with ``per_call`` k calls of
+    sim.step() (the per-step Python cost included, as in the node's paced free run), with ``results``
+    sim.step_results(k) (every step's StepResult, recorded in runs: the node's step requests)."""
     s0 = sim.state
     sim.step(WARMUP)
 
@@ -133,7 +135,8 @@ def ours_engine(sim: Simulator, per_call: bool = False) -> Engine:
         for _ in range(k):
             sim.step()
 
-    return Engine(lambda: sim.set_state(s0), one_by_one if per_call else sim.step)
+    run = one_by_one if per_call else (sim.step_results if results else sim.step)
+    return Engine(lambda: sim.set_state(s0), run)
 
 
 def mujoco_engine(case: Case, sim: Simulator, integrator: str) -> Engine:
@@ -189,6 +192,7 @@ def engines(case: Case, ref: Simulator) -> tuple:
     """({column: Engine}, {column: why n/a}) for one case; ``ref`` is its reference Simulator."""
     makers = {REF: lambda: ours_engine(ref), COMPILED: lambda: ours_engine(load(case, "compiled")),
               COMPILED_1: lambda: ours_engine(load(case, "compiled"), per_call=True),
+              COMPILED_R: lambda: ours_engine(load(case, "compiled"), results=True),
               **{col: (lambda i=i: mujoco_engine(case, ref, i)) for i, col in MJ.items()},
               SIE: lambda: sie_engine(ref)}
     out, na = {}, {}
@@ -325,7 +329,7 @@ def _fmt(x, spec):
 
 
 def print_table(rows, steps, repeats):
-    short = {REF: "ref", COMPILED: "compiled", COMPILED_1: "compiled/1", MJ["implicitfast"]: "MJ implfast", MJ["discrete"]: "MJ discrete",
+    short = {REF: "ref", COMPILED: "compiled", COMPILED_1: "compiled/1", COMPILED_R: "results", MJ["implicitfast"]: "MJ implfast", MJ["discrete"]: "MJ discrete",
              MJ["euler"]: "MJ euler", SIE: "SIE/aba"}
     print(f"us of CPU per step (best of {repeats} runs of {steps} steps, engines interleaved per scene); "
           f"ratios ours/MuJoCo implicitfast")
