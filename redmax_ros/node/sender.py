@@ -164,6 +164,7 @@ class Sender:
         self._q = collections.deque()
         self._lock = threading.Lock()
         self._local = threading.local()
+        self._inlines = 0  # threads inside inline() (send reads the thread-local flag only then)
         self._wake = _Wake()
         self._idle = threading.Condition()
         self._queued = 0  # messages handed to the thread
@@ -183,19 +184,21 @@ class Sender:
         step instead of one per message). ``count``: the topic's subscriber count as the caller
         has just read it (the direct and thread modes then do not read it again)."""
         mode = self.mode
-        if mode == "direct" and not self._q:
+        if mode == "direct":  # (the queue is used in the thread mode only)
             return self._publish_direct(pub, data, count)
-        if mode == "thread":
-            info = self._info.get(pub)
-            if info is None:
-                info = self._describe(pub)
-            if count is None:
-                count = info[0].get_subscription_count() if info[2] else None
-            if count == 0 and info[2]:  # see _nobody_listens
-                return None
-        if mode != "thread" or self._stop or getattr(self._local, "inline", False):
+        if mode != "thread":
             return self._publish_here(pub, data)
-        if not isinstance(data, bytes):
+        info = self._info.get(pub)
+        if info is None:
+            info = self._describe(pub)
+        if not count and info[2]:  # see _nobody_listens
+            if count is None:
+                count = info[0].get_subscription_count()
+            if count == 0:
+                return None
+        if self._stop or (self._inlines and getattr(self._local, "inline", False)):
+            return self._publish_here(pub, data)
+        if type(data) is not bytes:
             data = bytes(data)
         with self._lock:
             self._q.append((info[1], data, pub, count))
@@ -271,7 +274,7 @@ class Sender:
 
     def wake(self):
         """Wake the publisher thread for what was sent with ``wake=False``."""
-        if self.threaded and not self._wake.is_set():
+        if not self._wake._flag and self._thread is not None:
             self._wake.set()
 
     def _publish_here(self, pub, data):
@@ -377,11 +380,19 @@ class _Inline:
         self.s = sender
 
     def __enter__(self):
-        if self.s.threaded:
-            self.s.drain()
-            self.s._local.inline = True
+        s = self.s
+        self.counted = s.threaded
+        if self.counted:
+            s.drain()
+            with s._lock:
+                s._inlines += 1
+            s._local.inline = True
         return self
 
     def __exit__(self, *exc):
-        self.s._local.inline = False
+        s = self.s
+        s._local.inline = False
+        if self.counted:
+            with s._lock:
+                s._inlines -= 1
         return False
