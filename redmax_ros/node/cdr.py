@@ -180,8 +180,9 @@ class TFMessageEncoder:
         self.template = bytes(w.b)
         self.n = len(children)
         self._buf = np.frombuffer(bytearray(self.template), dtype=np.uint8)
-        self._stamp_at = np.array(self.stamps, int) - 4
-        self._vals = np.array(self.values, int)
+        # byte indices of every stamp (n, 8) and every transform's 7 doubles (n, 56) in the buffer, made once
+        self._stamp_idx = (np.array(self.stamps, int) - 4)[:, None] + np.arange(8)
+        self._vals_idx = np.array(self.values, int)[:, None] + np.arange(56)
 
     def encode(self, t, positions, quaternions) -> bytes:
         """``positions`` (n,3) [m], ``quaternions`` (n,4) xyzw, in ``children`` order."""
@@ -189,10 +190,10 @@ class TFMessageEncoder:
         sec, nsec = _split_time(t)
         stamp = np.frombuffer(_STAMP.pack(sec, nsec), dtype=np.uint8)
         if self.n:
-            buf[self._stamp_at[:, None] + np.arange(8)] = stamp
+            buf[self._stamp_idx] = stamp
             vals = np.concatenate([np.asarray(positions, "<f8").reshape(self.n, 3),
                                    np.asarray(quaternions, "<f8").reshape(self.n, 4)], axis=1)
-            buf[self._vals[:, None] + np.arange(56)] = vals.view(np.uint8).reshape(self.n, 56)
+            buf[self._vals_idx] = vals.view(np.uint8).reshape(self.n, 56)
         return buf.tobytes()
 
 
