@@ -99,7 +99,7 @@ _STAMP = struct.Struct("<iI")
 _U32 = struct.Struct("<I")
 _U64 = struct.Struct("<Q")
 _8D = struct.Struct("<8d")
-_F8 = np.dtype("<f8")
+_F8 = np.dtype("<f8")  # float64 arrays carry this very instance on a little-endian machine (encode tries `is` first)
 
 
 class JointStateEncoder:
@@ -138,7 +138,8 @@ class JointStateEncoder:
         shape = self._shape
         if (type(position) is np.ndarray and type(velocity) is np.ndarray and type(effort) is np.ndarray
                 and position.shape == shape and velocity.shape == shape and effort.shape == shape
-                and position.dtype == _F8 and velocity.dtype == _F8 and effort.dtype == _F8 and self.n):
+                and (position.dtype is _F8 or position.dtype == _F8) and (velocity.dtype is _F8 or velocity.dtype == _F8)
+                and (effort.dtype is _F8 or effort.dtype == _F8) and self.n):
             ns = int(round(t * 1e9))
             enc, mid, sep1, sep2 = self._pieces
             return b"".join((enc, _STAMP.pack(ns // 1_000_000_000, ns % 1_000_000_000), mid, position.tobytes(),
@@ -179,8 +180,9 @@ class TFMessageEncoder:
         self.template = bytes(w.b)
         self.n = len(children)
         self._buf = np.frombuffer(bytearray(self.template), dtype=np.uint8)
-        self._stamp_at = np.array(self.stamps, int) - 4
-        self._vals = np.array(self.values, int)
+        # byte indices of every stamp (n, 8) and every transform's 7 doubles (n, 56) in the buffer, made once
+        self._stamp_idx = (np.array(self.stamps, int) - 4)[:, None] + np.arange(8)
+        self._vals_idx = np.array(self.values, int)[:, None] + np.arange(56)
 
     def encode(self, t, positions, quaternions) -> bytes:
         """``positions`` (n,3) [m], ``quaternions`` (n,4) xyzw, in ``children`` order."""
@@ -188,10 +190,10 @@ class TFMessageEncoder:
         sec, nsec = _split_time(t)
         stamp = np.frombuffer(_STAMP.pack(sec, nsec), dtype=np.uint8)
         if self.n:
-            buf[self._stamp_at[:, None] + np.arange(8)] = stamp
+            buf[self._stamp_idx] = stamp
             vals = np.concatenate([np.asarray(positions, "<f8").reshape(self.n, 3),
                                    np.asarray(quaternions, "<f8").reshape(self.n, 4)], axis=1)
-            buf[self._vals[:, None] + np.arange(56)] = vals.view(np.uint8).reshape(self.n, 56)
+            buf[self._vals_idx] = vals.view(np.uint8).reshape(self.n, 56)
         return buf.tobytes()
 
 
@@ -317,9 +319,9 @@ class StepRecords:
         rows, active = contact_counts(diag)
         rest = st.pack(op, 34, hc.index + 1, sc, log_ns, log_ns, ENCAPSULATION, sec, nsec,
                        op, 22 + n, hs.index + 1, ss, log_ns, log_ns, ENCAPSULATION, sec, nsec, p0, int(step), p1,
-                       int(diag.iterations), p2, float(diag.residual), float(diag.violation_pos),
-                       float(diag.violation_vel), float(diag.E_kin), float(diag.E_pot), float(diag.E_spring),
-                       float(diag.E_total), float(diag.wall_time), rows, active)
+                       int(diag.iterations), p2, diag.residual, diag.violation_pos,  # 'd' packs any float-like
+                       diag.violation_vel, diag.E_kin, diag.E_pot, diag.E_spring, diag.E_total, diag.wall_time,
+                       rows, active)
         return b"".join((self._head.pack(op, 22 + len(js), hj.index + 1, sj, log_ns, log_ns), js, rest))
 
 

@@ -241,9 +241,9 @@ class Engine:
                 elif step_due and self.state == PLAYING:
                     try:
                         self._apply_open_batch()
-                        # one run of the steps due (pacer), ending where _run_length ends runs
+                        # the steps due (pacer), in runs, until a request waits or about RUN_WALL has passed
                         due = self.pacer.steps_due(self.sim.time, self.sim.dt, RUN_CAP_MAX)
-                        out = self._advance(self._run_length(due, self._records(False)), lockstep=False)
+                        out = self._advance(due, lockstep=False, free_run=True)
                     except Exception as e:  # a sink failure must not kill the simulation thread
                         out = Outcome(OPERATION_FAILED, f"{type(e).__name__}: {e}")
                     if not out.ok:
@@ -358,26 +358,42 @@ class Engine:
         self.sink.warn(f"command timeout ({self.command_timeout:g} s sim time) at t = {t:.6g} s: {what}")
         self._publish_prescriptions()
 
-    def _advance(self, n, lockstep, feedback=None, cancelled=None) -> Outcome:
+    def _advance(self, n, lockstep, feedback=None, cancelled=None, free_run=False) -> Outcome:
         """n steps, in runs (Simulator.step(k): one kernel call for k steps on the compiled path, issue 12
         point 2) that end wherever something has to happen between steps: a published state, markers or
         frames, the last step of a lockstep request, a command's timeout, and the feedback of an action
         (then every step is a run of one). Publishing every step (publish_every 1), a run records every
-        step's result in its one kernel call (Simulator.step_results) and each is published. A run is also kept under ~RUN_WALL wall seconds, so a
-        cancel or shutdown is seen within about that time. A failed step reports the steps done before it
-        (in its run too); the state is that after them. Free-run calls this with one run of the steps
-        the pacer has due (_loop), so requests and commands wait for at most that run."""
+        step's result in its one kernel call (Simulator.step_results) and each is published (_records). A run
+        is also kept under ~RUN_WALL wall seconds, so a cancel or shutdown is seen within about that time. A failed step reports the steps done before it
+        (in its run too); the state is that after them.
+
+        ``free_run``: n is what the pacer has due (_loop). Before every run after the first the open batch of
+        commands is applied (as _loop does before the first), and the call ends early, after a run, once a
+        request is queued, the node stops or RUN_WALL wall seconds have passed, so requests and commands wait for
+        at most one run and diagnostics and status lines for about RUN_WALL (the Outcome then counts the steps
+        done; stopping here is no failure: _loop ends).
+        Publishing every step, this keeps _loop's per-iteration work (its lock, pacer, clocks) out of every
+        step."""
         sim, sink = self.sim, self.sink
+        each = feedback is None and self._records(lockstep)  # every step published: recorded runs
+        single = (feedback is not None or 1 in (self.marker_every, self.tf_every)
+                  or (self.publish_every == 1 and not each))
+        end = time.perf_counter() + RUN_WALL if free_run else 0.0
         i = 0
         while i < n:
+            if free_run and i:  # back to _loop: a request waits, the node stops, or RUN_WALL has passed
+                if self._jobs or not self._running or time.perf_counter() >= end:
+                    return Outcome(OK, "", steps=i, t=sim.time)
+                if self._batch is not None:
+                    self._apply_open_batch()
             if cancelled is not None and cancelled():
                 return Outcome(OK, "canceled", steps=i, t=sim.time, extra={"canceled": True})
             if not self._running:  # the node is shutting down (SIGINT/SIGTERM): end a long request now
                 return Outcome(OPERATION_FAILED, f"the node is shutting down: stopped after {i} of {n} steps",
                                steps=i, t=sim.time)
-            self._expire_commands()
-            k = 1 if feedback is not None else self._run_length(n - i, self._records(lockstep))
-            each = feedback is None and self._records(lockstep)  # every step published: a recorded run
+            if self.cmd_times:
+                self._expire_commands()
+            k = 1 if single else self._run_length(n - i, each)
             w0 = time.perf_counter()
             try:
                 if each:

@@ -309,6 +309,7 @@ class RedmaxNode(Node):
         self.pub_tf_static = self._pub(TFMessage, "/tf_static", QOS_TF_STATIC)
         self.pub_description = self._pub(String, "robot_description", QOS_LATCHED)
         self.pub_odom = self._pub(Odometry, "odom", QOS_STATE)
+        self._state_handles = (self.pub_js.handle, self.pub_clock.handle, self.pub_stats.handle)  # state(): counts
         self._model = None  # (Frames, BodyTwists, URDF text, BodyPoses, TFMessageEncoder) of the scene (robot_model)
         self._model_published = False
 
@@ -537,9 +538,10 @@ class RedmaxNode(Node):
         while any body is prescribed, plus one empty message after the last is released (as
         point_forces)."""
         lg = self.logger_mcap
-        njs = self.pub_js.handle.get_subscription_count()
-        nclock = self.pub_clock.handle.get_subscription_count()
-        nstats = self.pub_stats.handle.get_subscription_count()
+        hjs, hclock, hstats = self._state_handles
+        njs = hjs.get_subscription_count()
+        nclock = hclock.get_subscription_count()
+        nstats = hstats.get_subscription_count()
         if lg is not None and diag is not None and not (site_forces or self._last_pf_nonempty or body_wrenches
                                                         or self._last_bw_nonempty):
             rec = self._step_records

@@ -9,20 +9,30 @@ thread of the node (services, commands, diagnostics) freezes meanwhile.
 (``REDMAX_PUBLISH_MODE``):
 
 * ``direct`` (default): in the calling thread, with the GIL released for a write to a topic with
-  subscribers; a message on a volatile topic without subscribers is not written at all (it
-  could reach nobody; the log has it anyway);
-* ``thread``: handed to one FIFO publisher thread (a deque append, ~1 us for the caller), so the
-  DDS write overlaps the next step on the other core; the queue is bounded (back-pressure);
+  subscribers;
+* ``thread``: handed to one FIFO publisher thread (a deque append and a raw-lock wake-up,
+  ~1-2 us for the caller), so the DDS write (the GIL released) overlaps the next step on the other
+  core; the queue is bounded (back-pressure);
 * ``rclpy``: ``Publisher.publish`` in the calling thread, GIL held, as before.
 
-Measured (same process, modes switched per 1.5 s window, hand in free-run as fast as possible,
-joint_states every step to a raw subscriber in another process, medians of 9-10 rounds): at load
-1.1-1.5 the three modes are within +-5 % of each other in steps/s (thread: 0.95-0.98 x rclpy,
-direct: 0.95-0.99 x), with a slower Python subscriber at load ~1.8 the thread mode was 0.86-0.91
-x; an earlier variant of the thread mode measured 1.39 x at load ~3.5. The thread costs a GIL
-hand-over per message with the simulation thread, which eats what the overlap gains unless the
-machine is busy; hence ``direct`` by default: rclpy's throughput, without freezing the node on a
-blocked write.
+In every mode a message on a volatile topic without subscribers is not written at all (it could
+reach nobody; the log has it anyway).
+
+What ``thread`` gains (2026-12-05, hand in free-run as fast as possible, h = 1 ms, joint_states
+every step to a raw subscriber in another process): the compiled step made the simulation thread's
+own work per step small (~100-150 us), and a DDS write of joint_states to a subscriber in another
+process costs ~50 us of the writing thread's CPU right after a step (its thread CPU time measured
+inside the write; ~20-30 us back to back), a third of a step. In the thread mode that write runs on
+the other core: in one process at load 1.2-1.4, 5 539 steps/s against 4 708-4 866 with ``direct``
+(+14-18 %); ``redmax_bench node`` (c) at load 1.6-2.2, RTF 6.01 against 5.69 with logging off and
+5.01 against 4.40 with it; at load 3.6-4 RTF 3.3-4.8 against 2.3-3.2. (On 2026-11-22, with a step
+costing ~160 us, the thread mode measured 0.95-0.98 x ``direct`` at load 1.1-1.5: a GIL hand-over
+per message then ate what the overlap gained.) Why ``direct`` stays the default: the publisher thread
+writes what queued up while it waited for the GIL back to back, and at load 3-4 a reliable Python
+subscriber taking joint_states at 1 kHz (paced free-run, ``test_node_freerun.py``) then lost messages
+(39 of the 200 of a 0.2 s window received; the test failed in 2 of ~22 runs, and in none of 19 with
+``direct``). Delivery at real time is worth more to a controller than the throughput; ``thread`` is
+there for free-run as fast as possible.
 
 Guarantees in every mode: messages go out in the order they were handed over (one FIFO in the
 thread mode); ``drain`` waits until everything handed over is published (services and the action
@@ -95,11 +105,39 @@ def _rcl_publish():
     return fn, held, get_err, reset_err
 
 
+class _Wake:
+    """A wake-up flag for one waiting thread (the publisher thread): ``threading.Event`` at a fraction
+    of its cost. ``set`` releases a raw lock (~0.5 us; ``Event.set`` takes a Condition and notifies its
+    waiters, ~2 us), ``wait_clear`` blocks in the lock's acquire (GIL released) until set, then clears.
+    The lock is held exactly while the flag is clear."""
+
+    def __init__(self):
+        self._lock = threading.Lock()
+        self._lock.acquire()
+        self._guard = threading.Lock()
+        self._flag = False
+
+    def is_set(self) -> bool:
+        return self._flag
+
+    def set(self):
+        with self._guard:
+            if not self._flag:
+                self._flag = True
+                self._lock.release()
+
+    def wait_clear(self):
+        """Wait until set, then clear (what was handed over before ``set`` is visible to the caller)."""
+        self._lock.acquire()
+        with self._guard:
+            self._flag = False
+
+
 class Sender:
     """``send(publisher, data)`` from any thread, in one of three modes (``REDMAX_PUBLISH_MODE``):
 
-    ``direct`` (default): published in the calling thread through ctypes, the GIL released for
-    a write to a topic with subscribers. ``thread``: handed to the publisher thread. ``rclpy``:
+    ``direct`` (default): published in the calling thread through ctypes, the GIL released for a write
+    to a topic with subscribers. ``thread``: handed to the publisher thread. ``rclpy``:
     ``Publisher.publish`` in the calling thread, the GIL held (the node before this module).
 
     ``on_error(text)`` is called for a failed ctypes publish while ``context_ok()`` is true;
@@ -125,14 +163,14 @@ class Sender:
         self.failed = 0
         self.waits = 0  # times a sender waited for room in the queue (DDS slower than the producer)
         self._producers_waiting = 0
-        self._handles = {}
         self._info = {}  # publisher -> (handle, rcl_publisher_t address, volatile)
         self._sub_cache = {}
         self.hold_unsubscribed = True
         self._q = collections.deque()
         self._lock = threading.Lock()
         self._local = threading.local()
-        self._wake = threading.Event()
+        self._inlines = 0  # threads inside inline() (send reads the thread-local flag only then)
+        self._wake = _Wake()
         self._idle = threading.Condition()
         self._queued = 0  # messages handed to the thread
         self._stop = False
@@ -149,20 +187,26 @@ class Sender:
         """Hand over one serialized message. ``wake=False`` leaves the publisher thread asleep
         (the caller sends more right away and wakes it with the last one: one GIL hand-over per
         step instead of one per message). ``count``: the topic's subscriber count as the caller
-        has just read it (the direct mode then does not read it again)."""
-        if self.mode == "direct" and not self._q:
+        has just read it (the direct and thread modes then do not read it again)."""
+        mode = self.mode
+        if mode == "direct":  # (the queue is used in the thread mode only)
             return self._publish_direct(pub, data, count)
-        if self.mode == "thread" and self._nobody_listens(pub):
-            return None
-        if self.mode != "thread" or self._stop or getattr(self._local, "inline", False):
+        if mode != "thread":
             return self._publish_here(pub, data)
-        ptr = self._handles.get(pub)
-        if ptr is None:
-            ptr = self._handles[pub] = pub.handle.pointer
-        if not isinstance(data, bytes):
+        info = self._info.get(pub)
+        if info is None:
+            info = self._describe(pub)
+        if not count and info[2]:  # see _nobody_listens
+            if count is None:
+                count = info[0].get_subscription_count()
+            if count == 0:
+                return None
+        if self._stop or (self._inlines and getattr(self._local, "inline", False)):
+            return self._publish_here(pub, data)
+        if type(data) is not bytes:
             data = bytes(data)
         with self._lock:
-            self._q.append((ptr, data, pub))
+            self._q.append((info[1], data, pub, count))
             self._queued += 1
             full = len(self._q) > self.max_queue
         if full:
@@ -235,7 +279,7 @@ class Sender:
 
     def wake(self):
         """Wake the publisher thread for what was sent with ``wake=False``."""
-        if self.threaded and not self._wake.is_set():
+        if not self._wake._flag and self._thread is not None:
             self._wake.set()
 
     def _publish_here(self, pub, data):
@@ -307,14 +351,16 @@ class Sender:
         q, wake, idle = self._q, self._wake, self._idle
         monotonic = time.monotonic
         while True:
-            wake.wait()
-            wake.clear()
+            wake.wait_clear()
             done = 0
             while q:
-                ptr, data, pub = q.popleft()
+                ptr, data, pub, n = q.popleft()
                 msg.buffer = data
                 msg.buffer_length = msg.buffer_capacity = len(data)
-                call = fn if not self.hold_unsubscribed or self._subscribed(pub, monotonic()) else held
+                if n is None:  # a transient-local topic: its count was not read
+                    call = fn if not self.hold_unsubscribed or self._subscribed(pub, monotonic()) else held
+                else:  # the count the sender read just before
+                    call = fn if n or not self.hold_unsubscribed else held
                 ret = call(ptr, ctypes.byref(msg), None)
                 if ret != 0:
                     self.failed += 1
@@ -339,11 +385,19 @@ class _Inline:
         self.s = sender
 
     def __enter__(self):
-        if self.s.threaded:
-            self.s.drain()
-            self.s._local.inline = True
+        s = self.s
+        self.counted = s.threaded
+        if self.counted:
+            s.drain()
+            with s._lock:
+                s._inlines += 1
+            s._local.inline = True
         return self
 
     def __exit__(self, *exc):
-        self.s._local.inline = False
+        s = self.s
+        s._local.inline = False
+        if self.counted:
+            with s._lock:
+                s._inlines -= 1
         return False
