@@ -536,7 +536,10 @@ class RedmaxNode(Node):
         piece (cdr.StepRecords: the same bytes as write_many would hand over). ``body_wrenches``: body ->
         (frame 'body' | 'world', required wrench (6,) [torque N m; force N]); body_wrenches goes out
         while any body is prescribed, plus one empty message after the last is released (as
-        point_forces)."""
+        point_forces). Free-running as fast as possible, the DDS writes overlap the next steps on the
+        publisher thread (Sender mode ``auto``, sender.py); otherwise they happen here, each when its step is done."""
+        e = self.__dict__.get("engine")  # None while the engine is made (its first state)
+        self._sender.set_overlap(e is not None and e.state == eng.PLAYING and e.rtf <= 0)
         lg = self.logger_mcap
         hjs, hclock, hstats = self._state_handles
         njs = hjs.get_subscription_count()

@@ -8,7 +8,9 @@ thread of the node (services, commands, diagnostics) freezes meanwhile.
 ``Sender`` calls ``rcl_publish_serialized_message`` through ctypes instead, in one of three modes
 (``REDMAX_PUBLISH_MODE``):
 
-* ``direct`` (default): in the calling thread, with the GIL released for a write to a topic with
+* ``auto`` (default): ``thread`` while the node free-runs as fast as possible (``set_overlap``, called by
+  the node before each published step), ``direct`` otherwise;
+* ``direct``: in the calling thread, with the GIL released for a write to a topic with
   subscribers;
 * ``thread``: handed to one FIFO publisher thread (a deque append and a raw-lock wake-up,
   ~1-2 us for the caller), so the DDS write (the GIL released) overlaps the next step on the other
@@ -27,12 +29,14 @@ the other core: in one process at load 1.2-1.4, 5 539 steps/s against 4 708-4 86
 (+14-18 %); ``redmax_bench node`` (c) at load 1.6-2.2, RTF 6.01 against 5.69 with logging off and
 5.01 against 4.40 with it; at load 3.6-4 RTF 3.3-4.8 against 2.3-3.2. (On 2026-11-22, with a step
 costing ~160 us, the thread mode measured 0.95-0.98 x ``direct`` at load 1.1-1.5: a GIL hand-over
-per message then ate what the overlap gained.) Why ``direct`` stays the default: the publisher thread
-writes what queued up while it waited for the GIL back to back, and at load 3-4 a reliable Python
-subscriber taking joint_states at 1 kHz (paced free-run, ``test_node_freerun.py``) then lost messages
-(39 of the 200 of a 0.2 s window received; the test failed in 2 of ~22 runs, and in none of 19 with
-``direct``). Delivery at real time is worth more to a controller than the throughput; ``thread`` is
-there for free-run as fast as possible.
+per message then ate what the overlap gained.) Why not always: the publisher thread writes what queued
+up while it waited for the GIL back to back, and at load 3-4 a reliable Python subscriber taking
+joint_states at 1 kHz (paced free-run, ``test_node_freerun.py``) then lost messages (39 of the 200 of a
+0.2 s window received; the test failed in 2 of ~22 runs, and in none of 19 with ``direct``). Delivery at
+real time is worth more to a controller than throughput, so ``auto`` overlaps the writes only in free-run
+as fast as possible, where the node floods its subscribers either way (with recorded runs, 2026-12-05,
+``redmax_bench node`` (c), hand, load 1.6-1.9: RTF logging off 12.2 ``direct`` / 14.2 ``thread`` / 13.9
+``auto``, logging on 8.7 / 10.1 / 9.6).
 
 Guarantees in every mode: messages go out in the order they were handed over (one FIFO in the
 thread mode); ``drain`` waits until everything handed over is published (services and the action
@@ -136,20 +140,21 @@ class _Wake:
 class Sender:
     """``send(publisher, data)`` from any thread, in one of three modes (``REDMAX_PUBLISH_MODE``):
 
-    ``direct`` (default): published in the calling thread through ctypes, the GIL released for a write
-    to a topic with subscribers. ``thread``: handed to the publisher thread. ``rclpy``:
+    ``auto`` (default): ``thread`` while ``set_overlap(True)``, else ``direct``. ``direct``: published in
+    the calling thread through ctypes, the GIL released for a write to a topic with subscribers.
+    ``thread``: handed to the publisher thread. ``rclpy``:
     ``Publisher.publish`` in the calling thread, the GIL held (the node before this module).
 
     ``on_error(text)`` is called for a failed ctypes publish while ``context_ok()`` is true;
     during shutdown failures are dropped silently."""
 
-    MODES = ("direct", "thread", "rclpy")
+    MODES = ("direct", "thread", "auto", "rclpy")
 
     def __init__(self, context_ok=lambda: True, on_error=None, mode=None, max_queue=256, rcl=None, threaded=None):
         if threaded is not None:  # older spelling: threaded=True/False
             mode = "thread" if threaded else "rclpy"
         if mode is None:
-            mode = os.environ.get("REDMAX_PUBLISH_MODE", "direct")
+            mode = os.environ.get("REDMAX_PUBLISH_MODE", "auto")
         if mode not in self.MODES:
             raise ValueError(f"publish mode must be one of {', '.join(self.MODES)}, got {mode!r}")
         self._context_ok = context_ok
@@ -175,7 +180,8 @@ class Sender:
         self._queued = 0  # messages handed to the thread
         self._stop = False
         self._thread = None
-        if self.mode == "thread":
+        self._overlap = False  # mode auto: messages go to the publisher thread while set (set_overlap)
+        if self.mode in ("thread", "auto"):
             self._thread = threading.Thread(target=self._run, name="redmax-publisher", daemon=True)
             self._thread.start()
 
@@ -183,15 +189,26 @@ class Sender:
     def threaded(self) -> bool:
         return self._thread is not None
 
+    def set_overlap(self, on: bool):
+        """Mode ``auto``: from now on hand messages to the publisher thread (``on``), or publish them in the
+        calling thread (what was handed to the thread before is drained first, so the order holds). Call it
+        from the thread that sends (the node's simulation thread)."""
+        on = bool(on)
+        if on == self._overlap:
+            return
+        self._overlap = on
+        if not on:
+            self.drain()
+
     def send(self, pub, data: bytes, wake=True, count=None):
         """Hand over one serialized message. ``wake=False`` leaves the publisher thread asleep
         (the caller sends more right away and wakes it with the last one: one GIL hand-over per
         step instead of one per message). ``count``: the topic's subscriber count as the caller
         has just read it (the direct and thread modes then do not read it again)."""
         mode = self.mode
-        if mode == "direct":  # (the queue is used in the thread mode only)
+        if mode == "direct" or (mode == "auto" and not self._overlap):  # (the queue: thread mode, auto overlapping)
             return self._publish_direct(pub, data, count)
-        if mode != "thread":
+        if mode == "rclpy":
             return self._publish_here(pub, data)
         info = self._info.get(pub)
         if info is None:

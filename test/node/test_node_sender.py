@@ -57,8 +57,10 @@ def test_everything_published_in_order(nodes, mode):
     with lock:
         got.clear()
     s = Sender(mode=mode)
-    assert s.mode == mode and s.threaded == (mode == "thread")
+    assert s.mode == mode and s.threaded == (mode in ("thread", "auto"))
     for i in range(300):
+        if mode == "auto" and i % 50 == 0:  # to the publisher thread and back every 50 (set_overlap drains)
+            s.set_overlap(i % 100 == 0)
         s.send(pa, serialize_message(String(data=str(i))), wake=i % 3 == 2)
         s.send(pb, encode_clock(float(i)), wake=False)
     s.wake()
