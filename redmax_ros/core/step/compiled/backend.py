@@ -40,13 +40,14 @@ _NO_REC = np.zeros((0, 0))  # the kernels' ``rec`` when nothing is recorded
 RECORD_FIELDS = ("q_new", "v_hyper", "v_new", "effort", "site_force", "out", "lam", "mu")  # kernel.record_step
 
 
-def record_layout(d, friction=None) -> dict:
-    """name -> slice of a run's record row (kernel.record_step: RECORD_FIELDS of the Data ``d``, then the
-    friction report ``rep`` (N_REP) and joint normal impulses ``jn`` with friction); "width" -> the row length."""
+def record_layout(d, friction_joints=None) -> dict:
+    """name -> slice of a run's record row (kernel.record_step: RECORD_FIELDS of the Data ``d``, then, with
+    friction (``friction_joints``: the names of the joint normal impulses), the friction report ``rep``
+    (N_REP) and those impulses ``jn``); "width" -> the row length."""
     out, j = {}, 0
     sizes = [(n, d[n].size) for n in RECORD_FIELDS]
-    if friction is not None:
-        sizes += [("rep", N_REP), ("jn", len(friction))]
+    if friction_joints is not None:
+        sizes += [("rep", N_REP), ("jn", len(friction_joints))]
     for name, size in sizes:
         out[name] = slice(j, j + size)
         j += size
