@@ -79,6 +79,8 @@ class CompiledBackend:
         self.model = build_model(mech)
         self.bdf2 = mech.scheme == "bdf2"  # integrator.scheme: the kernel keeps BDF2's history (step/scheme.py)
         self._data = {}
+        self._free = None  # _free_inputs: (tau, Data) of a step without commands
+        self._no_q, self._no_v = mech.q0.copy(), np.zeros(mech.ndof)  # BDF1's history placeholders (never read)
         self._layouts = {}
         self.handoffs = Counter()
         fm = mech.friction  # contact / joint friction: the staggered solve in the kernel (friction.py)
@@ -109,6 +111,9 @@ class CompiledBackend:
 
     def _inputs(self, state, cmd, h):
         """(resolved commands, tau, Data, gj, sv) of a step the kernel can take, or None (the reference's)."""
+        if not (cmd.joint_velocities or cmd.site_velocities or cmd.joint_trajectories or cmd.body_twists
+                or cmd.site_forces) and cmd.joint_torques is None and h > 0 and math.isfinite(h):
+            return self._free_inputs(cmd)  # nothing commanded: the same inputs every step
         if cmd.body_twists or cmd.site_forces:
             self.handoffs["body twists or site forces commanded"] += 1
             return None
@@ -128,14 +133,24 @@ class CompiledBackend:
         s = _NO_S if not sv else np.array(list(sv.values()), dtype=float).reshape(len(sv), 3)
         return rcmd, np.asarray(tau, dtype=float), d, gj, s
 
+    def _free_inputs(self, cmd):
+        """_inputs without commands (built once): torque0, the Data of no prescriptions, no rows."""
+        if self._free is None:
+            self._free = (self.mech.torque0, self._data_for(cmd))
+        tau, d = self._free
+        return cmd, tau, d, _NO_V, _NO_S
+
     def _history(self, state, h) -> bool:
         """Whether the step of h from ``state`` is a BDF2 step (integrator.scheme bdf2 and a history of h)."""
         return self.bdf2 and continues(state.history, h)
 
     def _history_args(self, state, h):
-        """(q_k-1, qdot_k-1, valid) for the kernel: copies of the history, or placeholders and 0."""
+        """(q_k-1, qdot_k-1, valid) for the kernel: copies of the history, or placeholders and 0 (under BDF1
+        the kernel never touches them: the backend's own; a BDF2 start-up writes the new history into them)."""
         if self._history(state, h):
             return state.history.q.copy(), state.history.v.copy(), 1
+        if not self.bdf2:
+            return self._no_q, self._no_v, 0
         return state.q.copy(), state.v.copy(), 0
 
     def _advanced(self, state, h, q, v, qp, vp, steps=1):
@@ -338,13 +353,13 @@ class CompiledBackend:
         return BatchResult(states, total, errors)
 
     def _result(self, new, d, q_new, rcmd, t0):
-        out = d["out"]
+        views = d.views
+        o = views["out"].tolist()
         sv = rcmd.site_velocities
-        site_forces = {name: d["site_force"][k].copy() for k, name in enumerate(sv)} if sv else {}
-        ek, ep, es = float(out[OUT_E_KIN]), float(out[OUT_E_POT]), float(out[OUT_E_SPRING])
-        sol = CompiledSolution(new.v, d["lam"].copy(), d["mu"].copy(), float(out[OUT_RESIDUAL]))
-        iters = int(out[OUT_ITERS])
-        diag = Diagnostics(ek, ep, es, ek + ep + es, float(out[OUT_VIOL_POS]), float(out[OUT_VIOL_VEL]), iters,
+        site_forces = {name: views["site_force"][k].copy() for k, name in enumerate(sv)} if sv else {}
+        ek, ep, es = o[OUT_E_KIN], o[OUT_E_POT], o[OUT_E_SPRING]
+        sol = CompiledSolution(new.v, views["lam"].copy(), views["mu"].copy(), o[OUT_RESIDUAL])
+        diag = Diagnostics(ek, ep, es, ek + ep + es, o[OUT_VIOL_POS], o[OUT_VIOL_VEL], int(o[OUT_ITERS]),
                            "compiled", time.perf_counter() - t0, sol,
                            None if self.friction is None else self.friction_report())
-        return StepResult(new.t, q_new, d["v_new"].copy(), d["effort"].copy(), site_forces, diag, {})
+        return StepResult(new.t, q_new, views["v_new"].copy(), views["effort"].copy(), site_forces, diag, {})
