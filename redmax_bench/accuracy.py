@@ -573,7 +573,7 @@ def main(argv=None) -> int:
     ap.add_argument("--markdown", action="store_true", help="print the tables of docs/benchmarks.md from the JSON results")
     ap.add_argument("--no-chart", action="store_true")
     ap.add_argument("--merge", action="store_true",
-                    help="update only the cases/methods run in the existing accuracy.json (and stability.json)")
+                    help="update only the cases/methods run in the existing accuracy.json (and accuracy_verify.json, stability.json)")
     add_out_argument(ap)
     ap.add_argument("--cache", type=Path, default=None, metavar="DIR",
                     help="reference-solution cache (default: runs/accuracy_cache under the current directory)")
@@ -613,7 +613,10 @@ def main(argv=None) -> int:
     if "verify" in what or ("work" in what and any(m.startswith("MuJoCo") for m in meths)):
         print("== MuJoCo export check (before any timing) ==")
         ver = verify_mujoco(cases)
-        write_json(rd, "accuracy_verify", {"mujoco_export": ver, "tolerances": EXPORT_TOL})
+        kept = ver
+        if a.merge and (rd / "accuracy_verify.json").exists():  # the cases not run keep their check
+            kept = {**json.loads((rd / "accuracy_verify.json").read_text())["mujoco_export"], **ver}
+        write_json(rd, "accuracy_verify", {"mujoco_export": kept, "tolerances": EXPORT_TOL})
     if "work" in what:
         bad = export_failures(ver)
         for c, why in bad.items():
