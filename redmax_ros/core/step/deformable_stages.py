@@ -29,11 +29,12 @@ import numpy as np
 import pinocchio as pin
 
 from redmax_ros.core.deformable import attach, reduction
+from redmax_ros.core.deformable.unreduce import unreduce
 from redmax_ros.core.deformable.fem import TetFEM
 from redmax_ros.core.deformable.string import String
 from redmax_ros.core.deformable.system import Attachments, Deformables, DeformState
 from redmax_ros.core.dynamics.energy import energies
-from redmax_ros.core.dynamics.kinematics import point_jacobians
+from redmax_ros.core.dynamics.kinematics import point_jacobians, point_jacobians_into
 from redmax_ros.core.errors import SceneError, StepError
 from redmax_ros.core.jit import njit
 from redmax_ros.core.solvers import coupled
@@ -160,7 +161,8 @@ def attachment_points_at(mech, ws, dm, q, support=None):
     (tree_kinematics.Context.site_positions_at: one compiled call, the same placements as Pinocchio's to
     round-off, ~1e-16 m) instead of reading data.oMi through the bindings (~4 us per joint, two passes a step);
     world points are their stored positions. With ``support``, the Jacobians from data.J (computeJointJacobians
-    at q, which the skeleton stages leave in ws.data)."""
+    at q, which the skeleton stages leave in ws.data), written into a buffer zeroed once and kept in ws.cache
+    (only the supported entries change; valid until the next call)."""
     att = dm.attach
     jid, local, world = _attach_frames(ws, dm)
     P = ws.tree.site_positions_at(q, jid, local)
@@ -168,7 +170,11 @@ def attachment_points_at(mech, ws, dm, q, support=None):
         P[world] = att.local[world]
     if support is None:
         return P, None
-    return P, point_jacobians(ws.data.J.reshape(6, mech.nv), P, support).reshape(3 * len(P), mech.nv)
+    J = ws.cache.get("deformable_attach_jacobians")
+    if J is None or J.shape != (len(P), 3, mech.nv):
+        J = ws.cache["deformable_attach_jacobians"] = np.zeros((len(P), 3, mech.nv))
+    point_jacobians_into(np.ascontiguousarray(ws.data.J.reshape(6, mech.nv)), P, support, J)
+    return P, J.reshape(3 * len(P), mech.nv)
 
 
 def _attach_frames(ws, dm):
@@ -226,15 +232,14 @@ def coupled_velocity(mech, ws, dm, state, ds, cmd, tau, h, timing=None):
                         C, cons.lo if C is not None else None, cons.hi if C is not None else None, contacts,
                         _warm_contacts(ws, ds), labels, stats=timing)
     ws.cache[_CONTACTS_FOUND] = sol.contact_state  # step() keys them to the DeformState it ends in, on success
-    lam, violation = np.empty(cons.m), sol.violation
-    lam[rest] = sol.lam
-    if len(rows):  # A z + G^T lam = b on a held DOF: lam = (b_j - (A z)_j) / c
-        lam[rows] = -reduction.reactions(red.indptr, red.indices, dofs, saved, b_saved, sol.z) / coef
-        violation = max(violation, float(np.abs(coef * sol.z[dofs] - cons.g[rows]).max()))
     v_r = sol.z[red.n_free:]
-    v_d = np.empty(3 * N)
-    v_d[buf["free_dof"]] = sol.z[:red.n_free]
-    v_d[red.att_dof] = E @ v_r + t
+    if not len(rows):
+        dofs, rows, saved, b_saved, coef = _NO_INTS, _NO_INTS, _NO_FLOATS, _NO_FLOATS, _NO_FLOATS
+    # A z + G^T lam = b on a held DOF: lam = (b_j - (A z)_j) / c
+    lam, v_d, held_violation = unreduce(sol.z, red.n_free, buf["free_dof"], red.att_dof, E @ v_r, t, cons.m, rest,
+                                        sol.lam, red.indptr, red.indices, dofs, saved, b_saved, coef,
+                                        cons.g[rows], rows)
+    violation = max(sol.violation, held_violation) if len(rows) else sol.violation
     t3 = cpu_time()
     if timing is not None:
         timing["skeleton"] += t1 - t0
@@ -269,6 +274,7 @@ def _held_rows(ws, dm, G, C, labs):
     return out
 
 
+_NO_FLOATS, _NO_INTS, _NO_POINTS = np.zeros(0), np.zeros(0, np.int64), np.zeros((0, 3))  # unreduce's, advance's
 _CONTACTS = "deformable contacts"  # ws.cache: (the DeformState they were found for, contact states by vertex)
 _CONTACTS_FOUND = "deformable contacts found"  # ws.cache: the running step's, until it succeeds
 
@@ -381,19 +387,16 @@ def step(mech, ws, dm, state, cmd, h, timing=None):
     check_speed(v_d.ravel())
     q_new, v_hyper, v_new, viol_loop = update_configuration(mech, ws, state.q, vs, cmd, h)
     effort, site_forces = required_forces(mech, tau, vs, cmd, h)
-    x_new = ds.x + h * v_d
-    drift = resid = 0.0
-    if len(dm.attach.vertex):  # post-stabilization: attached vertices onto their points at q+
-        P, _ = attachment_points_at(mech, ws, dm, q_new)
-        drift = float(np.abs(x_new[dm.attach.vertex] - P).max())
-        if mech.loop_baumgarte:  # Baumgarte: no projection, the residual is the violation
-            resid = drift
-        else:
-            x_new[dm.attach.vertex] = P
-            resid = 0.0  # the projected vertices sit on their points (a second evaluation at q+ gave P again)
+    # x+ = x + h v_d; post-stabilization: attached vertices onto their points at q+ (Baumgarte: no projection,
+    # the residual is the violation; projected, the vertices sit on their points: a second evaluation at q+
+    # gave P again)
+    P = attachment_points_at(mech, ws, dm, q_new)[0] if len(dm.attach.vertex) else _NO_POINTS
+    x_new = np.empty_like(ds.x)
+    drift, squares = attach.advance(ds.x, v_d, h, dm.attach.vertex, P, not mech.loop_baumgarte, x_new)
+    resid = drift if mech.loop_baumgarte else 0.0
     if timing is not None:
         timing["attachment_drift"] = drift  # what the velocity step left before the projection [m]
-    if not math.isfinite(float(x_new.ravel() @ x_new.ravel())):
+    if not math.isfinite(squares):
         raise StepError("non-finite deformable positions after the step")
     ek, ep, es = energies(mech, ws, q_new, v_new)
     ds_new = DeformState(x_new, v_d)  # both fresh float (N,3) arrays of this step: no copy (DeformState.of)
