@@ -170,11 +170,33 @@ def attachment_points_at(mech, ws, dm, q, support=None):
         P[world] = att.local[world]
     if support is None:
         return P, None
+    return P, attachment_jacobians(mech, ws, P, support)
+
+
+def attachment_jacobians(mech, ws, P, support):
+    """E (3a, nv) of attachment_points_at for the points P (a,3) at the configuration of ws.data.J, in a buffer
+    zeroed once and kept in ws.cache (only the supported entries change; valid until the next call)."""
     J = ws.cache.get("deformable_attach_jacobians")
     if J is None or J.shape != (len(P), 3, mech.nv):
         J = ws.cache["deformable_attach_jacobians"] = np.zeros((len(P), 3, mech.nv))
     point_jacobians_into(np.ascontiguousarray(ws.data.J.reshape(6, mech.nv)), P, support, J)
-    return P, J.reshape(3 * len(P), mech.nv)
+    return J.reshape(3 * len(P), mech.nv)
+
+
+_POINTS = "deformable attachment points"  # ws.cache: (q's bytes, the attachment points at q)
+
+
+def _points_at(mech, ws, dm, q):
+    """attachment_points_at(q)'s points, kept in ws.cache for the last q they were computed at (compared bit
+    for bit): the post-projection's points at q+ are the next step's at q_k, the same numbers without a second
+    forward kinematics. Read-only by convention (the step only reads them)."""
+    key = q.tobytes()
+    hit = ws.cache.get(_POINTS)
+    if hit is not None and hit[0] == key:
+        return hit[1]
+    P = attachment_points_at(mech, ws, dm, q)[0]
+    ws.cache[_POINTS] = (key, P)
+    return P
 
 
 def _attach_frames(ws, dm):
@@ -335,7 +357,8 @@ def _attached_velocity_map(mech, ws, dm, ds, n_r, q):
     a = len(att.vertex)
     if not a:
         return np.zeros((0, n_r)), np.zeros(0)
-    P, J = attachment_points_at(mech, ws, dm, q, _support(mech, ws, dm))  # at q_k (the skeleton stages' kinematics)
+    P = _points_at(mech, ws, dm, q)  # at q_k (the skeleton stages' kinematics for the Jacobians)
+    J = attachment_jacobians(mech, ws, P, _support(mech, ws, dm))
     E = J if ws.T is None else J @ ws.T
     t = np.zeros(3 * a)
     if mech.loop_baumgarte:  # G z = -b phi(q_k, x_k)
@@ -390,7 +413,7 @@ def step(mech, ws, dm, state, cmd, h, timing=None):
     # x+ = x + h v_d; post-stabilization: attached vertices onto their points at q+ (Baumgarte: no projection,
     # the residual is the violation; projected, the vertices sit on their points: a second evaluation at q+
     # gave P again)
-    P = attachment_points_at(mech, ws, dm, q_new)[0] if len(dm.attach.vertex) else _NO_POINTS
+    P = _points_at(mech, ws, dm, q_new) if len(dm.attach.vertex) else _NO_POINTS
     x_new = np.empty_like(ds.x)
     drift, squares = attach.advance(ds.x, v_d, h, dm.attach.vertex, P, not mech.loop_baumgarte, x_new)
     resid = drift if mech.loop_baumgarte else 0.0
