@@ -91,6 +91,9 @@ def site_jacobians(mech, ws, sites, q=None):
     (tree_kinematics.Context.site_positions_at; same numbers to round-off) instead of one frame read per
     site."""
     data = ws.data
+    if not len(sites):  # the frame placements as with sites (forces.frame_jacobian reads them), no empty kernel call
+        pin.updateFramePlacements(mech.model, data)
+        return np.zeros((0, 3)), np.zeros((0, 3, mech.nv))
     fids, support, jid, local = _site_set(mech, ws, sites)
     if q is not None and len(sites) > GATHER_MAX:
         X = ws.tree.site_positions_at(q, jid, local)
