@@ -245,11 +245,10 @@ def coupled_velocity(mech, ws, dm, state, ds, cmd, tau, h, timing=None):
     C = cons.C if cons.C is not None and len(cons.lo) else None
     G = np.asarray(cons.G).reshape(cons.m, n_r)
     # prescribed joint velocities c qdot_j = g (unit rows of Eq. 7) are held DOFs, not Schur rows
-    rows, cols, coef, rest, G_rest, labels = _held_rows(ws, dm, G, C, cons.labels)
-    if len(rows):
-        dofs = red.n_free + cols
-        saved, b_saved = reduction.hold(red.indptr, red.indices, cws.diag, cws.tpos, buf["data"], buf["b"], dofs,
-                                        cons.g[rows] / coef)
+    rows, dofs, coef, rest, G_rest, labels = _held_rows(ws, dm, G, C, cons.labels, red.n_free)
+    if len(rows):  # reduction.hold, its arguments already int64 and float
+        saved, b_saved = reduction.hold_kernel(red.indptr, red.indices, cws.diag, cws.tpos, buf["data"], buf["b"],
+                                               dofs, cons.g[rows] / coef)
     sol = coupled.solve(cws, buf["data"], buf["b"], n_r, G_rest, cons.g[rest],
                         C, cons.lo if C is not None else None, cons.hi if C is not None else None, contacts,
                         _warm_contacts(ws, ds), labels, stats=timing)
@@ -276,14 +275,14 @@ def coupled_velocity(mech, ws, dm, state, ds, cmd, tau, h, timing=None):
     return vs, v_d.reshape(-1, 3)
 
 
-def _held_rows(ws, dm, G, C, labs):
-    """(rows, columns, coefficients) of reduction.unit_rows(G, C), the other rows ``rest``, G[rest] and the
-    labels of the coupled solve's rows (G[rest]'s, then the attachments'): kept in ws.cache and reused while
-    G, C and the labels are those of the last step (the skeleton's rows of a prescribed joint are the same unit
-    rows every step; only their right-hand side changes; compared bit for bit), so the same numbers as computing
-    them afresh."""
+def _held_rows(ws, dm, G, C, labs, n_free):
+    """(rows, their reduced DOFs n_free + columns, coefficients) of reduction.unit_rows(G, C), the other rows
+    ``rest``, G[rest] and the labels of the coupled solve's rows (G[rest]'s, then the attachments'): kept in
+    ws.cache and reused while G, C and the labels are those of the last step (the skeleton's rows of a prescribed
+    joint are the same unit rows every step; only their right-hand side changes; compared bit for bit), so the
+    same numbers as computing them afresh."""
     hit = ws.cache.get("deformable_held_rows")
-    key = (G.shape, G.dtype.str, G.tobytes(),
+    key = (n_free, G.shape, G.dtype.str, G.tobytes(),
            None if C is None else (np.shape(C), np.asarray(C, dtype=float).tobytes()))
     if hit is not None and hit[0] == key and hit[1] == list(labs):  # the same bits (tobytes: ~1 us, array_equal ~5)
         return hit[2]
@@ -291,7 +290,8 @@ def _held_rows(ws, dm, G, C, labs):
     keep = np.ones(len(G), dtype=bool)
     keep[rows] = False
     rest = np.flatnonzero(keep)
-    out = (rows, cols, coef, rest, G[rest], [labs[i] for i in rest] + dm.attach.labels)
+    out = (rows, n_free + cols, np.ascontiguousarray(coef, dtype=float), rest, G[rest],
+           [labs[i] for i in rest] + dm.attach.labels)
     ws.cache["deformable_held_rows"] = (key, list(labs), out)
     return out
 
