@@ -16,7 +16,7 @@ import numpy as np
 from redmax_ros.core.jit import njit
 
 _PLANS = {}  # (id(mech), ((name, id(traj)), ...)) -> SinePlan; the plan keeps both alive, so the ids stay theirs
-_MAX_PLANS = 64
+_MAX_PLANS = 8  # the plans keep their mechanisms alive: a few at most (one per simulator and command set in use)
 
 
 class SinePlan:
