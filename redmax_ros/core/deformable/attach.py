@@ -76,3 +76,32 @@ def residual(P, x, world):
     phi = np.asarray(P, dtype=float) - x
     phi[np.asarray(world, dtype=bool)] *= -1.0
     return phi.ravel()
+
+
+@njit
+def advance(x, v, h, vertex, P, project, out):
+    """The step's vertex positions in one pass: out (N,3) = x + h v [m]; the attachment drift max |out[vertex] - P|
+    [m] (np.max's: a NaN propagates; 0 without attachments); with ``project`` the attached vertices then set onto
+    their points P (a,3) (post-stabilization). Returns (drift, sum of out's squares: finite iff every position
+    is, short of overflow)."""
+    n = x.shape[0]
+    for i in range(n):
+        for c in range(3):
+            out[i, c] = x[i, c] + h * v[i, c]
+    drift = 0.0
+    for k in range(len(vertex)):
+        i = vertex[k]
+        for c in range(3):
+            d = abs(out[i, c] - P[k, c])
+            if d > drift or d != d:
+                drift = d
+    if project:
+        for k in range(len(vertex)):
+            i = vertex[k]
+            for c in range(3):
+                out[i, c] = P[k, c]
+    ss = 0.0
+    for i in range(n):
+        for c in range(3):
+            ss += out[i, c] * out[i, c]
+    return drift, ss

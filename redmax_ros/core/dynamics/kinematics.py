@@ -48,8 +48,16 @@ def point_jacobians(J6: np.ndarray, X: np.ndarray, support: np.ndarray) -> np.nd
 
 @njit
 def _point_jacobians(J6, X, support):
+    out = np.zeros((X.shape[0], 3, J6.shape[1]))
+    point_jacobians_into(J6, X, support, out)
+    return out
+
+
+@njit
+def point_jacobians_into(J6, X, support, out):
+    """point_jacobians into ``out`` (K,3,nv): writes the supported entries only (the others keep their values: a
+    buffer zeroed once and reused with the same ``support`` holds the whole Jacobians)."""
     K, nv = X.shape[0], J6.shape[1]
-    out = np.zeros((K, 3, nv))
     for k in range(K):
         x0, x1, x2 = X[k, 0], X[k, 1], X[k, 2]
         for i in range(nv):
@@ -58,7 +66,6 @@ def _point_jacobians(J6, X, support):
                 out[k, 0, i] = J6[0, i] - (x1 * a2 - x2 * a1)
                 out[k, 1, i] = J6[1, i] - (x2 * a0 - x0 * a2)
                 out[k, 2, i] = J6[2, i] - (x0 * a1 - x1 * a0)
-    return out
 
 
 GATHER_MAX = 8  # sites: up to this many, positions are read from Pinocchio's frames (~1.4 us each)
@@ -84,6 +91,9 @@ def site_jacobians(mech, ws, sites, q=None):
     (tree_kinematics.Context.site_positions_at; same numbers to round-off) instead of one frame read per
     site."""
     data = ws.data
+    if not len(sites):  # the frame placements as with sites (forces.frame_jacobian reads them), no empty kernel call
+        pin.updateFramePlacements(mech.model, data)
+        return np.zeros((0, 3)), np.zeros((0, 3, mech.nv))
     fids, support, jid, local = _site_set(mech, ws, sites)
     if q is not None and len(sites) > GATHER_MAX:
         X = ws.tree.site_positions_at(q, jid, local)

@@ -207,6 +207,8 @@ class TimeFunction:
             w = 2.0 * math.pi * p["frequency"]
             a = w * t + p["phase"]  # the argument of both (self(t) forms 2 pi f t + phase, the same operations)
             return p["offset"] + p["amplitude"] * math.sin(a), p["amplitude"] * w * math.cos(a)
+        if self.kind == "constant":  # self(t), self.derivative(t) without their dispatch on the kind
+            return self.p["value"], 0.0
         return self(t), self.derivative(t)
 
     @property
@@ -316,12 +318,14 @@ class JointTrajectory:
             e = (e + math.pi) % (2.0 * math.pi) - math.pi
             return self.velocity(t) + self.b * e
         # per DOF in Python floats: the same operations as the array form above (v + b (q_p - q)), without its
-        # four small arrays (~13 -> ~4 us a joint; the starfish has five trajectories, called every step)
-        out = np.empty(len(self.positions))
-        for i, f in enumerate(self.positions):
+        # four small arrays (~13 -> ~4 us a joint; the starfish has five trajectories, called every step); q's
+        # floats by one tolist(), the result by one np.array
+        qs = q.tolist() if isinstance(q, np.ndarray) else [float(x) for x in q]
+        b, out = self.b, []
+        for f, qi in zip(self.positions, qs):
             val, rate = f.value_rate(t)
-            out[i] = rate + self.b * (val - float(q[i]))
-        return out
+            out.append(rate + b * (val - qi))
+        return np.array(out, dtype=float)
 
     def __repr__(self):
         return f"JointTrajectory({list(self.positions)}, b={self.b})"

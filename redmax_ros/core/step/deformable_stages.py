@@ -29,11 +29,12 @@ import numpy as np
 import pinocchio as pin
 
 from redmax_ros.core.deformable import attach, reduction
+from redmax_ros.core.deformable.unreduce import unreduce
 from redmax_ros.core.deformable.fem import TetFEM
 from redmax_ros.core.deformable.string import String
 from redmax_ros.core.deformable.system import Attachments, Deformables, DeformState
 from redmax_ros.core.dynamics.energy import energies
-from redmax_ros.core.dynamics.kinematics import point_jacobians
+from redmax_ros.core.dynamics.kinematics import point_jacobians, point_jacobians_into
 from redmax_ros.core.errors import SceneError, StepError
 from redmax_ros.core.jit import njit
 from redmax_ros.core.solvers import coupled
@@ -160,7 +161,8 @@ def attachment_points_at(mech, ws, dm, q, support=None):
     (tree_kinematics.Context.site_positions_at: one compiled call, the same placements as Pinocchio's to
     round-off, ~1e-16 m) instead of reading data.oMi through the bindings (~4 us per joint, two passes a step);
     world points are their stored positions. With ``support``, the Jacobians from data.J (computeJointJacobians
-    at q, which the skeleton stages leave in ws.data)."""
+    at q, which the skeleton stages leave in ws.data), written into a buffer zeroed once and kept in ws.cache
+    (only the supported entries change; valid until the next call)."""
     att = dm.attach
     jid, local, world = _attach_frames(ws, dm)
     P = ws.tree.site_positions_at(q, jid, local)
@@ -168,7 +170,33 @@ def attachment_points_at(mech, ws, dm, q, support=None):
         P[world] = att.local[world]
     if support is None:
         return P, None
-    return P, point_jacobians(ws.data.J.reshape(6, mech.nv), P, support).reshape(3 * len(P), mech.nv)
+    return P, attachment_jacobians(mech, ws, P, support)
+
+
+def attachment_jacobians(mech, ws, P, support):
+    """E (3a, nv) of attachment_points_at for the points P (a,3) at the configuration of ws.data.J, in a buffer
+    zeroed once and kept in ws.cache (only the supported entries change; valid until the next call)."""
+    J = ws.cache.get("deformable_attach_jacobians")
+    if J is None or J.shape != (len(P), 3, mech.nv):
+        J = ws.cache["deformable_attach_jacobians"] = np.zeros((len(P), 3, mech.nv))
+    point_jacobians_into(np.ascontiguousarray(ws.data.J.reshape(6, mech.nv)), P, support, J)
+    return J.reshape(3 * len(P), mech.nv)
+
+
+_POINTS = "deformable attachment points"  # ws.cache: (q's bytes, the attachment points at q)
+
+
+def _points_at(mech, ws, dm, q):
+    """attachment_points_at(q)'s points, kept in ws.cache for the last q they were computed at (compared bit
+    for bit): the post-projection's points at q+ are the next step's at q_k, the same numbers without a second
+    forward kinematics. Read-only by convention (the step only reads them)."""
+    key = q.tobytes()
+    hit = ws.cache.get(_POINTS)
+    if hit is not None and hit[0] == key:
+        return hit[1]
+    P = attachment_points_at(mech, ws, dm, q)[0]
+    ws.cache[_POINTS] = (key, P)
+    return P
 
 
 def _attach_frames(ws, dm):
@@ -217,24 +245,22 @@ def coupled_velocity(mech, ws, dm, state, ds, cmd, tau, h, timing=None):
     C = cons.C if cons.C is not None and len(cons.lo) else None
     G = np.asarray(cons.G).reshape(cons.m, n_r)
     # prescribed joint velocities c qdot_j = g (unit rows of Eq. 7) are held DOFs, not Schur rows
-    rows, cols, coef, rest, G_rest, labels = _held_rows(ws, dm, G, C, cons.labels)
-    if len(rows):
-        dofs = red.n_free + cols
-        saved, b_saved = reduction.hold(red.indptr, red.indices, cws.diag, cws.tpos, buf["data"], buf["b"], dofs,
-                                        cons.g[rows] / coef)
+    rows, dofs, coef, rest, G_rest, labels = _held_rows(ws, dm, G, C, cons.labels, red.n_free)
+    if len(rows):  # reduction.hold, its arguments already int64 and float
+        saved, b_saved = reduction.hold_kernel(red.indptr, red.indices, cws.diag, cws.tpos, buf["data"], buf["b"],
+                                               dofs, cons.g[rows] / coef)
     sol = coupled.solve(cws, buf["data"], buf["b"], n_r, G_rest, cons.g[rest],
                         C, cons.lo if C is not None else None, cons.hi if C is not None else None, contacts,
                         _warm_contacts(ws, ds), labels, stats=timing)
     ws.cache[_CONTACTS_FOUND] = sol.contact_state  # step() keys them to the DeformState it ends in, on success
-    lam, violation = np.empty(cons.m), sol.violation
-    lam[rest] = sol.lam
-    if len(rows):  # A z + G^T lam = b on a held DOF: lam = (b_j - (A z)_j) / c
-        lam[rows] = -reduction.reactions(red.indptr, red.indices, dofs, saved, b_saved, sol.z) / coef
-        violation = max(violation, float(np.abs(coef * sol.z[dofs] - cons.g[rows]).max()))
     v_r = sol.z[red.n_free:]
-    v_d = np.empty(3 * N)
-    v_d[buf["free_dof"]] = sol.z[:red.n_free]
-    v_d[red.att_dof] = E @ v_r + t
+    if not len(rows):
+        dofs, rows, saved, b_saved, coef = _NO_INTS, _NO_INTS, _NO_FLOATS, _NO_FLOATS, _NO_FLOATS
+    # A z + G^T lam = b on a held DOF: lam = (b_j - (A z)_j) / c
+    lam, v_d, held_violation = unreduce(sol.z, red.n_free, buf["free_dof"], red.att_dof, E @ v_r, t, cons.m, rest,
+                                        sol.lam, red.indptr, red.indices, dofs, saved, b_saved, coef,
+                                        cons.g[rows], rows)
+    violation = max(sol.violation, held_violation) if len(rows) else sol.violation
     t3 = cpu_time()
     if timing is not None:
         timing["skeleton"] += t1 - t0
@@ -249,14 +275,14 @@ def coupled_velocity(mech, ws, dm, state, ds, cmd, tau, h, timing=None):
     return vs, v_d.reshape(-1, 3)
 
 
-def _held_rows(ws, dm, G, C, labs):
-    """(rows, columns, coefficients) of reduction.unit_rows(G, C), the other rows ``rest``, G[rest] and the
-    labels of the coupled solve's rows (G[rest]'s, then the attachments'): kept in ws.cache and reused while
-    G, C and the labels are those of the last step (the skeleton's rows of a prescribed joint are the same unit
-    rows every step; only their right-hand side changes; compared bit for bit), so the same numbers as computing
-    them afresh."""
+def _held_rows(ws, dm, G, C, labs, n_free):
+    """(rows, their reduced DOFs n_free + columns, coefficients) of reduction.unit_rows(G, C), the other rows
+    ``rest``, G[rest] and the labels of the coupled solve's rows (G[rest]'s, then the attachments'): kept in
+    ws.cache and reused while G, C and the labels are those of the last step (the skeleton's rows of a prescribed
+    joint are the same unit rows every step; only their right-hand side changes; compared bit for bit), so the
+    same numbers as computing them afresh."""
     hit = ws.cache.get("deformable_held_rows")
-    key = (G.shape, G.dtype.str, G.tobytes(),
+    key = (n_free, G.shape, G.dtype.str, G.tobytes(),
            None if C is None else (np.shape(C), np.asarray(C, dtype=float).tobytes()))
     if hit is not None and hit[0] == key and hit[1] == list(labs):  # the same bits (tobytes: ~1 us, array_equal ~5)
         return hit[2]
@@ -264,11 +290,13 @@ def _held_rows(ws, dm, G, C, labs):
     keep = np.ones(len(G), dtype=bool)
     keep[rows] = False
     rest = np.flatnonzero(keep)
-    out = (rows, cols, coef, rest, G[rest], [labs[i] for i in rest] + dm.attach.labels)
+    out = (rows, n_free + cols, np.ascontiguousarray(coef, dtype=float), rest, G[rest],
+           [labs[i] for i in rest] + dm.attach.labels)
     ws.cache["deformable_held_rows"] = (key, list(labs), out)
     return out
 
 
+_NO_FLOATS, _NO_INTS, _NO_POINTS = np.zeros(0), np.zeros(0, np.int64), np.zeros((0, 3))  # unreduce's, advance's
 _CONTACTS = "deformable contacts"  # ws.cache: (the DeformState they were found for, contact states by vertex)
 _CONTACTS_FOUND = "deformable contacts found"  # ws.cache: the running step's, until it succeeds
 
@@ -329,7 +357,8 @@ def _attached_velocity_map(mech, ws, dm, ds, n_r, q):
     a = len(att.vertex)
     if not a:
         return np.zeros((0, n_r)), np.zeros(0)
-    P, J = attachment_points_at(mech, ws, dm, q, _support(mech, ws, dm))  # at q_k (the skeleton stages' kinematics)
+    P = _points_at(mech, ws, dm, q)  # at q_k (the skeleton stages' kinematics for the Jacobians)
+    J = attachment_jacobians(mech, ws, P, _support(mech, ws, dm))
     E = J if ws.T is None else J @ ws.T
     t = np.zeros(3 * a)
     if mech.loop_baumgarte:  # G z = -b phi(q_k, x_k)
@@ -381,19 +410,16 @@ def step(mech, ws, dm, state, cmd, h, timing=None):
     check_speed(v_d.ravel())
     q_new, v_hyper, v_new, viol_loop = update_configuration(mech, ws, state.q, vs, cmd, h)
     effort, site_forces = required_forces(mech, tau, vs, cmd, h)
-    x_new = ds.x + h * v_d
-    drift = resid = 0.0
-    if len(dm.attach.vertex):  # post-stabilization: attached vertices onto their points at q+
-        P, _ = attachment_points_at(mech, ws, dm, q_new)
-        drift = float(np.abs(x_new[dm.attach.vertex] - P).max())
-        if mech.loop_baumgarte:  # Baumgarte: no projection, the residual is the violation
-            resid = drift
-        else:
-            x_new[dm.attach.vertex] = P
-            resid = 0.0  # the projected vertices sit on their points (a second evaluation at q+ gave P again)
+    # x+ = x + h v_d; post-stabilization: attached vertices onto their points at q+ (Baumgarte: no projection,
+    # the residual is the violation; projected, the vertices sit on their points: a second evaluation at q+
+    # gave P again)
+    P = _points_at(mech, ws, dm, q_new) if len(dm.attach.vertex) else _NO_POINTS
+    x_new = np.empty_like(ds.x)
+    drift, squares = attach.advance(ds.x, v_d, h, dm.attach.vertex, P, not mech.loop_baumgarte, x_new)
+    resid = drift if mech.loop_baumgarte else 0.0
     if timing is not None:
         timing["attachment_drift"] = drift  # what the velocity step left before the projection [m]
-    if not math.isfinite(float(x_new.ravel() @ x_new.ravel())):
+    if not math.isfinite(squares):
         raise StepError("non-finite deformable positions after the step")
     ek, ep, es = energies(mech, ws, q_new, v_new)
     ds_new = DeformState(x_new, v_d)  # both fresh float (N,3) arrays of this step: no copy (DeformState.of)

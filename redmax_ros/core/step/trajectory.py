@@ -26,12 +26,11 @@ omega_b = E_b(rpy) rpy_dot for a quaternion rotation).
 """
 from __future__ import annotations
 
-import dataclasses
 import math
 
 import numpy as np
 
-from redmax_ros.core.step import joint_targets
+from redmax_ros.core.step import joint_targets, trajectory_rates
 
 TRAJECTORY_JOINT_TYPES = ("revolute", "prismatic", "universal", "translational", "planar_translation")
 MANIFOLD_JOINT_TYPES = ("spherical", "planar", "free", "free3d")  # positions: model/dof_positions.py convention
@@ -72,6 +71,11 @@ def resolve(mech, state, cmd, h: float, q_base=None):
     t_next = state.time_after(h)
     q = state.q if q_base is None else q_base
     vel = dict(cmd.joint_velocities)
-    for name, traj in cmd.joint_trajectories.items():
-        vel[name] = joint_rate(mech, name, traj, q, t_next)
-    return dataclasses.replace(cmd, joint_velocities=vel, joint_trajectories={})
+    plan = trajectory_rates.sine_plan(mech, cmd.joint_trajectories, TRAJECTORY_JOINT_TYPES, MANIFOLD_JOINT_TYPES)
+    if plan is not None:  # all sines and constants on coordinate joints: one compiled call, the same numbers
+        vel.update(trajectory_rates.rates(plan, q, t_next))
+    else:
+        for name, traj in cmd.joint_trajectories.items():
+            vel[name] = joint_rate(mech, name, traj, q, t_next)
+    # dataclasses.replace's result without its field introspection (~6 -> ~2 us; Commands has no __post_init__)
+    return type(cmd)(**{**cmd.__dict__, "joint_velocities": vel, "joint_trajectories": {}})
