@@ -253,41 +253,50 @@ class _McapFile:
     def add_records(self, buf, pos: int, end: int, max_channel: int):
         """Copy the complete Message records in ``buf[pos:end]`` into the open chunk, up to the
         first other record, an incomplete one, or the chunk becoming full (then finalized).
-        Returns (new position, messages copied, whether a chunk was finalized)."""
+        Returns (new position, messages copied, whether a chunk was finalized). The records are
+        indexed one by one and copied as one span (one bytearray extend, not one per record)."""
         chunk, index, head, cid_time = self.chunk, self.index, _RECORD_HEAD, _CHANNEL_TIME
         start, stop_time = self.chunk_start, self.chunk_end
+        span = pos
+        base = len(chunk) - span  # a record at buf[p] lands at chunk[base + p]
+        full = self.chunk_size - base  # a record ending past buf[full] makes the chunk exceed chunk_size
         n = 0
-        with memoryview(buf) as mv:
-            while end - pos >= 31:
-                op, length = head.unpack_from(buf, pos)
-                if op != _OP_MESSAGE:
-                    break
-                stop = pos + 9 + length
-                if stop > end:
-                    break
-                cid, log_time = cid_time.unpack_from(buf, pos + 9)
-                if not 0 < cid <= max_channel:
-                    raise ValueError(f"message record for unknown channel {cid}")
-                idx = index.get(cid)
-                if idx is None:
-                    idx = index[cid] = array("Q")
-                idx.append(log_time)
-                idx.append(len(chunk))
-                chunk += mv[pos:stop]
-                if start is None:
-                    start = stop_time = log_time
-                elif log_time < start:
-                    start = log_time
-                elif log_time > stop_time:
-                    stop_time = log_time
-                n += 1
-                pos = stop
-                if len(chunk) > self.chunk_size:
-                    self.chunk_start, self.chunk_end = start, stop_time
-                    self.finalize_chunk()
-                    return pos, n, True
+        finalized = False
+        while end - pos >= 31:
+            op, length = head.unpack_from(buf, pos)
+            if op != _OP_MESSAGE:
+                break
+            stop = pos + 9 + length
+            if stop > end:
+                break
+            cid, log_time = cid_time.unpack_from(buf, pos + 9)
+            if not 0 < cid <= max_channel:
+                chunk += memoryview(buf)[span:pos]  # what is indexed is in the chunk
+                self.chunk_start, self.chunk_end = start, stop_time
+                raise ValueError(f"message record for unknown channel {cid}")
+            idx = index.get(cid)
+            if idx is None:
+                idx = index[cid] = array("Q")
+            idx.append(log_time)
+            idx.append(base + pos)
+            if start is None:
+                start = stop_time = log_time
+            elif log_time < start:
+                start = log_time
+            elif log_time > stop_time:
+                stop_time = log_time
+            n += 1
+            pos = stop
+            if pos > full:
+                finalized = True
+                break
+        if pos > span:
+            with memoryview(buf) as mv:
+                chunk += mv[span:pos]
         self.chunk_start, self.chunk_end = start, stop_time
-        return pos, n, False
+        if finalized:
+            self.finalize_chunk()
+        return pos, n, finalized
 
     def finalize_chunk(self):
         if self.chunk_start is None:

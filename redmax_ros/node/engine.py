@@ -68,6 +68,14 @@ class NullSink:
 
     def scene_loaded(self, info: SceneInfo): ...
     def state(self, t, q, v, effort, site_forces, diag, step_index, body_wrenches): ...
+
+    def run_states(self, results, first_index, body_wrenches):
+        """The StepResults of a recorded run, step indices from ``first_index``: ``state`` for each
+        (``body_wrenches(result)`` its last argument); the node overrides it to do its per-call work once
+        a run."""
+        for i, r in enumerate(results, first_index):
+            self.state(r.t, r.q, r.v, r.effort, r.site_forces, r.diagnostics, i, body_wrenches(r))
+
     def markers(self, t, poses, springs, meshes=None, contacts=None, shapes=None): ...
     def vertices(self, t, positions): ...
     def frames(self, t, sim): ...
@@ -437,12 +445,11 @@ class Engine:
         return Outcome(OK, "", steps=n, t=sim.time)
 
     def _publish_each(self, results):
-        """Publish the StepResults of a recorded run (Simulator.step_results), one state per step, and count
-        the steps (the engine publishes every step: publish_every 1)."""
-        sink = self.sink
-        for r in results:
-            self.step_index += 1
-            sink.state(r.t, r.q, r.v, r.effort, r.site_forces, r.diagnostics, self.step_index, self._body_wrenches(r))
+        """Count the steps of a recorded run (Simulator.step_results) and publish their StepResults, one state
+        per step, in one sink.run_states call (the engine publishes every step: publish_every 1)."""
+        first = self.step_index + 1
+        self.step_index += len(results)
+        self.sink.run_states(results, first, self._body_wrenches)
 
     def _records(self, lockstep: bool) -> bool:
         """Whether runs record every step's result (Simulator.step_results) and publish them all: when every

@@ -273,6 +273,17 @@ class _EventsHelper:
                 pass
 
 
+class _Run:
+    """What RedmaxNode.state / run_states keep while they publish steps: the logger and StepRecords (or
+    None), the subscriber counts read at the start, the log records and messages not handed over yet."""
+    __slots__ = ("logger", "records", "njs", "nclock", "nstats", "blobs", "sends")
+
+    def __init__(self, logger, records, njs, nclock, nstats):
+        self.logger, self.records = logger, records
+        self.njs, self.nclock, self.nstats = njs, nclock, nstats
+        self.blobs, self.sends = [], []
+
+
 class RedmaxNode(Node):
     def __init__(self, node_name="redmax", **kw):
         super().__init__(node_name, **kw)
@@ -528,43 +539,71 @@ class RedmaxNode(Node):
         """One published step: the messages are serialized once (joint_states, /clock and
         solver_stats by the fast CDR encoders, test_node_cdr.py checks them against rclpy's
         serializer), logged together (one lock, one log time), then published in this order.
-        Each topic's subscriber count is read once: a message on one of these volatile topics is
-        encoded only if it is logged or has a subscriber, and handed to DDS only with a
-        subscriber (without one it could reach nobody). solver_stats is built only when logged
-        or subscribed (its KKT residual is computed for it). When all three are logged by the
-        writer process and no point forces or body wrenches go out, the log records are built in one
-        piece (cdr.StepRecords: the same bytes as write_many would hand over). ``body_wrenches``: body ->
-        (frame 'body' | 'world', required wrench (6,) [torque N m; force N]); body_wrenches goes out
-        while any body is prescribed, plus one empty message after the last is released (as
-        point_forces). Free-running as fast as possible, the DDS writes overlap the next steps on the
-        publisher thread (Sender mode ``auto``, sender.py); otherwise they happen here, each when its step is done."""
+        A message on one of these volatile topics is encoded only if it is logged or has a
+        subscriber, and handed to DDS only with a subscriber (without one it could reach nobody).
+        solver_stats is built only when logged or subscribed (its KKT residual is computed for it).
+        When all three are logged by the writer process and no point forces or body wrenches go out,
+        the log records are built in one piece (cdr.StepRecords: the same bytes as write_many would
+        hand over). ``body_wrenches``: body -> (frame 'body' | 'world', required wrench (6,)
+        [torque N m; force N]); body_wrenches goes out while any body is prescribed, plus one empty
+        message after the last is released (as point_forces). Free-running as fast as possible, the
+        DDS writes overlap the next steps on the publisher thread (Sender mode ``auto``, sender.py);
+        otherwise they happen here, each when its step is done."""
+        run = self._begin_run()
+        try:
+            self._step_out(run, t, q, v, effort, site_forces, diag, step_index, body_wrenches)
+        finally:
+            self._end_run(run)
+
+    def run_states(self, results, first_index, body_wrenches):
+        """The steps of a recorded run (Engine._publish_each: StepResults, step indices from
+        ``first_index``, ``body_wrenches(result)`` as state's argument), each published as ``state``
+        publishes it, with the per-call work done once for the run: the publish mode set, the three
+        subscriber counts read, the run's log records handed to the logger in one piece
+        (write_records) and only then its messages to the sender, the publisher thread woken once.
+        A step that goes the general way (point forces, body wrenches) hands over what the run built
+        before it first, so the log and DDS keep the order of the steps."""
+        run = self._begin_run()
+        try:
+            step_out = self._step_out
+            for i, r in enumerate(results, first_index):
+                step_out(run, r.t, r.q, r.v, r.effort, r.site_forces, r.diagnostics, i, body_wrenches(r))
+        finally:
+            self._end_run(run)
+
+    def _begin_run(self) -> "_Run":
         e = self.__dict__.get("engine")  # None while the engine is made (its first state)
         self._sender.set_overlap(e is not None and e.state == eng.PLAYING and e.rtf <= 0)
         lg = self.logger_mcap
-        hjs, hclock, hstats = self._state_handles
-        njs = hjs.get_subscription_count()
-        nclock = hclock.get_subscription_count()
-        nstats = hstats.get_subscription_count()
-        if lg is not None and diag is not None and not (site_forces or self._last_pf_nonempty or body_wrenches
-                                                        or self._last_bw_nonempty):
+        rec = None
+        if lg is not None:
             rec = self._step_records
             if rec is None or rec[0] is not lg:
                 rec = self._step_records = (lg, self._make_step_records(lg))
             rec = rec[1]
-            if rec is not None:
-                js = self.js_enc.encode(t, self.msgs.info.positions(q), v, effort)
-                blob = rec.build(time.time_ns(), t, js, step_index, diag)
-                lg.write_records(blob, 3)
-                send = self._sender.send
-                if njs:
-                    send(self.pub_js, js, False, njs)
-                if nclock:
-                    i = rec.clock_at(len(js))
-                    send(self.pub_clock, blob[i:i + 12], False, nclock)
-                if nstats:
-                    send(self.pub_stats, blob[rec.stats_at(len(js)):], False, nstats)
-                self._sender.wake()
-                return
+        hjs, hclock, hstats = self._state_handles
+        return _Run(lg, rec, hjs.get_subscription_count(), hclock.get_subscription_count(),
+                    hstats.get_subscription_count())
+
+    def _step_out(self, run, t, q, v, effort, site_forces, diag, step_index, body_wrenches):
+        """One step's messages (see ``state``): on the StepRecords path kept in ``run`` (handed over by
+        ``_flush_run``), otherwise logged and sent now, after what ``run`` holds."""
+        lg, rec = run.logger, run.records
+        njs, nclock, nstats = run.njs, run.nclock, run.nstats
+        if rec is not None and diag is not None and not (site_forces or self._last_pf_nonempty or body_wrenches
+                                                         or self._last_bw_nonempty):
+            js = self.js_enc.encode(t, self.msgs.info.positions(q), v, effort)
+            blob = rec.build(time.time_ns(), t, js, step_index, diag)
+            run.blobs.append(blob)
+            if njs:
+                run.sends.append((self.pub_js, js, njs))
+            if nclock:
+                i = rec.clock_at(len(js))
+                run.sends.append((self.pub_clock, blob[i:i + 12], nclock))
+            if nstats:
+                run.sends.append((self.pub_stats, blob[rec.stats_at(len(js)):], nstats))
+            return
+        self._flush_run(run)
         out = []
         names = self._topic_names
         pub = self.pub_js
@@ -588,6 +627,20 @@ class RedmaxNode(Node):
         for p, data, n in out:
             if n is None or n:
                 send(p, data, False, n)
+
+    def _flush_run(self, run):
+        """Hand what ``run`` holds to the logger (one piece), then its messages to the sender."""
+        if run.blobs:
+            blobs, run.blobs = run.blobs, []
+            run.logger.write_records(blobs[0] if len(blobs) == 1 else b"".join(blobs), 3 * len(blobs))
+        if run.sends:
+            sends, run.sends = run.sends, []
+            send = self._sender.send
+            for p, data, n in sends:
+                send(p, data, False, n)
+
+    def _end_run(self, run):
+        self._flush_run(run)
         self._sender.wake()
 
     def _make_step_records(self, lg):

@@ -256,14 +256,15 @@ def quaternions(R: np.ndarray) -> np.ndarray:
     computed from the diagonal, the others from the off-diagonal terms; w >= 0 where w is largest).
     One compiled loop (_quaternions_into): /tf converts every moving body at tf_rate, and the same
     formulas as batched numpy cost ~110 us a call at any n (numpy's fixed cost per operation) against
-    ~1 us."""
+    ~1 us. It keeps the GIL (no ``nogil``): the caller is the simulation thread, and releasing the GIL for
+    ~1 us invites another thread to take it, the simulation thread then waiting to get it back."""
     R = np.ascontiguousarray(R, dtype=float).reshape(-1, 3, 3)
     q = np.empty((len(R), 4))
     _quaternions_into(R, q)
     return q
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True)
 def _quaternions_into(R, q):
     for n in range(R.shape[0]):
         r = R[n]
@@ -290,26 +291,27 @@ def _quaternions_into(R, q):
 
 class BodyPoses:
     """World poses of chosen bodies at a configuration, for /tf at its rate: Pinocchio forward
-    kinematics with a pin.Data of our own and batched numpy (~0.1 ms for the hand's 17 bodies against
-    ~0.6-0.8 ms for the core's ``body_poses``, at load ~3; equal to it to 1.1e-16 over every shipped scene,
-    test/node/test_node_robot_model.py)."""
+    kinematics with a pin.Data of our own and batched numpy. Every joint placement is read in one
+    call (``oMi.tolist()``, then ``.np`` of each: hand, 17 bodies, ~25 us against ~70 us for an
+    ``oMi[j].homogeneous`` per body; the same doubles); the body placements and quaternions follow
+    with the numpy operations as before, so /tf carries the same bytes. Equal to the core's
+    ``body_poses`` to 1.1e-16 over every shipped scene (test/node/test_node_robot_model.py)."""
 
     def __init__(self, mech, names):
         self.model = mech.model
         self.data = mech.model.createData()
         idx = {b: i for i, b in enumerate(mech.bodies)}
         sel = [idx[n] for n in names]
-        self.jid = [int(mech.body_jid[i]) for i in sel]
+        self.jid = np.array([int(mech.body_jid[i]) for i in sel], dtype=np.intp)
         self.MR = np.array([mech.body_placement[i].rotation for i in sel]).reshape(-1, 3, 3)
         self.Mp = np.array([mech.body_placement[i].translation for i in sel]).reshape(-1, 3)
 
     def __call__(self, q) -> tuple:
         """(positions (n,3) [m], quaternions xyzw (n,4)) in the order of ``names``."""
         pin.forwardKinematics(self.model, self.data, np.asarray(q, float))
-        oMi = self.data.oMi
-        # one Python-level access per body (its 4x4 homogeneous matrix) instead of three (the SE3, its rotation,
-        # its translation): ~45 us less per call for the hand's 17 bodies; the same doubles
-        H = np.array([oMi[j].homogeneous for j in self.jid]).reshape(-1, 4, 4)
+        if not len(self.jid):
+            return np.empty((0, 3)), np.empty((0, 4))
+        H = np.array([M.np for M in self.data.oMi.tolist()])[self.jid]  # (n, 4, 4) homogeneous matrices
         R = np.ascontiguousarray(H[:, :3, :3])
         p = H[:, :3, 3]
         Rb = R @ self.MR

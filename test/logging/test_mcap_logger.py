@@ -313,3 +313,57 @@ def test_file_layout_indexes_and_crcs(tmp_path):
     with open(path, "rb") as f:
         streamed = [(c.topic, m.log_time, m.data) for _, c, m in NonSeekingReader(f).iter_messages()]
     assert len(indexed) == 770 and sorted(indexed) == sorted(streamed)
+
+
+@pytest.mark.parametrize("chunk_size", [100, 4_096, 256 * 1024])
+def test_add_records_writes_what_add_message_writes(chunk_size):
+    """The writer process's bulk path (_McapFile.add_records: records indexed one by one, copied as
+    one span) gives the file add_message gives for the same messages, byte for byte, whatever the
+    chunk size and wherever the reads split the records; a record of an unknown channel stops it
+    with an error and leaves the chunk consistent with its index (the records before it in both)."""
+    import io
+    import random
+
+    from mcap.reader import make_reader
+
+    from redmax_ros.logging.mcap_log import MESSAGE_HEAD, OP_MESSAGE, _McapFile
+
+    rng = random.Random(chunk_size)
+    msgs, t = [], 1_000_000_000
+    for step in range(600):
+        t += rng.randint(1, 200_000)
+        for cid, size in ((1, 300), (2, 12), (3, 90)):
+            msgs.append((cid, step + 1, t - rng.randint(0, 1000) * (cid == 3), bytes(rng.getrandbits(8) for _ in range(size))))
+    records = b"".join(MESSAGE_HEAD.pack(OP_MESSAGE, 22 + len(d), cid, seq, lt, lt) + d for cid, seq, lt, d in msgs)
+
+    def new_file(size=chunk_size):
+        f = io.BytesIO()
+        w = _McapFile(f, "ros2", "test", size, "")
+        for c in (1, 2, 3):
+            w.add_channel(f"/t{c}", "cdr", 0, {})
+        return f, w
+
+    fa, wa = new_file()
+    for cid, seq, lt, d in msgs:
+        wa.add_message(cid, seq, lt, lt, d)
+    wa.finish()
+    fb, wb = new_file()
+    pos = 0
+    while pos < len(records):
+        end = min(len(records), pos + rng.randint(1, 5_000))  # a read: may end inside a record
+        while True:
+            pos, _, finalized = wb.add_records(records, pos, end, 3)
+            if not finalized:
+                break
+    wb.finish()
+    assert fb.getvalue() == fa.getvalue()
+    fb.seek(0)
+    got = [(c.id, m.sequence, m.log_time, bytes(m.data)) for _, c, m in make_reader(fb).iter_messages(log_time_order=False)]
+    assert got == msgs
+
+    fc, wc = new_file(256 * 1024)  # the chunk does not fill before the bad record
+    bad = MESSAGE_HEAD.pack(OP_MESSAGE, 22 + 4, 9, 1, t, t) + b"abcd"
+    first = records[:len(records) // 600]  # the first step's three records
+    with pytest.raises(ValueError, match="unknown channel 9"):
+        wc.add_records(first + bad, 0, len(first) + len(bad), 3)
+    assert bytes(wc.chunk) == first and sum(len(ix) for ix in wc.index.values()) == 2 * 3
