@@ -282,13 +282,16 @@ def _ltdl_solve(H, par, x):
 
 
 @njit
-def kkt_solve_tree_into(A, b, G, g, C, lo, hi, par, allowed, L, Y, S, LS, y, v, lam):
+def kkt_solve_tree_into(A, b, G, g, C, lo, hi, par, allowed, span, L, Y, S, LS, y, v, lam):
     """kkt_solve_into on A's tree sparsity: A = L^T D L (ltdl) instead of a dense Cholesky, Y = L^-T G^T (n, m)
-    by one back substitution along the chains for all m rows, S = Y^T D^-1 Y over each row's nonzeros (a
-    fingertip's rows are nonzero on its own chain only), and the correction v -= L^-1 D^-1 (Y lam). ``par``,
-    ``allowed``: tree_structure of A, recomputed here when A has a nonzero off its chains (par[0] == -2: not
-    yet made; par has n + 1 entries, the last one tree_structure's choice: 0 sends the solve to the dense
-    kkt_solve_into). Returns what kkt_solve_into returns, the pivot ratio from the Cholesky factor of S."""
+    by one back substitution along the chains for all m rows, S = Y^T D^-1 Y (its lower triangle, all the
+    Cholesky of S reads) over each row's nonzeros (a fingertip's rows are nonzero on its own chain only), and
+    the correction v -= L^-1 D^-1 (Y lam). ``par``, ``allowed``: tree_structure of A, recomputed here when A has
+    a nonzero off its chains (par[0] == -2: not yet made; par has n + 1 entries, the last one tree_structure's
+    choice: 0 sends the solve to the dense kkt_solve_into). ``span`` (2, n) int scratch: the first and last row
+    of G whose entry in Y[i] can be nonzero (G's own nonzeros in column i and those of the DOFs below i on the
+    tree), so the back substitution and S touch only those (the same sums as over all m rows, minus exact zeros:
+    the same numbers). Returns what kkt_solve_into returns, the pivot ratio from the Cholesky factor of S."""
     n, m = A.shape[0], G.shape[0]
     if par[0] == -2 or (par[n] == 1 and not _within(A, allowed)):
         tree_structure(A, par, allowed)
@@ -301,34 +304,44 @@ def kkt_solve_tree_into(A, b, G, g, C, lo, hi, par, allowed, L, Y, S, LS, y, v, 
     _ltdl_solve(L, par, v)
     ratio, viol = 1.0, 0.0
     if m:
-        for i in range(n):
+        for i in range(n):  # Y = G^T, and the span of G's nonzeros in each column
             Yi = Y[i]
+            r0, r1 = m, -1
             for r in range(m):
-                Yi[r] = G[r, i]
-        for i in range(n - 1, -1, -1):  # Y = L^-T G^T: row axpys up the chain
-            Yi = Y[i]
+                x = G[r, i]
+                Yi[r] = x
+                if x != 0.0:
+                    r0 = min(r0, r)
+                    r1 = r
+            span[0, i] = r0
+            span[1, i] = r1
+        for i in range(n - 1, -1, -1):  # Y = L^-T G^T: row axpys up the chain, over Y[i]'s span (final: i's subtree is done)
+            r0, r1 = span[0, i], span[1, i]
+            if r1 < r0:
+                continue
+            Yi = Y[i, r0:r1 + 1]  # views indexed from 0: the axpys vectorise (linalg.py)
             j = par[i]
             while j != -1:
                 lij = L[i, j]
-                Yj = Y[j]
-                for r in range(m):
+                Yj = Y[j, r0:r1 + 1]
+                for r in range(Yj.shape[0]):
                     Yj[r] -= lij * Yi[r]
+                span[0, j] = min(span[0, j], r0)
+                span[1, j] = max(span[1, j], r1)
                 j = par[j]
-        S[:, :] = 0.0
-        for k in range(n):  # S = Y^T D^-1 Y, each row's nonzero span only
-            Yk = Y[k]
-            r0, r1 = m, -1
-            for r in range(m):
-                if Yk[r] != 0.0:
-                    r0 = min(r0, r)
-                    r1 = r
+        for r in range(m):
+            Sr = S[r, :r + 1]
+            for c in range(Sr.shape[0]):
+                Sr[c] = 0.0
+        for k in range(n):  # S = Y^T D^-1 Y (lower triangle), each row's span only
+            r0 = span[0, k]
             dk = 1.0 / L[k, k]
-            for r in range(r0, r1 + 1):
+            Yk = Y[k, r0:span[1, k] + 1]
+            for r in range(Yk.shape[0]):
                 w = Yk[r] * dk
-                if w != 0.0:
-                    Sr = S[r]
-                    for c in range(r0, r1 + 1):
-                        Sr[c] += w * Yk[c]
+                Sr = S[r0 + r, r0:r0 + r + 1]
+                for c in range(Sr.shape[0]):
+                    Sr[c] += w * Yk[c]
         ratio = _multipliers(S, LS, G, v, g, lam)
         if ratio < 0.0:
             return 2, 0.0, 0.0, False

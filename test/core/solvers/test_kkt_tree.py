@@ -36,7 +36,7 @@ def _solve(A, b, G, g, par=None, allowed=None):
         par, allowed = np.full(n + 1, -2, np.int64), np.zeros((n, n), np.int64)
     v, lam = np.zeros(n), np.zeros(m)
     out = kkt_solve_tree_into(A, b, G, g, np.zeros((0, n)), np.zeros(0), np.zeros(0), par, allowed,
-                              np.zeros((n, n)), np.zeros((n, m)), np.zeros((m, m)), np.zeros((m, m)), np.zeros(n), v, lam)
+                              np.zeros((2, n), np.int64), np.zeros((n, n)), np.zeros((n, m)), np.zeros((m, m)), np.zeros((m, m)), np.zeros(n), v, lam)
     return out, v, lam, par, allowed
 
 

@@ -307,7 +307,8 @@ class CompiledBackend:
         if inp is None:  # friction (a cache per instance), trajectories (rows depend on each instance's time) or commands the kernel does not take
             return step_each(self.step, states, cmd, h, n, budget)
         _, tau, d, gj, sv = inp
-        DF = np.tile(d.f, (B, 1))
+        DF = np.tile(d.f, (B, 1))  # each instance its own Data: floats and ints (the KKT solve's scratch, kkt_span)
+        DI = np.tile(d.i, (B, 1))
         Q = np.array([s.q for s in states], dtype=float)
         V = np.array([s.v for s in states], dtype=float)
         hist_args = [self._history_args(s, h) for s in states]
@@ -321,7 +322,7 @@ class CompiledBackend:
         workers = min(B, os.cpu_count() or 1)
 
         def run(b):
-            return step_n_kernel(*self.model.args, DF[b], d.i, d.tab, Q[b], V[b], tau, float(h), gj, sv, int(todo[b]),
+            return step_n_kernel(*self.model.args, DF[b], DI[b], d.tab, Q[b], V[b], tau, float(h), gj, sv, int(todo[b]),
                                  QP[b], VP[b], int(HIST[b]), bdf2, _NO_REC)
 
         while todo.any():

@@ -57,6 +57,8 @@ DATA_SPEC = (
     # A's elimination tree (ndof + 1: the last entry 1 = the L^T D L path) and chains, solvers/kkt.tree_structure;
     # kkt_par[0] = -2 until first made
     ("kkt_par", "i", 1), ("kkt_allowed", "i", 2),
+    # the span of rows each row of the Schur solve's Y can be nonzero on (2, ndof), solvers/kkt.kkt_solve_tree_into
+    ("kkt_span", "i", 2),
 )
 
 Data = namedtuple("Data", [n for n, _, _ in DATA_SPEC])
@@ -91,7 +93,7 @@ def data_views(f, i, t):
                 f1(f, t, 73),
                 f1(f, t, 74), f1(f, t, 75), f1(f, t, 76), f1(f, t, 77), f1(f, t, 78),
                 f1(f, t, 79), f1(f, t, 80), f2(f, t, 81), f2(f, t, 82), f2(f, t, 83),
-                i1(i, t, 84), i2(i, t, 85))
+                i1(i, t, 84), i2(i, t, 85), i2(i, t, 86))
 
 
 def build_data(mech, model, joints: tuple, sites: tuple, site_axes: dict, T) -> "Packed":
@@ -140,6 +142,7 @@ def build_data(mech, model, joints: tuple, sites: tuple, site_axes: dict, T) -> 
         site_force=np.zeros((len(sites), 3)), out=np.zeros(N_OUT),
         kkt_L=np.zeros((ndof, ndof)), kkt_Y=np.zeros((ndof, m)), kkt_S=np.zeros((m, m)), kkt_LS=np.zeros((m, m)),
         kkt_y=np.zeros(ndof), kkt_par=np.full(ndof + 1, -2, np.int64), kkt_allowed=np.zeros((ndof, ndof), np.int64),
+        kkt_span=np.zeros((2, ndof), np.int64),
         site_rows=np.zeros((3, nv)),
         phi=np.zeros(nl), dx=np.zeros(3 * len(mech.loop_ab)),
         chord_KK=np.zeros((nl + len(held), nl + len(held))), chord_L=np.zeros((nl + len(held), nl + len(held))),

@@ -96,7 +96,7 @@ def stages(m, d, q, vR, tau, h, gj, sv, qp, vp, hist):
     if status != OK:
         return status
     status, ratio, viol, limits_ok = kkt_solve_tree_into(d.AR, d.bR, d.G, d.g, m.limit_rows, d.lo, d.hi, d.kkt_par,
-                                                         d.kkt_allowed, d.kkt_L, d.kkt_Y, d.kkt_S, d.kkt_LS, d.kkt_y,
+                                                         d.kkt_allowed, d.kkt_span, d.kkt_L, d.kkt_Y, d.kkt_S, d.kkt_LS, d.kkt_y,
                                                          d.v_hyper, d.lam)  # 4
     if status == 1:
         return _handoff(d.out, STAGE_FACTOR)

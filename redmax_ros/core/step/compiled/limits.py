@@ -33,7 +33,7 @@ def _solve_working_set(m, d):
             d.gx[r] = d.lo[k] if d.wset[k] < 0.0 else d.hi[k]
             r += 1
     status, ratio, viol, ok = kkt_solve_tree_into(d.AR, d.bR, d.Gx[:r], d.gx[:r], m.limit_rows[:0], d.lo[:0], d.hi[:0],
-                                                  d.kkt_par, d.kkt_allowed, d.kkt_L, d.kkt_Yx[:ndof, :r],
+                                                  d.kkt_par, d.kkt_allowed, d.kkt_span, d.kkt_L, d.kkt_Yx[:ndof, :r],
                                                   d.kkt_Sx[:r, :r], d.kkt_LSx[:r, :r], d.kkt_y, d.v_hyper, d.lamx[:r])
     if status != 0 or ratio <= 1e-6:
         return 1
