@@ -35,6 +35,8 @@ import numpy as np
 import pinocchio as pin
 from numba import njit
 
+from redmax_ros.core import body_frames
+
 ONE_DOF = ("revolute", "prismatic")
 FLOATING_BASE = ("free", "planar", "free2d", "free3d", "free3d_exp")  # a body on one of these to the world: odom
 _TOL = 1e-12
@@ -290,14 +292,18 @@ def _quaternions_into(R, q):
 
 
 class BodyPoses:
-    """World poses of chosen bodies at a configuration, for /tf at its rate: Pinocchio forward
-    kinematics with a pin.Data of our own and batched numpy. Every joint placement is read in one
-    call (``oMi.tolist()``, then ``.np`` of each: hand, 17 bodies, ~25 us against ~70 us for an
-    ``oMi[j].homogeneous`` per body; the same doubles); the body placements and quaternions follow
-    with the numpy operations as before, so /tf carries the same bytes. Equal to the core's
-    ``body_poses`` to 1.1e-16 over every shipped scene (test/node/test_node_robot_model.py)."""
+    """World poses of chosen bodies at a configuration, for /tf at its rate. On every joint kind of the
+    compiled step: one compiled call (core step/compiled/poses.BodyFrames: the step's own forward
+    kinematics, ~2-5 us a call against ~80 us warm and 370-470 us in the node's simulation thread
+    through Pinocchio), then one for the quaternions. Otherwise (catalogue joints): Pinocchio forward
+    kinematics with a pin.Data of our own and every joint placement read in one call
+    (``oMi.tolist()``). Equal to the core's ``body_poses`` to 1e-12 over every shipped scene
+    (test/node/test_node_robot_model.py)."""
 
     def __init__(self, mech, names):
+        self._fast = body_frames(mech, names)
+        if self._fast is not None:
+            return
         self.model = mech.model
         self.data = mech.model.createData()
         idx = {b: i for i, b in enumerate(mech.bodies)}
@@ -308,6 +314,9 @@ class BodyPoses:
 
     def __call__(self, q) -> tuple:
         """(positions (n,3) [m], quaternions xyzw (n,4)) in the order of ``names``."""
+        if self._fast is not None:
+            P, R = self._fast(q)
+            return P.copy(), quaternions(R)
         pin.forwardKinematics(self.model, self.data, np.asarray(q, float))
         if not len(self.jid):
             return np.empty((0, 3)), np.empty((0, 4))
