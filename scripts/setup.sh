@@ -123,9 +123,10 @@ say "compiling the step kernels in the background (numba, cached on disk)"
 KERNEL_LOG="$(mktemp)"
 FRICTION_LOG="$(mktemp)"
 kernel_t0=$(date +%s)
-"$PY" -c "from redmax_ros.core import Simulator
+"$PY" -c "from redmax_ros.core import Simulator, body_frames
 rigid = Simulator.load('pendulum')
 rigid.step(2)  # step_n_kernel (single steps too: a run of one)
+body_frames(rigid.mech, list(rigid.mech.bodies))(rigid.state.q)  # the node's /tf poses (step/compiled/poses.py)
 Simulator.load('starfish').step(1)
 " > "$KERNEL_LOG" 2>&1 &
 KERNEL_PID=$!
