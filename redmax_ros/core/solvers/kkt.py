@@ -471,6 +471,7 @@ def kkt_residual(A, b, v, G, lam, C, mu):
         for i in range(n):
             r[i] += G[j, i] * lam[j]
     for j in range(C.shape[0]):
-        for i in range(n):
-            r[i] += C[j, i] * mu[j]
+        if mu[j] != 0.0:  # an inactive limit row adds exact zeros
+            for i in range(n):
+                r[i] += C[j, i] * mu[j]
     return np.sqrt((r @ r) / max(b @ b, 1e-300))

@@ -198,11 +198,21 @@ def check_rows(cons, scale: float = 1.0) -> None:
 
 
 @njit
+def _any_nonzero(x):
+    for i in range(x.shape[0]):
+        if x[i] != 0.0:
+            return True
+    return False
+
+
+@njit
 def impulse_beyond(A, T, f, mask, h, limit):
     """The first DOF k of A with h |F_k| > limit sum_j |A_kj| (then A dv = h F has max |dv| > limit), or -1;
     F = T^T (mask * f) (an empty T: identity, an empty mask: ones)."""
     n = A.shape[0]
     nr = len(f)
+    if not _any_nonzero(f):  # F = 0 (the rows below would all find h |F_k| = 0)
+        return -1
     for k in range(n):
         if T.shape[0]:
             F = 0.0

@@ -3,7 +3,7 @@ its step reading as the list of its stages (each ``f(m, d, ...)`` in its own mod
 preallocated workspace):
 
     point(m, d, q, qdot_R, history, hh)    # 0  BDF1, or BDF2's q^, q*, v*, v^ (scheme.py; step/scheme.py)
-    kinematics(m, d, q*, v*)               # 1  forward kinematics, twists, inertias, sites (kinematics.py)
+    kinematics(m, d, q*, v*, warm)         # 1  forward kinematics, twists, inertias, sites (kinematics.py)
     assemble(m, d, q^, v*, v^, tau, hh)    # 2  A_R, b_R of Eq. (2), Eq. (9-10) (forces.py)
     rows(m, d, q^, hh, gj, sv)             # 3  loops, prescribed joints and sites (Eq. 7), limits (rows.py)
     kkt_solve_tree_into(A_R, b_R, G, g, ...)  # 4  L^T D L on the tree (or Cholesky) + Schur complement of Eq. (6)/(7) (solvers/kkt.py)
@@ -74,14 +74,16 @@ def _handoff(out, stage):
 
 
 @njit_inline
-def one_step(m, d, q, vR, tau, h, gj, sv, qp, vp, hist):
+def one_step(m, d, q, vR, tau, h, gj, sv, qp, vp, hist, warm):
     """One step on the Model and Data namedtuples: BDF2 (``hist``) kept if the order control accepts it, else
-    BDF1 from the same state; returns OK or REFERENCE."""
+    BDF1 from the same state; returns OK or REFERENCE. ``warm``: d holds the placements and twists at (q, vR),
+    left by the previous step of the run (its energies); a BDF1 step uses them (kinematics.kinematics)."""
     order = hist
     while True:  # one call site: the stages are inlined once (a plain call copies the namedtuples)
-        status = stages(m, d, q, vR, tau, h, gj, sv, qp, vp, order)
+        status = stages(m, d, q, vR, tau, h, gj, sv, qp, vp, order, warm)
         if order and status == OK and not accepted(m, d, q):
             order = 0
+            warm = False  # the BDF2 attempt moved the placements to its q*
             continue
         break
     d.out[OUT_ORDER] = 2.0 if order else 1.0
@@ -89,10 +91,10 @@ def one_step(m, d, q, vR, tau, h, gj, sv, qp, vp, hist):
 
 
 @njit_inline
-def stages(m, d, q, vR, tau, h, gj, sv, qp, vp, hist):
+def stages(m, d, q, vR, tau, h, gj, sv, qp, vp, hist, warm):
     """The stages of one step (BDF2 with ``hist``, else BDF1) on the Model and Data namedtuples; returns OK or
     REFERENCE."""
-    status, hh = rigid_stages(m, d, q, vR, tau, h, gj, sv, qp, vp, hist)  # 0-3
+    status, hh = rigid_stages(m, d, q, vR, tau, h, gj, sv, qp, vp, hist, warm)  # 0-3
     if status != OK:
         return status
     status, ratio, viol, limits_ok = kkt_solve_tree_into(d.AR, d.bR, d.G, d.g, m.limit_rows, d.lo, d.hi, d.kkt_par,
@@ -119,15 +121,16 @@ def stages(m, d, q, vR, tau, h, gj, sv, qp, vp, hist):
 
 
 @njit_inline
-def rigid_stages(m, d, q, vR, tau, h, gj, sv, qp, vp, hist):
-    """Stages 0-3 with the input checks of step/state.py: (OK or REFERENCE, hh)."""
+def rigid_stages(m, d, q, vR, tau, h, gj, sv, qp, vp, hist, warm):
+    """Stages 0-3 with the input checks of step/state.py: (OK or REFERENCE, hh). ``warm``: see one_step (BDF1
+    only: a BDF2 step's kinematics are at q*)."""
     d.out[OUT_STAGE] = 0.0
     vv = vR @ vR
     if not (_finite_sum(q) and vv - vv == 0.0 and _finite_sum(tau)) or vv > MAX_SPEED * MAX_SPEED:
         return _handoff(d.out, STAGE_INPUT), h  # step/state.applied_torques names it
     hh = 2.0 * h / 3.0 if hist else h
     point(m, d, q, vR, qp, vp, hist, hh)  # 0
-    kinematics(m, d, d.q_lin, d.v_r)  # 1
+    kinematics(m, d, d.q_lin, d.v_r, warm and not hist)  # 1
     if hist:  # 2, BDF2: the momentum of v^, maximal springs linearised about q* (springs.spring_shift)
         jv_kernel(m.parents, m.idx_v, m.nv_j, d.St, d.v_mom, d.ovm)
         vm, ovm = d.v_mom, d.ovm
@@ -165,10 +168,10 @@ def tail_stages(m, d, tau, hh):
 
 
 @njit_inline
-def one_friction_step(m, d, c, q, vR, tau, h, gj, sv, cache, has_cache, cache_new, jn, rep, work_cap):
+def one_friction_step(m, d, c, q, vR, tau, h, gj, sv, cache, has_cache, cache_new, jn, rep, work_cap, warm):
     """One BDF1 step with ground contact and joint friction: stages 0-3, the Staggered Projections / BISP solve
     (friction.py) in place of stage 4, stages 5-6; returns OK or REFERENCE."""
-    status, hh = rigid_stages(m, d, q, vR, tau, h, gj, sv, q, vR, 0)  # 0-3
+    status, hh = rigid_stages(m, d, q, vR, tau, h, gj, sv, q, vR, 0, warm)  # 0-3
     if status != OK:
         return status
     fs = friction_solve(m, d, c, hh, cache, has_cache, cache_new, jn, rep, work_cap)  # 4''
@@ -218,8 +221,9 @@ def friction_step_n_kernel(mf, mi, mt, df, di, dt, ff, fi, ft, q, vR, tau, h, gj
     m = model_views(mf, mi, mt)
     d = data_views(df, di, dt)
     c = friction_views(ff, fi, ft)
-    for k in range(n):
-        if one_friction_step(m, d, c, q, vR, tau, h, gj, sv, cache, has_cache, cache_new, jn, rep, work_cap) != OK:
+    for k in range(n):  # after the first step, d holds the placements and twists at (q, vR) (one_step)
+        if one_friction_step(m, d, c, q, vR, tau, h, gj, sv, cache, has_cache, cache_new, jn, rep, work_cap,
+                             k > 0) != OK:
             return k
         if k < rec.shape[0]:
             j = record_step(rec[k], d)
@@ -240,8 +244,8 @@ def step_n_kernel(mf, mi, mt, df, di, dt, q, vR, tau, h, gj, sv, n, qp, vp, hist
     (rows, width): the outputs of step k go to rec[k] when k < rows (record_step); (0, 0) records nothing."""
     m = model_views(mf, mi, mt)
     d = data_views(df, di, dt)
-    for k in range(n):
-        if one_step(m, d, q, vR, tau, h, gj, sv, qp, vp, hist) != OK:
+    for k in range(n):  # after the first step, d holds the placements and twists at (q, vR) (one_step)
+        if one_step(m, d, q, vR, tau, h, gj, sv, qp, vp, hist, k > 0) != OK:
             return k
         if k < rec.shape[0]:
             record_step(rec[k], d)

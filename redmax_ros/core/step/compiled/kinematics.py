@@ -36,11 +36,20 @@ def placements_of(uni_joints, uni_a1, uni_a2, planar_joints, parents, kind, idx_
 
 
 @njit_inline
-def kinematics(m, d, q, v):
-    """Everything of (q, qdot_r) the forces need: placements, inertias I (world, at the origin), twists ov."""
-    placements(m, d, q, True, v)
+def kinematics(m, d, q, v, warm):
+    """Everything of (q, qdot_r) the forces need: placements, inertias I (world, at the origin), twists ov.
+    ``warm``: d already holds the placements at q and the twists of v (the previous step of the run left them:
+    its energies at its q+, qdot_r+, which are this BDF1 step's q_k, qdot_k bit for bit), so only the universal
+    joints' bias c(q, v) and the inertias are computed (the hand: one forward kinematics a step instead of two)."""
+    if warm:
+        if m.uni_joints.shape[0]:
+            universal_kernel(m.uni_joints, m.idx_q, m.idx_v, m.uni_a1, m.uni_a2, q, v, True, d.jR, d.jp, d.Sl,
+                             d.c_local)
+    else:
+        placements(m, d, q, True, v)
     world_inertia_kernel(m.mass, m.com, m.inertia_com, d.R, d.p, d.I)
-    jv_kernel(m.parents, m.idx_v, m.nv_j, d.St, v, d.ov)
+    if not warm:
+        jv_kernel(m.parents, m.idx_v, m.nv_j, d.St, v, d.ov)
 
 
 @njit_inline
