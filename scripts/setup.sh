@@ -115,27 +115,33 @@ else
 fi
 
 # The compiled kernels: numba compiles them once per source version and caches them on disk; doing it here
-# keeps the first node, run or test from spending that time inside a step. Two background processes beside
-# steps 4-5 (the colcon build), waited for at the end: the rigid step (step_n_kernel) and the
-# deformable step's contact loop (solvers/coupled_kernel.py) in one; the friction step (friction_step_n_kernel:
-# contact and joint friction) in the other. Measured 2026-12-04 in a clean clone: 732 s beside the colcon build.
+# keeps the first node, run or test from spending that time inside a step. Three background processes beside
+# steps 4-5 (the colcon build), waited for at the end: the rigid step (step_n_kernel, then the node's /tf poses);
+# the friction step (friction_step_n_kernel: contact and joint friction); the deformable step's contact loop
+# (solvers/coupled_kernel.py, which uses neither step kernel). Measured 2026-12-05 alone on one core of a quiet
+# machine: 437 s, ~390 s and 121 s (the last ran after the first in one process until then: 852 s in a clean
+# clone beside the colcon build).
 say "compiling the step kernels in the background (numba, cached on disk)"
 KERNEL_LOG="$(mktemp)"
 FRICTION_LOG="$(mktemp)"
+DEFORM_LOG="$(mktemp)"
 kernel_t0=$(date +%s)
 "$PY" -c "from redmax_ros.core import Simulator, body_frames
 rigid = Simulator.load('pendulum')
 rigid.step(2)  # step_n_kernel (single steps too: a run of one)
 body_frames(rigid.mech, list(rigid.mech.bodies))(rigid.state.q)  # the node's /tf poses (step/compiled/poses.py)
-Simulator.load('starfish').step(1)
 " > "$KERNEL_LOG" 2>&1 &
 KERNEL_PID=$!
+"$PY" -c "from redmax_ros.core import Simulator
+Simulator.load('starfish').step(1)  # solvers/coupled_kernel.py
+" > "$DEFORM_LOG" 2>&1 &
+DEFORM_PID=$!
 "$PY" -c "from redmax_ros.core import Simulator
 walker = Simulator.load('klann', ['friction.joint_mu=0.4'])
 walker.step(2)  # friction_step_n_kernel
 " > "$FRICTION_LOG" 2>&1 &
 FRICTION_PID=$!
-trap 'kill "$KERNEL_PID" "$FRICTION_PID" 2>/dev/null || true; rm -f "$KERNEL_LOG" "$FRICTION_LOG"' EXIT
+trap 'kill "$KERNEL_PID" "$FRICTION_PID" "$DEFORM_PID" 2>/dev/null || true; rm -f "$KERNEL_LOG" "$FRICTION_LOG" "$DEFORM_LOG"' EXIT
 
 # The editable install (PEP 660) carries no data_files, so give the venv prefix what
 # colcon would install for redmax_ros: the ament index marker and share/redmax_ros,
@@ -234,6 +240,10 @@ fi
 if ! wait "$KERNEL_PID"; then
   cat "$KERNEL_LOG" >&2
   die "the compiled step kernels failed to compile (output above)"
+fi
+if ! wait "$DEFORM_PID"; then
+  cat "$DEFORM_LOG" >&2
+  die "the deformable step's contact kernel failed to compile (output above)"
 fi
 say "step kernels ready in $(( $(date +%s) - kernel_t0 )) s"
 
