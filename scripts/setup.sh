@@ -119,8 +119,8 @@ fi
 # steps 4-5 (the colcon build), waited for at the end: the rigid step (step_n_kernel, then the node's /tf poses);
 # the friction step (friction_step_n_kernel: contact and joint friction); the deformable step's contact loop
 # (solvers/coupled_kernel.py, which uses neither step kernel). Measured 2026-12-05 alone on one core of a quiet
-# machine: 437 s, ~390 s and 121 s (the last ran after the first in one process until then: 852 s in a clean
-# clone beside the colcon build).
+# machine: 437 s, ~390 s and 121 s. In a clean clone beside the colcon build (10.5 min of its own): 836 s, against
+# 852 s with the last two in one process (2026-12-05): the two cores' total work, not one chain, sets it.
 say "compiling the step kernels in the background (numba, cached on disk)"
 KERNEL_LOG="$(mktemp)"
 FRICTION_LOG="$(mktemp)"
