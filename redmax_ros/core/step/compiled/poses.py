@@ -3,7 +3,7 @@
 in its joint, R_b = R_j M_R, p_b = R_j M_p + p_j. The node's /tf is built from these at tf_rate; through
 Pinocchio (forwardKinematics, then a numpy array of every oMi) the same poses cost ~80 us warm and 370-470 us
 in the node's simulation thread (its caches cold after 20 steps and their messages), one call here ~2-5 us.
-Equal to the core's ``Simulator.body_poses`` to round-off (test/core/step/test_poses.py).
+Equal to the core's ``Simulator.body_poses`` to round-off (test/core/compiled/test_poses.py).
 
 Mechanisms with joints the compiled path does not take (:func:`model.unsupported` names them) have no
 BodyFrames (:func:`body_frames` returns None); the caller keeps its Pinocchio path for them."""
