@@ -7,7 +7,8 @@
 #   3. this project, editable, with extras: pip install -e .[test,bench,cluster] (cluster: Ray);
 #   4. the include-path fix for the wheels' exported CMake files;
 #   5. msg_defs/ (redmax_msgs; simulation_interfaces and tf2_msgs, written from the standard packages'
-#      definitions, built only where no installed one exists) built with colcon into install_msgs/.
+#      definitions, built only where no installed one exists) built with colcon into install_msgs/, with the
+#      C and Python bindings only (scripts/rosidl_python_only.cmake).
 # Idempotent and fast when nothing changed: steps 2-3 are skipped while
 # .venv/.redmax_setup.stamp matches setup.py/setup.cfg/package.xml/this script, and
 # step 5 while install_msgs/.redmax_msgs.stamp matches the contents of msg_defs/.
@@ -180,14 +181,15 @@ PYEOF
 fi
 
 # --- 5. interface packages in msg_defs/ ----------------------------------------
-build_msgs() {  # colcon build of msg_defs/ into the merged prefix install_msgs/
+build_msgs() {  # colcon build of msg_defs/ into the merged prefix install_msgs/: C and Python bindings only
+  # (scripts/rosidl_python_only.cmake: rclpy needs no C++ ones; half the build time)
   (
     export VIRTUAL_ENV="$VENV" PATH="$VENV/bin:$PATH"
     export CMAKE_PREFIX_PATH="$VENV" AMENT_PREFIX_PATH="$VENV"
     colcon --log-base log/colcon build --merge-install --base-paths msg_defs \
       --build-base build_msgs --install-base install_msgs ${MSG_SKIP[@]:+--packages-skip "${MSG_SKIP[@]}"} \
       --cmake-args -DPython3_EXECUTABLE="$PY" -DPython3_FIND_VIRTUALENV=ONLY \
-        -DBUILD_TESTING=OFF -Wno-dev 2>&1 \
+        -DBUILD_TESTING=OFF -Wno-dev -DCMAKE_PROJECT_INCLUDE="$ROOT/scripts/rosidl_python_only.cmake" 2>&1 \
       | { grep -v "in the environment variable AMENT_PREFIX_PATH doesn't contain any 'local_setup" || true; }
   )
 }
@@ -213,7 +215,7 @@ done
 if [ -n "$(find msg_defs -mindepth 2 -maxdepth 2 -name package.xml 2>/dev/null)" ]; then
   mapfile -t msg_files < <(find msg_defs -type f | LC_ALL=C sort)
   # the venv's creation time too: a new venv needs a new build
-  msg_hash="$({ hash_files "${msg_files[@]}" scripts/setup.sh; stat -c %Y "$VENV/pyvenv.cfg"; echo "skip: ${MSG_SKIP[*]}"; } | sha256sum | cut -d' ' -f1)"
+  msg_hash="$({ hash_files "${msg_files[@]}" scripts/setup.sh scripts/rosidl_python_only.cmake; stat -c %Y "$VENV/pyvenv.cfg"; echo "skip: ${MSG_SKIP[*]}"; } | sha256sum | cut -d' ' -f1)"
   if [ "${REDMAX_FORCE_SETUP:-0}" != 1 ] && [ -f "$MSG_STAMP" ] && [ "$(cat "$MSG_STAMP")" = "$msg_hash" ]; then
     say "msg_defs up to date (install_msgs/)"
   else
