@@ -37,11 +37,11 @@ class Reduction:
     ``free``: (n_f,) free vertex indices, in order (free DOF p = 3 k + c of free vertex free[k]);
     ``indptr``, ``indices``: the reduced CSR pattern (n = 3 n_f + n_r, columns sorted, the skeleton last);
     ``pos``: (nnz(A_d),) position in the reduced data of every free-free entry of A_d, -1 otherwise;
-    ``adj_rank``: (3 n_f,) rank of a free DOF among the adjacent ones (free DOFs coupled by A_d to an attached
-    vertex), -1 where not adjacent;
-    ``fs_pos``, ``sf_pos``: (n_adj, n_r) positions in the reduced data of the entries (adjacent free DOF,
-    skeleton DOF k) and (skeleton DOF k, adjacent free DOF), -1 where k moves none of the attached vertices
-    next to that free DOF (the entry is structurally zero and not stored);
+    ``fs_ptr``, ``fs_col``, ``fs_pos``: per free vertex k, the skeleton columns fs_col[fs_ptr[k]:fs_ptr[k + 1]]
+    (ascending) its three DOFs couple to through attached vertices next to it (the supports of those vertices'
+    bodies; none for a free vertex with no attached neighbour) and, per such column, fs_pos[., 0:3] the
+    positions in the reduced data of the entries (free DOF 3k + c, that skeleton DOF), fs_pos[., 3:6] those of
+    their transposes; every other (free DOF, skeleton DOF) entry is structurally zero and not stored;
     ``sk_start``: (n_r,) position of skeleton row k's first skeleton column (the skeleton block is dense)."""
     n_r: int
     n_free: int  # 3 n_f
@@ -50,9 +50,9 @@ class Reduction:
     indptr: np.ndarray
     indices: np.ndarray
     pos: np.ndarray
-    adj_rank: np.ndarray
+    fs_ptr: np.ndarray
+    fs_col: np.ndarray
     fs_pos: np.ndarray
-    sf_pos: np.ndarray
     sk_start: np.ndarray
     att_dof: np.ndarray  # (3a,) the A_d DOF of row r of E
     ad_indptr: np.ndarray  # the A_d pattern it was built for
@@ -114,8 +114,8 @@ def build(ad_indptr, ad_indices, n_vertices: int, attached, n_r: int, support=No
     adj = np.nonzero(adjacent)[0]
     adj_rank = np.full(nf3, -1, dtype=np.int64)
     adj_rank[adj] = np.arange(len(adj))
-    fs_pos = np.full((len(adj), n_r), -1, dtype=np.int64)
-    sf_pos = np.full((len(adj), n_r), -1, dtype=np.int64)
+    fs_pos = np.full((len(adj), n_r), -1, dtype=np.int64)  # (adjacent free DOF, skeleton DOF) -> reduced position
+    sf_pos = np.full((len(adj), n_r), -1, dtype=np.int64)  # its transpose's
     sk_start = np.zeros(n_r, dtype=np.int64)
     indptr = [0]
     indices = []
@@ -146,8 +146,6 @@ def build(ad_indptr, ad_indices, n_vertices: int, attached, n_r: int, support=No
             if q >= 0:
                 pos[e] = indptr[p] + int(np.searchsorted(row, q))
     att_dof = (3 * attached[:, None] + np.arange(3)).ravel()
-    e_end = np.array([int(np.nonzero(support[k])[0][-1]) + 1 if support[k].any() else 0
-                      for k in range(len(attached))], dtype=np.int64)
     ff_src, ff_dst = [], []
     free_ad = np.empty(nf3, dtype=np.int64)
     for i in range(3 * n_vertices):
@@ -163,12 +161,40 @@ def build(ad_indptr, ad_indices, n_vertices: int, attached, n_r: int, support=No
         raise ValueError("A_d's pattern is not made of 3 x 3 vertex blocks")  # fill_kernel: W rows by vertex
     fa_ptr, fa_blk, fa_att = attached_blocks(ad_indptr, ad_indices, dof, free)
     aa_ptr, aa_blk, aa_att = attached_blocks(ad_indptr, ad_indices, dof, attached)
+    e_end = np.array([int(np.nonzero(support[k])[0][-1]) + 1 if support[k].any() else 0
+                      for k in range(len(attached))], dtype=np.int64)
     y_end = np.array([e_end[aa_att[aa_ptr[k]:aa_ptr[k + 1]]].max(initial=0) for k in range(len(attached))],
                      dtype=np.int64)
+    fs_ptr, fs_col, fs_vpos = vertex_skeleton_entries(reach, adj_rank, fs_pos, sf_pos)
+    written = np.zeros(len(indices), dtype=bool)  # fill_kernel writes every entry (no zeroing of the data first)
+    written[np.asarray(ff_dst, dtype=np.int64)] = True
+    written[fs_vpos.ravel()] = True
+    written[(sk_start[:, None] + np.arange(n_r)).ravel()] = True
+    if not written.all():
+        raise ValueError("A_d's pattern does not store every diagonal entry")
     i64 = lambda a: np.asarray(a, dtype=np.int64)
-    return Reduction(int(n_r), nf3, dof, free, indptr, indices, pos, adj_rank, fs_pos, sf_pos, sk_start, att_dof,
+    return Reduction(int(n_r), nf3, dof, free, indptr, indices, pos, fs_ptr, fs_col, fs_vpos, sk_start, att_dof,
                      ad_indptr, ad_indices, i64(ff_src), i64(ff_dst), free_ad, fa_ptr, fa_blk, fa_att, aa_ptr, aa_blk,
                      aa_att, e_end, y_end)
+
+
+def vertex_skeleton_entries(reach, adj_rank, fs_pos, sf_pos) -> tuple:
+    """Reduction.fs_ptr / fs_col / fs_pos from build's per-DOF maps: per free vertex the skeleton columns its DOFs
+    reach (the same for its three DOFs: A_d is made of 3 x 3 vertex blocks) and the reduced positions of the
+    entries (its DOF c, column) and (column, its DOF c), c = 0, 1, 2."""
+    ptr, col, where = [0], [], []
+    for v in range(len(reach) // 3):
+        p = 3 * v
+        cols = np.flatnonzero(reach[p])
+        if not np.array_equal(reach[p + 1], reach[p]) or not np.array_equal(reach[p + 2], reach[p]):
+            raise ValueError("A_d's pattern is not made of 3 x 3 vertex blocks")
+        for k in cols:
+            c = adj_rank[p:p + 3]
+            col.append(int(k))
+            where.append([*fs_pos[c, k], *sf_pos[c, k]])
+        ptr.append(len(col))
+    i64 = lambda a: np.asarray(a, dtype=np.int64)
+    return i64(ptr), i64(col), i64(where).reshape(-1, 6)
 
 
 def attached_blocks(ad_indptr, ad_indices, dof, vertices):
@@ -204,91 +230,95 @@ def fill(red: Reduction, ad_data, b_d, E, t, A_r, b_r, data_out, b_out, work):
     """One step's reduced matrix values (into ``data_out``, red.indptr/indices layout) and right-hand side
     (into ``b_out``): A_d's CSR values ``ad_data`` and b_d (3N,), E (3a, n_r) the attached points' Jacobians
     (nonzero only on the support ``build`` was given), t (3a,) their offsets (v_a = E qdot_r + t), A_r (n_r,
-    n_r), b_r (n_r,); ``work`` (3a + n_adj, n_r) scratch (``work_shape``)."""
+    n_r), b_r (n_r,); ``work`` (3a + 3, n_r) scratch (``work_shape``)."""
     na = len(red.att_dof)
     fill_kernel(np.asarray(ad_data, float), np.asarray(b_d, float), red.ff_src, red.ff_dst, red.free_ad, red.fa_ptr,
-                red.fa_blk, red.fa_att, red.aa_ptr, red.aa_blk, red.aa_att, red.e_end, red.y_end, red.adj_rank,
-                red.fs_pos, red.sf_pos, red.sk_start, red.att_dof, red.n_free,
+                red.fa_blk, red.fa_att, red.aa_ptr, red.aa_blk, red.aa_att, red.e_end, red.y_end, red.fs_ptr,
+                red.fs_col, red.fs_pos, red.sk_start, red.att_dof, red.n_free,
                 np.ascontiguousarray(E, dtype=float), np.asarray(t, float), np.ascontiguousarray(A_r, dtype=float),
                 np.asarray(b_r, float), data_out, b_out, work[:na], work[na:])
 
 
 def work_shape(red: Reduction) -> tuple:
-    """The shape of ``fill``'s scratch: rows of Y = A_aa E (one per attached DOF) and of A_fa E (one per
-    adjacent free DOF), n_r columns."""
-    return len(red.att_dof) + red.fs_pos.shape[0], red.n_r
+    """The shape of ``fill``'s scratch: rows of Y = A_aa E (one per attached DOF) and the three rows of A_fa E of
+    the free vertex in hand, n_r columns."""
+    return len(red.att_dof) + 3, red.n_r
 
 
 @njit
 def fill_kernel(ad_data, b_d, ff_src, ff_dst, free_ad, fa_ptr, fa_blk, fa_att, aa_ptr, aa_blk, aa_att, e_end, y_end,
-                adj_rank, fs_pos, sf_pos, sk_start, att_dof, nf3, E, t, A_r, b_r, data, b, Y, W):
+                fs_ptr, fs_col, fs_pos, sk_start, att_dof, nf3, E, t, A_r, b_r, data, b, Y, W):
     """The loops of ``fill`` over the Reduction's entry lists (no per-entry test of which block an entry is in):
     the free-free entries copied; the products with E as contiguous rows over the skeleton columns a row of E
     can be nonzero on (e_end: its body's supports end there; the columns past it are exact zeros, so skipping
-    them changes no bit) (Y = A_aa E, W = A_fa E), one 3 x 3 block of A_d (a vertex's three rows on an
-    attached vertex's three columns) per pass over the columns, scattered into the reduced pattern once at
-    the end; E^T A_af = W^T (A_d symmetric); E^T A_aa E = E^T Y, an attached vertex's three rows of E per
-    pass, symmetrised. Every sum takes its terms in the order of a scan of A_d's rows (a pass adds a block
-    row's three terms left to right, as three entries of that row in turn; E^T Y skips the columns where the
-    vertex's three rows of E are zero, and adds the exact zeros of the others, which changes no bit but the
-    sign of an exact zero): the numbers of the entry-by-entry loops (measured on the starfish: 174 -> 114 us
-    a fill)."""
+    them changes no bit) (Y = A_aa E, and W = A_fa E one free vertex at a time: its three rows, scattered into
+    the reduced pattern with their transposes E^T A_af = W^T (A_d symmetric) as soon as they are complete, on
+    the columns it reaches (fs_ptr / fs_col / fs_pos) only), one 3 x 3 block of A_d (a vertex's three rows on
+    an attached vertex's three columns) per pass over the columns; E^T A_aa E = E^T Y, an attached vertex's
+    three rows of E per pass, symmetrised. Every sum takes its terms in the order of a scan of A_d's rows (a
+    pass adds a block row's three terms left to right, as three entries of that row in turn; E^T Y skips the
+    columns where the vertex's three rows of E are zero, and adds the exact zeros of the others, which changes
+    no bit but the sign of an exact zero; b_r + E^T (b_a - A_aa t) skips the exact zeros past e_end, the same):
+    the numbers of the entry-by-entry loops (measured on the starfish: 174 -> 114 us a fill). Every entry of
+    the reduced pattern is written (build checks it), so ``data`` is not zeroed first (a free-free entry is
+    0 + A_d's, as it was: -0 becomes +0). The per-vertex scatter, the unzeroed data and the shorter b_r loop:
+    67 -> 56 us a fill (starfish, CPU, alternating blocks of 25 calls in one process, medians of 200)."""
     n_r = A_r.shape[0]
     na = E.shape[0]
-    data[:] = 0.0
     Y[:, :] = 0.0
-    W[:, :] = 0.0
     ta = np.zeros(na)  # A_aa t
-    for k in range(len(ff_src)):  # free row, free column
-        data[ff_dst[k]] += ad_data[ff_src[k]]
+    for k in range(len(ff_src)):  # free row, free column (the sum 0 + a of the zeroed data: -0 becomes +0)
+        data[ff_dst[k]] = 0.0 + ad_data[ff_src[k]]
     for v in range(nf3 // 3):  # a free vertex's rows, attached columns: A_fa E and -A_fa t
         p = 3 * v
+        for i in range(fs_ptr[v], fs_ptr[v + 1]):
+            W[0, fs_col[i]] = W[1, fs_col[i]] = W[2, fs_col[i]] = 0.0
         b0, b1, b2 = 0.0 + b_d[free_ad[p]], 0.0 + b_d[free_ad[p + 1]], 0.0 + b_d[free_ad[p + 2]]
-        c = adj_rank[p]  # its three rows of W (consecutive: build)
         for q in range(fa_ptr[v], fa_ptr[v + 1]):
-            r = 3 * fa_att[q]
+            s = fa_att[q]
+            r = 3 * s
             a00, a01, a02 = ad_data[fa_blk[q, 0, 0]], ad_data[fa_blk[q, 0, 1]], ad_data[fa_blk[q, 0, 2]]
             a10, a11, a12 = ad_data[fa_blk[q, 1, 0]], ad_data[fa_blk[q, 1, 1]], ad_data[fa_blk[q, 1, 2]]
             a20, a21, a22 = ad_data[fa_blk[q, 2, 0]], ad_data[fa_blk[q, 2, 1]], ad_data[fa_blk[q, 2, 2]]
-            for l in range(e_end[fa_att[q]]):
+            for l in range(e_end[s]):
                 e0, e1, e2 = E[r, l], E[r + 1, l], E[r + 2, l]
-                W[c, l] = W[c, l] + a00 * e0 + a01 * e1 + a02 * e2
-                W[c + 1, l] = W[c + 1, l] + a10 * e0 + a11 * e1 + a12 * e2
-                W[c + 2, l] = W[c + 2, l] + a20 * e0 + a21 * e1 + a22 * e2
+                W[0, l] = W[0, l] + a00 * e0 + a01 * e1 + a02 * e2
+                W[1, l] = W[1, l] + a10 * e0 + a11 * e1 + a12 * e2
+                W[2, l] = W[2, l] + a20 * e0 + a21 * e1 + a22 * e2
             t0, t1, t2 = t[r], t[r + 1], t[r + 2]
             b0 = b0 - a00 * t0 - a01 * t1 - a02 * t2
             b1 = b1 - a10 * t0 - a11 * t1 - a12 * t2
             b2 = b2 - a20 * t0 - a21 * t1 - a22 * t2
         b[p], b[p + 1], b[p + 2] = b0, b1, b2
+        for i in range(fs_ptr[v], fs_ptr[v + 1]):  # A_fa E and E^T A_af = (A_fa E)^T
+            l = fs_col[i]
+            for c in range(3):
+                data[fs_pos[i, c]] = W[c, l]
+                data[fs_pos[i, 3 + c]] = W[c, l]
     for k in range(n_r):
         b[nf3 + k] = b_r[k]
     for v in range(na // 3):  # an attached vertex's rows and attached columns: Y = A_aa E, A_aa t
         r3 = 3 * v
         ta0 = ta1 = ta2 = 0.0
         for q in range(aa_ptr[v], aa_ptr[v + 1]):
-            s = 3 * aa_att[q]
+            s = aa_att[q]
+            r = 3 * s
             a00, a01, a02 = ad_data[aa_blk[q, 0, 0]], ad_data[aa_blk[q, 0, 1]], ad_data[aa_blk[q, 0, 2]]
             a10, a11, a12 = ad_data[aa_blk[q, 1, 0]], ad_data[aa_blk[q, 1, 1]], ad_data[aa_blk[q, 1, 2]]
             a20, a21, a22 = ad_data[aa_blk[q, 2, 0]], ad_data[aa_blk[q, 2, 1]], ad_data[aa_blk[q, 2, 2]]
-            for l in range(e_end[aa_att[q]]):
-                e0, e1, e2 = E[s, l], E[s + 1, l], E[s + 2, l]
+            for l in range(e_end[s]):
+                e0, e1, e2 = E[r, l], E[r + 1, l], E[r + 2, l]
                 Y[r3, l] = Y[r3, l] + a00 * e0 + a01 * e1 + a02 * e2
                 Y[r3 + 1, l] = Y[r3 + 1, l] + a10 * e0 + a11 * e1 + a12 * e2
                 Y[r3 + 2, l] = Y[r3 + 2, l] + a20 * e0 + a21 * e1 + a22 * e2
-            t0, t1, t2 = t[s], t[s + 1], t[s + 2]
+            t0, t1, t2 = t[r], t[r + 1], t[r + 2]
             ta0 = ta0 + a00 * t0 + a01 * t1 + a02 * t2
             ta1 = ta1 + a10 * t0 + a11 * t1 + a12 * t2
             ta2 = ta2 + a20 * t0 + a21 * t1 + a22 * t2
         ta[r3], ta[r3 + 1], ta[r3 + 2] = ta0, ta1, ta2
-    for c in range(fs_pos.shape[0]):  # A_fa E and E^T A_af = (A_fa E)^T
-        for k in range(n_r):
-            f = fs_pos[c, k]
-            if f >= 0:
-                data[f] = W[c, k]
-                data[sf_pos[c, k]] = W[c, k]
     for r in range(na):  # b_r + E^T (b_a - A_aa t)
         ba = b_d[att_dof[r]] - ta[r]
-        for k in range(n_r):
+        for k in range(e_end[r // 3]):
             b[nf3 + k] += E[r, k] * ba
     S = np.zeros((n_r, n_r))  # E^T A_aa E = E^T Y
     for v in range(na // 3):
