@@ -109,8 +109,8 @@ class Workspace:
     def __init__(self, indptr, indices, n):
         self.indptr, self.indices, self.n = indptr, indices, n
         self.diag, self.tpos = _pattern_maps(indptr, indices, n)
-        self.held = np.empty(len(indices))  # the held matrix's values (coupled_kernel.held_kernel)
         self.sym = sym = sparse_ldl.analyse(indptr, indices, n)
+        self.data_map = sym.data_map  # each entry's position in the factor's values (coupled_kernel.held_factor)
         self.num = sparse_ldl.LDLNumeric.empty(sym)
         self.factor_arrays = (sym.sptr, sym.rptr, sym.voff, sym.diag, sym.assign_src, sym.assign_dst, sym.add_src,
                               sym.add_dst, sym.fill, sym.uptr, sym.usrc, sym.ua, sym.ub, sym.relptr, sym.rel,
@@ -145,7 +145,7 @@ def solve(ws: Workspace, data, b, n_r, G, g, C=None, lo=None, hi=None, contacts:
     imp, svert, srows, ctol = np.zeros((k, 3)), np.empty(k, np.int64), np.empty((k, 6)), np.empty(k)
     info = np.zeros(ck.INFO_LEN, np.int64)
     finfo = np.zeros(ck.FINFO_LEN)
-    ck.coupled_solve(ws.indptr, ws.indices, ws.diag, ws.tpos, data, b, ws.held, ws.factor_arrays, ws.solve_arrays,
+    ck.coupled_solve(ws.indptr, ws.indices, ws.diag, ws.tpos, data, b, ws.data_map, ws.factor_arrays, ws.solve_arrays,
                      ws.num.values, ws.num.buf, sparse_ldl.TINY, nf, G, np.ascontiguousarray(g, dtype=float), Cm, lo_,
                      hi_, dof, clo, cvert, warm.vertex, warm.rows, fric, tol, MAX_ITER, MAX_CHANGES if fric > 0 else 0,
                      TOL_V, STICK_V, z, F, lam, mu_lim, imp, svert, srows, ctol, info, finfo)

@@ -997,7 +997,15 @@ def factor_kernel(sptr, rptr, voff, diag, assign_src, assign_dst, add_src, add_d
     """Load the input and factorise, supernode by supernode (left-looking). Returns (-1 or the failing
     pivot's permuted index, negative pivots, max|diag A|)."""
     dmax = scatter_values(assign_src, assign_dst, add_src, add_dst, fill, diag, data, values)
-    tiny_abs = tiny * dmax
+    k, neg = factor_loaded(sptr, rptr, voff, uptr, usrc, ua, ub, relptr, rel, run_ptr, run_row, run_pos, values, buf,
+                           tiny * dmax)
+    return k, neg, dmax
+
+
+@njit
+def factor_loaded(sptr, rptr, voff, uptr, usrc, ua, ub, relptr, rel, run_ptr, run_row, run_pos, values, buf, tiny_abs):
+    """The factorisation of ``factor_kernel`` on values already loaded (scatter_values, or a caller's own
+    loading): (-1 or the failing pivot's permuted index, negative pivots); a pivot |d| <= tiny_abs fails."""
     neg = 0
     for s in range(len(sptr) - 1):
         ot, w, mt = U(voff[s]), U(sptr[s + 1] - sptr[s]), U(rptr[s + 1] - rptr[s])
@@ -1008,8 +1016,8 @@ def factor_kernel(sptr, rptr, voff, diag, assign_src, assign_dst, add_src, add_d
         k, ng = factor_block(values, ot, mt, w, tiny_abs)
         neg += ng
         if k >= 0:
-            return sptr[s] + k, neg, dmax
-    return -1, neg, dmax
+            return sptr[s] + k, neg
+    return -1, neg
 
 
 def factor(sym: LDLSymbolic, data, out: LDLNumeric | None = None, tiny: float = TINY) -> LDLNumeric:
