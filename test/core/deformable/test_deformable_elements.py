@@ -77,7 +77,7 @@ def central_differences(fn, x, eps=1e-6):
 
 @pytest.mark.parametrize("seed", [0, 1])
 def test_fem_stiffness_matches_central_differences(seed):
-    """The compiled kernel's stiffness (fem_kernels.tet_blocks, scattered into the CSR pattern) against central
+    """The compiled kernel's stiffness (fem_kernels.tet_blocks_lanes, scattered into the CSR pattern) against central
     differences of its forces, and the forces against the energy's gradient (round-off at eps = 1e-6: ~1e-11)."""
     rng = np.random.default_rng(seed)
     fem = _block(2, 2, 2)
