@@ -11,7 +11,8 @@ Per tetrahedron t with vertices tet (4,) and shape gradients b_a = B[t, a] (4,3)
   of large deformation", SCA 2004): Newton's polar iteration where F is neither inverted nor near flat
   (``newton_polar3``, there the polar factor is that rotation), else the SVD F = U Sigma V^T from a cyclic
   Jacobi eigen-decomposition of F^T F with U's last column u_1 x u_2, so that det U = det V = +1;
-* P = 2 mu (F - R) + lambda tr(R^T F - I) R, Psi = mu |F - R|^2 + lambda/2 tr^2(R^T F - I), f_a = -V P b_a;
+* P = 2 mu (F - R) + lambda tr(R^T F - I) R, Psi = mu |F - R|^2 + lambda/2 tr^2(R^T F - I), f_a = -V P b_a
+  (``lane_stress``);
 * the exact K_e = -df_e/dx_e (``tet_blocks_lanes``), written in the rotated frame with c_a = R b_a and
   Sh = R S R^T = F R^T: the block of vertex rows p and vertex columns q is
 
@@ -194,59 +195,33 @@ def polar3(F, R, C, V):
             R[i, j] = V[i, j]
 
 
-@njit_inline
-def tet_stress(F, R, mu, lam, P):
-    """P (3,3) = 2 mu (F - R) + lambda tr(R^T F - I) R [Pa]; returns tr(R^T F) = tr S."""
-    trS = 0.0
-    for i in range(3):
-        trS += R[0, i] * F[0, i] + R[1, i] * F[1, i] + R[2, i] * F[2, i]
-    g = lam * (trS - 3.0)
-    for i in range(3):
-        for k in range(3):
-            P[i, k] = 2.0 * mu * (F[i, k] - R[i, k]) + g * R[i, k]
-    return trS
-
-
-@njit_inline
-def tet_energy_density(F, R, trS, mu, lam):
-    """Psi = mu |F - R|_F^2 + lambda/2 (tr S - 3)^2 [J/m^3]."""
-    s = 0.0
-    for i in range(3):
-        for k in range(3):
-            s += (F[i, k] - R[i, k]) ** 2
-    return mu * s + 0.5 * lam * (trS - 3.0) ** 2
-
-
-@njit_inline
-def tet_state(x, tet, Bt, mu, lam, F, R, P, C, V):
-    """F, R (``polar3``, with scratch C, V) and P of one tetrahedron into F, R, P; returns tr S."""
-    deformation_gradient(x, tet, Bt, F)
-    polar3(F, R, C, V)
-    return tet_stress(F, R, mu, lam, P)
-
-
-# The stiffness of LANES tetrahedra at a time (``tet_blocks_lanes``) in one flat scratch array S, row r of lane l at
-# S[r * LANES + l]: every access an offset from one base known at compile time, so the compiler sees the rows do
-# not overlap and vectorises the loop over the lanes (rows of separate arrays: it did not).
+# Stress, energy, forces and stiffness of LANES tetrahedra at a time (``stress_lanes``, ``tet_blocks_lanes``) in
+# one flat scratch array S, row r of lane l at S[r * LANES + l]: every access an offset from one base known at
+# compile time, so the compiler sees the rows do not overlap and vectorises the loops over the lanes (rows of
+# separate arrays: it did not). Each number is the same expression, in the same order, as in the
+# tetrahedron-by-tetrahedron code these replace (tet_stress, tet_energy_density, add_tet_forces, tet_blocks),
+# so the same bits: fem_add on the starfish's 372 tetrahedra 108.8 -> 70.6 us (CPU, alternating blocks of 25
+# calls in one process, medians of 200).
 LANES = 16
-S_F, S_R, S_B, S_VOL = 0, 9, 18, 27  # inputs: F, R (row-major), b_1..b_3 (S_B + 3 (a - 1) + k), the volume
-S_TRS, S_AH, S_CR, S_N = 28, 29, 35, 44  # tr S; Ah's (00, 01, 02, 11, 12, 22); c_a (S_CR + 3 (a - 1) + i); N_a
-S_K = 71  # the blocks: entry (i, j) of block (p, q) at row S_K + 36 p + 9 q + 3 i + j
+S_F, S_R, S_B, S_VOL = 0, 9, 18, 30  # inputs: F, R (row-major), b_0..b_3 (S_B + 3 a + k), the volume
+S_TRS, S_P, S_EN, S_FA = 31, 32, 41, 42  # tr S; P (row-major); V Psi; scale V (P b_a)_i at S_FA + 3 a + i
+S_AH, S_CR, S_N = 54, 60, 69  # Ah's (00, 01, 02, 11, 12, 22); c_a (S_CR + 3 (a - 1) + i); N_a (S_N + 9 (a - 1) + ...)
+S_K = 96  # the blocks: entry (i, j) of block (p, q) at row S_K + 36 p + 9 q + 3 i + j
 S_ROWS = S_K + 144
 
 
 @njit_inline
 def load_lanes(Fb, Rb, B, vol, t0, nl, S):
     """S's input rows for the tetrahedra t0 .. t0 + nl - 1 (nl <= LANES): F, R from Fb, Rb (9, T) (row-major
-    entries per column t), the shape gradients b_1..b_3 from B (T, 4, 3), the volumes (T,)."""
+    entries per column t), the shape gradients b_0..b_3 from B (T, 4, 3), the volumes (T,)."""
     for l in range(nl):
         t = t0 + l
         for k in range(9):
             S[(S_F + k) * LANES + l] = Fb[k, t]
             S[(S_R + k) * LANES + l] = Rb[k, t]
-        for a in range(1, 4):
+        for a in range(4):
             for k in range(3):
-                S[(S_B + 3 * (a - 1) + k) * LANES + l] = B[t, a, k]
+                S[(S_B + 3 * a + k) * LANES + l] = B[t, a, k]
         S[S_VOL * LANES + l] = vol[t]
 
 
@@ -268,18 +243,48 @@ def sym_fr(fi0, fi1, fi2, ri0, ri1, ri2, fj0, fj1, fj2, rj0, rj1, rj2):
 
 
 @njit_inline
+def lane_stress(S, l, mu, lam, scale):
+    """Lane l's tr S = tr(R^T F), P = 2 mu (F - R) + lambda (tr S - 3) R [Pa], V Psi [J] with Psi = mu |F - R|_F^2
+    + lambda/2 (tr S - 3)^2, and scale * f_a = -scale V P b_a [N] (the nodal elastic forces, as the terms
+    subtracted: S_FA + 3 a + i holds scale V (P b_a)_i) into S."""
+    ts = 0.0
+    for i in range(3):
+        r0, r1, r2 = row(S, S_R + i, l), row(S, S_R + 3 + i, l), row(S, S_R + 6 + i, l)  # column i of R and F
+        ts += r0 * row(S, S_F + i, l) + r1 * row(S, S_F + 3 + i, l) + r2 * row(S, S_F + 6 + i, l)
+    set_row(S, S_TRS, l, ts)
+    g = lam * (ts - 3.0)
+    sq = 0.0
+    for k in range(9):
+        fk, rk = row(S, S_F + k, l), row(S, S_R + k, l)
+        set_row(S, S_P + k, l, 2.0 * mu * (fk - rk) + g * rk)
+        sq += (fk - rk) ** 2
+    vol = row(S, S_VOL, l)
+    set_row(S, S_EN, l, vol * (mu * sq + 0.5 * lam * (ts - 3.0) ** 2))
+    for a in range(4):
+        b0, b1, b2 = row(S, S_B + 3 * a, l), row(S, S_B + 3 * a + 1, l), row(S, S_B + 3 * a + 2, l)
+        for i in range(3):
+            set_row(S, S_FA + 3 * a + i, l, scale * vol * (row(S, S_P + 3 * i, l) * b0 + row(S, S_P + 3 * i + 1, l) * b1
+                                                            + row(S, S_P + 3 * i + 2, l) * b2))
+
+
+@njit_inline
+def stress_lanes(S, nl, mu, lam, scale):
+    """``lane_stress`` of the nl <= LANES tetrahedra ``load_lanes`` put in S, in one vectorised loop."""
+    for ll in range(nl):
+        lane_stress(S, np.uint64(ll), mu, lam, scale)
+
+
+@njit_inline
 def lane_ah(S, l):
-    """tr S = tr(R^T F) (tet_stress's sum) and Ah = (tr S I - sym(F R^T))^-1 (cofactors / determinant; np.divide:
-    IEEE division without numba's zero-divisor branch, the same quotient) of lane l into S."""
+    """Ah = (tr S I - sym(F R^T))^-1 (cofactors / determinant; np.divide: IEEE division without numba's
+    zero-divisor branch, the same quotient) of lane l into S (tr S from ``lane_stress``)."""
     F00, F01, F02, F10, F11, F12, F20, F21, F22 = (row(S, S_F, l), row(S, S_F + 1, l), row(S, S_F + 2, l),
                                                    row(S, S_F + 3, l), row(S, S_F + 4, l), row(S, S_F + 5, l),
                                                    row(S, S_F + 6, l), row(S, S_F + 7, l), row(S, S_F + 8, l))
     R00, R01, R02, R10, R11, R12, R20, R21, R22 = (row(S, S_R, l), row(S, S_R + 1, l), row(S, S_R + 2, l),
                                                    row(S, S_R + 3, l), row(S, S_R + 4, l), row(S, S_R + 5, l),
                                                    row(S, S_R + 6, l), row(S, S_R + 7, l), row(S, S_R + 8, l))
-    ts = 0.0 + (R00 * F00 + R10 * F10 + R20 * F20) + (R01 * F01 + R11 * F11 + R21 * F21) + (R02 * F02 + R12 * F12
-                                                                                          + R22 * F22)
-    set_row(S, S_TRS, l, ts)
+    ts = row(S, S_TRS, l)
     a = -0.5 * sym_fr(F00, F01, F02, R00, R01, R02, F00, F01, F02, R00, R01, R02) + ts
     b = -0.5 * sym_fr(F00, F01, F02, R00, R01, R02, F10, F11, F12, R10, R11, R12)
     c = -0.5 * sym_fr(F00, F01, F02, R00, R01, R02, F20, F21, F22, R20, R21, R22)
@@ -300,7 +305,7 @@ def lane_ah(S, l):
 @njit_inline
 def lane_rotated_gradient(S, l, a):
     """c_a = R b_a and N_a = Ah [c_a]_x (row i, column j at S_N + 9 (a - 1) + 3 i + j) of lane l into S."""
-    b0, b1, b2 = row(S, S_B + 3 * (a - 1), l), row(S, S_B + 3 * (a - 1) + 1, l), row(S, S_B + 3 * (a - 1) + 2, l)
+    b0, b1, b2 = row(S, S_B + 3 * a, l), row(S, S_B + 3 * a + 1, l), row(S, S_B + 3 * a + 2, l)
     c0 = row(S, S_R, l) * b0 + row(S, S_R + 1, l) * b1 + row(S, S_R + 2, l) * b2
     c1 = row(S, S_R + 3, l) * b0 + row(S, S_R + 4, l) * b1 + row(S, S_R + 5, l) * b2
     c2 = row(S, S_R + 6, l) * b0 + row(S, S_R + 7, l) * b1 + row(S, S_R + 8, l) * b2
@@ -326,7 +331,7 @@ def lane_pair_block(S, l, p, q, mu, lam):
     its columns (on a diagonal block the mirror overwrites the entries below the diagonal with those above):
     K_pq = V [2 mu (b_p . b_q) I + lambda c_p c_q^T + (lambda tr(S - I) - 2 mu) [c_p]_x^T Ah [c_q]_x]."""
     c0, c1, c2 = row(S, S_CR + 3 * (p - 1), l), row(S, S_CR + 3 * (p - 1) + 1, l), row(S, S_CR + 3 * (p - 1) + 2, l)
-    bp, bq = S_B + 3 * (p - 1), S_B + 3 * (q - 1)
+    bp, bq = S_B + 3 * p, S_B + 3 * q
     bb = 2.0 * mu * (row(S, bp, l) * row(S, bq, l) + row(S, bp + 1, l) * row(S, bq + 1, l)
                      + row(S, bp + 2, l) * row(S, bq + 2, l))
     coef = lam * (row(S, S_TRS, l) - 3.0) - 2.0 * mu
@@ -350,15 +355,13 @@ def lane_pair_block(S, l, p, q, mu, lam):
 
 @njit_inline
 def tet_blocks_lanes(S, nl, mu, lam):
-    """The exact element stiffness K_e = -df_e/dx_e [N/m] (module docstring) of the nl <= LANES tetrahedra whose
-    F, R, b_1..b_3 and volumes ``load_lanes`` put in S: the blocks (rows: vertex p's x, y, z; columns: vertex
-    q's) into S's rows S_K + ... . The blocks of vertices 1-3 from c_a = R b_a and Ah = (tr S I - sym(F
-    R^T))^-1 (``lane_pair_block``); those of vertex 0 from the others' (b_0 is -(b_1 + b_2 + b_3), fem.TetFEM.B,
-    and K_pq is linear in b_p). One loop over the lanes, which the compiler vectorises (AVX2), where the
-    tetrahedron-by-tetrahedron version was a chain of scalar operations: fem_add on the starfish's 372
-    tetrahedra 111 -> 76 us (CPU, alternating blocks of 25 calls in one process, medians of 200). Every number
-    is the same expression, in the same order, as in that version, so the same bits (unless a division by
-    zero, which raised ZeroDivisionError there and gives inf here)."""
+    """The exact element stiffness K_e = -df_e/dx_e [N/m] (module docstring) of the nl <= LANES tetrahedra
+    whose F, R, b_0..b_3 and volumes ``load_lanes`` and tr S ``stress_lanes`` put in S: the blocks (rows:
+    vertex p's x, y, z; columns: vertex q's) into S's rows S_K + ... . The blocks of vertices 1-3 from c_a =
+    R b_a and Ah = (tr S I - sym(F R^T))^-1 (``lane_pair_block``); those of vertex 0 from the others' (b_0 is
+    -(b_1 + b_2 + b_3), fem.TetFEM.B, and K_pq is linear in b_p). One loop over the lanes, which the compiler
+    vectorises (AVX2). The same bits as the tetrahedron-by-tetrahedron tet_blocks, unless Ah is singular: 1/0
+    raised ZeroDivisionError there and gives inf here."""
     for ll in range(nl):
         l = np.uint64(ll)
         lane_ah(S, l)
@@ -382,14 +385,6 @@ def tet_blocks_lanes(S, nl, mu, lam):
             for j in range(3):
                 set_row(S, S_K + 3 * i + j, l, -(row(S, S_K + 9 + 3 * i + j, l) + row(S, S_K + 18 + 3 * i + j, l)
                                                  + row(S, S_K + 27 + 3 * i + j, l)))
-
-
-@njit_inline
-def add_tet_forces(P, Bt, vol, tet, scale, f):
-    """f[tet[a]] += scale * f_a with f_a = -V P b_a [N] the nodal elastic forces; f (n,3)."""
-    for a in range(4):
-        for i in range(3):
-            f[tet[a], i] -= scale * vol * (P[i, 0] * Bt[a, 0] + P[i, 1] * Bt[a, 1] + P[i, 2] * Bt[a, 2])
 
 
 @njit_inline
@@ -462,16 +457,17 @@ def fem_add(x, tets, B, vol, mu, lam, blk, stride, ck, hf, data, f):
     sparsity.BlockPattern += ck * (element stiffness blocks [N/m]) when ck != 0. Returns the elastic energy
     sum_t V_t Psi_t [J]. x (n,3) [m], tets (T,4), B (T,4,3) [1/m], vol (T,) [m^3], mu, lam [Pa]. The polar
     factors first, for all tetrahedra at once (``newton_polar_batch``; ``polar3`` for those it does not take),
-    the stiffness LANES tetrahedra at a time (``tet_blocks_lanes``); the sums into f, data and the energy
-    tetrahedron by tetrahedron, in order."""
-    F, R, P = np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3))
-    C, V = np.empty((3, 3)), np.empty((3, 3))
+    the stress, energy, forces and stiffness LANES tetrahedra at a time (``stress_lanes``,
+    ``tet_blocks_lanes``); the sums into f, data and the energy tetrahedron by tetrahedron, in order."""
+    F, R, C, V = np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3))
     T = len(tets)
     Fb, Rb, s2, ok = np.empty((9, T)), np.empty((9, T)), np.empty(T), np.empty(T, np.bool_)
     newton_polar_batch(x, tets, B, Fb, Rb, s2, ok)
     for t in range(T):  # polar3's route for the tetrahedra Newton's lockstep iteration does not take
         if not ok[t]:
-            unpack3(Fb, t, F)
+            for i in range(3):
+                for k in range(3):
+                    F[i, k] = Fb[3 * i + k, t]
             polar3(F, R, C, V)
             for i in range(3):
                 for k in range(3):
@@ -480,18 +476,18 @@ def fem_add(x, tets, B, vol, mu, lam, blk, stride, ck, hf, data, f):
     energy = 0.0
     for t0 in range(0, T, LANES):
         nl = min(LANES, T - t0)
+        load_lanes(Fb, Rb, B, vol, t0, nl, S)
+        stress_lanes(S, nl, mu, lam, hf)
         if ck != 0.0:
-            load_lanes(Fb, Rb, B, vol, t0, nl, S)
             tet_blocks_lanes(S, nl, mu, lam)
         for l in range(nl):
             t = t0 + l
             tet = tets[t]
-            unpack3(Fb, t, F)
-            unpack3(Rb, t, R)
-            trS = tet_stress(F, R, mu, lam, P)
-            energy += vol[t] * tet_energy_density(F, R, trS, mu, lam)
+            energy += S[S_EN * LANES + l]
             if hf != 0.0:
-                add_tet_forces(P, B[t], vol[t], tet, hf, f)
+                for a in range(4):
+                    for i in range(3):
+                        f[tet[a], i] -= S[(S_FA + 3 * a + i) * LANES + l]
             if ck != 0.0:
                 for p in range(4):
                     for q in range(4):
@@ -501,32 +497,31 @@ def fem_add(x, tets, B, vol, mu, lam, blk, stride, ck, hf, data, f):
 
 
 @njit_inline
-def unpack3(Mb, t, M):
-    """M (3,3) := column t of Mb (9, T) (row-major entries)."""
-    for i in range(3):
-        for k in range(3):
-            M[i, k] = Mb[3 * i + k, t]
+def polar_factors(x, tets, B, Fb, Rb):
+    """Fb, Rb (9, T) := every tetrahedron's F (``deformation_gradient``) and R (``polar3``), row-major."""
+    F, R, C, V = np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3))
+    for t in range(len(tets)):
+        deformation_gradient(x, tets[t], B[t], F)
+        polar3(F, R, C, V)
+        for i in range(3):
+            for k in range(3):
+                Fb[3 * i + k, t] = F[i, k]
+                Rb[3 * i + k, t] = R[i, k]
 
 
 @njit
 def fem_element_stiffness(x, tets, B, vol, mu, lam):
     """(T,4,4,3,3) per-tetrahedron stiffness blocks (``tet_blocks_lanes``) [N/m] at the polar factors of
     ``polar3``."""
-    F, R, P = np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3))
-    C, V = np.empty((3, 3)), np.empty((3, 3))
     T = len(tets)
     Fb, Rb = np.empty((9, T)), np.empty((9, T))
-    for t in range(T):
-        tet_state(x, tets[t], B[t], mu, lam, F, R, P, C, V)
-        for i in range(3):
-            for k in range(3):
-                Fb[3 * i + k, t] = F[i, k]
-                Rb[3 * i + k, t] = R[i, k]
+    polar_factors(x, tets, B, Fb, Rb)
     S = np.empty(S_ROWS * LANES)
     out = np.empty((T, 4, 4, 3, 3))
     for t0 in range(0, T, LANES):
         nl = min(LANES, T - t0)
         load_lanes(Fb, Rb, B, vol, t0, nl, S)
+        stress_lanes(S, nl, mu, lam, 0.0)
         tet_blocks_lanes(S, nl, mu, lam)
         for l in range(nl):
             for p in range(4):
@@ -539,11 +534,21 @@ def fem_element_stiffness(x, tets, B, vol, mu, lam):
 
 @njit
 def fem_stress(x, tets, B, mu, lam):
-    """(T,3,3) first Piola-Kirchhoff stress P [Pa] per tetrahedron."""
-    F, R, C, V = np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3))
-    P = np.empty((len(tets), 3, 3))
-    for t in range(len(tets)):
-        tet_state(x, tets[t], B[t], mu, lam, F, R, P[t], C, V)
+    """(T,3,3) first Piola-Kirchhoff stress P [Pa] per tetrahedron (``lane_stress`` at the polar factors of
+    ``polar3``)."""
+    T = len(tets)
+    Fb, Rb = np.empty((9, T)), np.empty((9, T))
+    polar_factors(x, tets, B, Fb, Rb)
+    S = np.empty(S_ROWS * LANES)
+    P = np.empty((T, 3, 3))
+    vol = np.ones(T)
+    for t0 in range(0, T, LANES):
+        nl = min(LANES, T - t0)
+        load_lanes(Fb, Rb, B, vol, t0, nl, S)
+        stress_lanes(S, nl, mu, lam, 0.0)
+        for l in range(nl):
+            for k in range(9):
+                P[t0 + l, k // 3, k % 3] = S[(S_P + k) * LANES + l]
     return P
 
 
