@@ -5,15 +5,17 @@ Pinocchio (forwardKinematics, then a numpy array of every oMi) the same poses co
 in the node's simulation thread (its caches cold after 20 steps and their messages), one call here ~2-5 us.
 Equal to the core's ``Simulator.body_poses`` to round-off (test/core/compiled/test_poses.py).
 
-Mechanisms with joints the compiled path does not take (:func:`model.unsupported` names them) have no
-BodyFrames (:func:`body_frames` returns None); the caller keeps its Pinocchio path for them."""
+Mechanisms with joints the compiled path does not take (:func:`takes_joints` is False: catalogue joints or a
+joint kind outside model.SUPPORTED_KINDS) have no BodyFrames (:func:`body_frames` returns None); the caller
+keeps its Pinocchio path for them."""
 from __future__ import annotations
 
 import numpy as np
 
 from redmax_ros.core.jit import drop_stale_caches, njit
 from redmax_ros.core.step.compiled.kinematics import placements_of
-from redmax_ros.core.step.compiled.model import build_model, unsupported
+from redmax_ros.core.step.compiled.manifold import joint_kinds
+from redmax_ros.core.step.compiled.model import SUPPORTED_KINDS, build_model
 
 # every file compiled into body_frames_into (placements_of inlines the kernels of these)
 SOURCES = ("step/compiled/poses.py", "step/compiled/kinematics.py", "solvers/recursive.py",
@@ -68,8 +70,12 @@ class BodyFrames:
         return self.P, self.R
 
 
+def takes_joints(mech) -> bool:
+    """Whether the compiled kinematics cover every joint of ``mech`` (no catalogue joints, every joint kind in
+    model.SUPPORTED_KINDS: what model.unsupported checks of the joints)."""
+    return mech.extras is None and all(k in SUPPORTED_KINDS for k in joint_kinds(mech.model)[1:])
+
+
 def body_frames(mech, names):
     """A :class:`BodyFrames` of ``names``, or None when ``mech`` has joints the compiled path does not take."""
-    if mech.extras is not None or any(w.startswith("joint types") for w in unsupported(mech)):
-        return None
-    return BodyFrames(mech, names)
+    return BodyFrames(mech, names) if takes_joints(mech) else None
