@@ -105,7 +105,7 @@ class Extras:
         # -- momentum projection roots: (joint id, root velocity slice, subtree joint ids)
         self.momentum_roots = []
         for js in mech.spec.joints:
-            if js.extra.get("conserve_momentum"):
+            if _projects_momentum(mech.spec, js):
                 ji = mech.joint_index[js.name]
                 sub = [k for k in range(1, model.njoints) if _descends(model, k, ji.jid)]
                 self.momentum_roots.append((ji.jid, slice(ji.idx_v, ji.idx_v + ji.nv), sub))
@@ -368,11 +368,17 @@ def _site(mech, data, s):
     return x.copy(), Jc
 
 
+def _projects_momentum(spec, js) -> bool:
+    """Whether joint ``js`` is a root of this module's momentum projection: conserve_momentum, and no
+    deformables (with them the projection is of the whole system: dynamics/momentum.py)."""
+    return bool(js.extra.get("conserve_momentum")) and not getattr(spec, "deformables", None)
+
+
 def attach(mech, maps):
     """The Extras of a mechanism whose scene uses catalogue features, prepared (``extras.q0``), or None
     (called by step.compile.compile_scene)."""
     cat = mech.spec.catalogue
-    if maps is None and cat is None and not any(j.extra.get("conserve_momentum") for j in mech.spec.joints):
+    if maps is None and cat is None and not any(_projects_momentum(mech.spec, js) for js in mech.spec.joints):
         return None
     extras = Extras(mech, maps, cat)
     extras.prepare(mech)

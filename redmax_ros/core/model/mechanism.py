@@ -174,7 +174,7 @@ def _build_tree(spec: SceneSpec):
         bM = placement(*j.body_placement)
         if j.type == "fixed":
             jid, M = pj, jM * bM
-        elif j.extra:  # notes §2.5 catalogue joints (joints.py; spline/exp joints: carrier + coordinates)
+        elif "nv" in j.extra:  # notes §2.5 catalogue joints (joints.py; spline/exp joints: carrier + coordinates)
             jid, added = joint_maps.add_to_model(model, pj, j, jM)
             M = bM
             for js, q_, r_ in added:

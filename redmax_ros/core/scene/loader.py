@@ -544,9 +544,19 @@ class _Validator:
         if d.get("type") in catalogue_schema.TYPES:  # notes §2.5 catalogue joints
             return catalogue_schema.validate_joint(self, entry, d, self.base_dir)
         allowed = {"name", "type", "parent", "child", "placement", "body_placement", "axis", "axes", "q0", "v0",
-                   "limits", "stiffness", "rest", "damping", "armature", "torque", "friction"}
+                   "limits", "stiffness", "rest", "damping", "armature", "torque", "friction", "conserve_momentum"}
         self.keys(entry, d, allowed, required=("type", "parent", "child"))
         jt = d["type"]
+        extra = {}
+        if "conserve_momentum" in d:  # dynamics/momentum.py (with deformables), catalogue_hooks.py (without)
+            if jt != "free":
+                self.err(entry, f"'conserve_momentum' is an option of free and free3d root joints, not {jt}")
+            if not isinstance(d["conserve_momentum"], bool):
+                self.err(entry, "'conserve_momentum' must be true or false")
+            if d["conserve_momentum"] and d["parent"] != "world":
+                self.err(entry, "'conserve_momentum' needs a root joint (parent: world)")
+            if d["conserve_momentum"]:
+                extra["conserve_momentum"] = True
         if jt not in JOINT_TYPES:
             self.err(entry, f"unknown joint type '{jt}' (known: {', '.join(JOINT_TYPES)})")
         nv, nq0 = JOINT_TYPES[jt]
@@ -588,7 +598,7 @@ class _Validator:
         rest = self.vector(entry, "rest", d.get("rest", [0.0] * nq0), nq0, allow_scalar=nq0 == 1)
         return JointSpec(d["name"], jt, d["parent"], d["child"], placement, body_placement, axes, q0, v0, lower, upper,
                          per_dof("stiffness"), rest, per_dof("damping"), per_dof("armature"),
-                         per_dof("torque", nonneg=False))
+                         per_dof("torque", nonneg=False), extra)
 
     def axis(self, entry, key, a):
         if isinstance(a, str):

@@ -33,6 +33,7 @@ from redmax_ros.core.deformable.unreduce import unreduce
 from redmax_ros.core.deformable.fem import TetFEM
 from redmax_ros.core.deformable.string import String
 from redmax_ros.core.deformable.system import Attachments, Deformables, DeformState
+from redmax_ros.core.dynamics import momentum as system_momentum
 from redmax_ros.core.dynamics.energy import energies
 from redmax_ros.core.dynamics.kinematics import point_jacobians, point_jacobians_into
 from redmax_ros.core.errors import SceneError, StepError
@@ -393,18 +394,22 @@ def near_floor(x, v, idx, floor, margin, h, gz, red_dof, near, dof, lo):
     return c
 
 
-def step(mech, ws, dm, state, cmd, h, timing=None):
+def step(mech, ws, dm, state, cmd, h, timing=None, momentum=None):
     """One step with the deformables. Returns (State, StepResult); StepResult.diagnostics energies include
     the deformables' (kinetic, gravitational, elastic in E_spring); ``violation_pos`` is the largest
     attachment (and loop) residual after the projection; the attachment drift the velocity step left before it
     (O(h^2)) is ``timing["attachment_drift"]``. With Baumgarte (mech.loop_baumgarte > 0) nothing is projected
-    and both are the residual max |x_i - P| [m] at q+, x+."""
+    and both are the residual max |x_i - P| [m] at q+, x+. ``momentum``: the momentum projection of a free
+    system (dynamics/momentum.MomentumProjection, conserve_momentum) or None."""
     t0 = time.perf_counter()
     ds = deform_state(dm, state)
     cmd = trajectory.resolve(mech, state, cmd, h, state.q)  # joint trajectories -> this step's prescribed velocities
     if cmd.body_twists:
         raise StepError("body-twist prescriptions are not supported with deformables")
     tau = applied_torques(mech, state, cmd, h)
+    if momentum is not None:
+        momentum.check_inputs(cmd, tau)
+        h0, inertia0 = momentum.momentum(state.q, ws.to_reduced(state.v), ds.x, ds.v)
     vs, v_d = coupled_velocity(mech, ws, dm, state, ds, cmd, tau, h, timing)
     check_speed(vs.sol.v)
     check_speed(v_d.ravel())
@@ -421,6 +426,8 @@ def step(mech, ws, dm, state, cmd, h, timing=None):
         timing["attachment_drift"] = drift  # what the velocity step left before the projection [m]
     if not math.isfinite(squares):
         raise StepError("non-finite deformable positions after the step")
+    if momentum is not None:  # conserve_momentum: a rigid twist of the whole system (dynamics/momentum.py)
+        v_hyper, v_new, v_d, _ = momentum.project(system_momentum.target(h0, inertia0, dm.gravity, h), q_new, v_hyper, v_new, x_new, v_d)
     ek, ep, es = energies(mech, ws, q_new, v_new)
     ds_new = DeformState(x_new, v_d)  # both fresh float (N,3) arrays of this step: no copy (DeformState.of)
     t1 = cpu_time()
@@ -450,12 +457,13 @@ class DeformableBackend:
                              "friction, self-collision, or integrator.scheme bdf2 (use the deformables' floor rows "
                              "and scheme euler)")
         self.mech, self.deformables = mech, dm
+        self.momentum = system_momentum.build(mech, dm)  # conserve_momentum on the free root, or None
         self.workspace = Workspace(mech, pin_data=True)
         self.timing = {"skeleton": 0.0, "mesh_assembly": 0.0, "reduction": 0.0, "coupled_solve": 0.0,
                        "attachment_drift": 0.0}
 
     def step(self, state, cmd, h, budget=None):
-        return step(self.mech, self.workspace, self.deformables, state, cmd, h, self.timing)
+        return step(self.mech, self.workspace, self.deformables, state, cmd, h, self.timing, self.momentum)
 
     def at_state(self, q, t):
         self.workspace.at_state(q, t)
