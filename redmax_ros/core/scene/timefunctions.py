@@ -225,7 +225,7 @@ def parse(v, entry: str, key: str, d) -> TimeFunction:
     if not isinstance(d, dict):
         return TimeFunction("constant", {"value": v.number(entry, key, d)})
     kind = d.get("type")
-    if kind not in KEYS:
+    if not isinstance(kind, str) or kind not in KEYS:
         v.err(entry, f"'{key}': unknown time function type {kind!r} (known: {', '.join(KEYS)}, or a number)")
     allowed, required = KEYS[kind]
     v.keys(where, d, allowed | {"type"}, required=tuple(sorted(required)))
