@@ -28,7 +28,7 @@ from redmax_ros.core.step.backends import make_backend
 from redmax_ros.core.step import body_twist, trajectory
 from redmax_ros.core.step.compile import compile_scene
 from redmax_ros.core.step.deformable_stages import deform_state
-from redmax_ros.core.step.state import Commands, State, StepResult, step_each
+from redmax_ros.core.step.state import BatchResult, Commands, State, StepResult, step_each
 
 
 _AXES = {"x": (1.0, 0.0, 0.0), "y": (0.0, 1.0, 0.0), "z": (0.0, 0.0, 1.0)}
@@ -532,10 +532,15 @@ class Simulator:
         if not isinstance(states, (list, tuple)):
             raise CommandError(f"states must be a list of State, got {type(states).__name__}")
         states = [self._checked_state(s, f"states[{i}]") for i, s in enumerate(states)]
+        if not states:
+            return BatchResult([], np.zeros(0, dtype=np.int64), [])
         batch = getattr(self.backend, "step_batch", None)
-        if batch is not None:
-            return batch(list(states), self.commands, self.dt, int(n), self._budget)
-        return step_each(self.backend.step, list(states), self.commands, self.dt, int(n), self._budget)
+        try:
+            if batch is not None:
+                return batch(list(states), self.commands, self.dt, int(n), self._budget)
+            return step_each(self.backend.step, list(states), self.commands, self.dt, int(n), self._budget)
+        except np.linalg.LinAlgError as e:
+            raise StepError(f"batch step failed: {_linalg_reason(e)}") from None
 
     # -- description and geometry for markers
     def describe(self) -> SceneDescription:

@@ -190,3 +190,19 @@ def test_linear_algebra_failure_from_huge_scene_values_is_a_step_error(load_sim)
     with pytest.raises(StepError, match="failed") as ei:
         sim.step_results(2)
     assert ei.value.results == [] and same(before, snapshot(sim))
+
+
+def test_step_batch_of_no_states_and_of_overflowing_states(load_sim):
+    """[] raised IndexError; a state of 1e308 positions raised numpy's LinAlgError out of the batch."""
+    sim = load_sim("mass_springs")
+    out = sim.step_batch([], 3)
+    assert out.states == [] and len(out.steps_done) == 0 and out.errors == []
+    before = snapshot(sim)
+    huge = replace(sim.state, q=np.full_like(sim.state.q, 1e308))
+    try:
+        out = sim.step_batch([huge], 2)
+    except StepError:
+        pass
+    else:
+        assert out.errors[0] is not None and out.steps_done[0] == 0
+    assert same(before, snapshot(sim))
