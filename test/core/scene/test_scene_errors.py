@@ -1,10 +1,16 @@
 """Malformed scenes raise SceneError naming the file, the entry and the problem (never a bare
 KeyError or a traceback from deep inside)."""
+import copy
+import math
+import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from redmax_ros.core import SceneError, Simulator, load_scene
+from redmax_ros.core.scene import files, loader
+from redmax_ros.core.scene.loader import scene_from_dict
 
 BAD = sorted((Path(__file__).parent / "data" / "bad_scenes").glob("*.yaml"))
 
@@ -60,14 +66,6 @@ def test_numeric_strings_are_numbers_in_builder_params():
 # Found by fuzzing the shipped scenes' YAML (wrong types, huge values, huge counts): each is a SceneError
 # naming the entry, raised quickly, never a TypeError / LinAlgError / ZeroDivisionError or a hang.
 
-import copy
-import math
-import time
-
-import numpy as np
-
-from redmax_ros.core.scene import files, loader
-from redmax_ros.core.scene.loader import scene_from_dict
 
 SCENES = Path(__file__).resolve().parents[3] / "scenes"
 
@@ -127,10 +125,10 @@ def test_capsule_inertia_unchanged():
 
 
 @pytest.mark.parametrize("scene, override, text", [
-    ("chain", "params.n=1000000000", "'n' = 1000000000 is above the limit of 2000"),
-    ("mass_springs", "params.n=100000", "'n' = 100000 is above the limit of 2000"),
-    ("bridge", "params.scale=1000", "'scale' = 1000 is above the limit of 50"),
-    ("bridge", "params.scale=50", "the scene would have 4002 bodies, above the limit of 2000"),
+    ("chain", "params.n=1000000000", "'n' = 1000000000 is above the limit of 25000"),
+    ("mass_springs", "params.n=100000", "'n' = 100000 is above the limit of 25000"),
+    ("bridge", "params.scale=1000", "'scale' = 1000 is above the limit of 625"),
+    ("bridge", "params.scale=400", "the scene would have 32002 bodies, above the limit of 25000"),
     ("friction_chain", "params.points=1000000000", "'points' = 1000000000 is above the limit"),
 ])
 def test_huge_builder_counts_are_refused_quickly(scene, override, text):
@@ -138,6 +136,14 @@ def test_huge_builder_counts_are_refused_quickly(scene, override, text):
     with pytest.raises(SceneError, match=text):
         load_scene(scene, [override])
     assert time.perf_counter() - t < 5.0
+
+
+def test_dense_solver_refused_above_its_size():
+    """chain n = 5000 (5000 DOF): the default direct solver would factor dense 5000 x 5000 matrices every step; it
+    is a SceneError naming the solver (after the model is compiled, a few seconds), auto steps it with PCG."""
+    with pytest.raises(SceneError, match=r"solver: solver 'direct' factors dense 5000 x 5000 .* above 4096 DOFs use "
+                                         r"solver pcg or auto"):
+        Simulator.load("chain", ["params.n=5000"])
 
 
 def test_huge_sections_and_contact_points_are_refused():
