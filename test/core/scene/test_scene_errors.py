@@ -130,6 +130,9 @@ def test_capsule_inertia_unchanged():
     ("bridge", "params.scale=1000", "'scale' = 1000 is above the limit of 625"),
     ("bridge", "params.scale=400", "the scene would have 32002 bodies, above the limit of 25000"),
     ("friction_chain", "params.points=1000000000", "'points' = 1000000000 is above the limit"),
+    ("starfish", "params.cell=1e-9", "gives a 500000000 x 500000000 x 1 cell grid, above 200000 vertices"),
+    ("starfish", "params.radius=1e9", "above 200000 vertices"),
+    ("hagfish", "params.skip=-1", "'skip' must be an integer >= 1, got -1"),
 ])
 def test_huge_builder_counts_are_refused_quickly(scene, override, text):
     t = time.perf_counter()

@@ -3,7 +3,7 @@ raise CommandError and change nothing."""
 import numpy as np
 import pytest
 
-from redmax_ros.core import CommandError, StepError
+from redmax_ros.core import CommandError, Simulator, StepError
 from redmax_ros.core import State
 
 
@@ -206,3 +206,15 @@ def test_step_batch_of_no_states_and_of_overflowing_states(load_sim):
     else:
         assert out.errors[0] is not None and out.steps_done[0] == 0
     assert same(before, snapshot(sim))
+
+
+def test_sine_trajectory_with_an_overflowing_phase_is_a_step_error():
+    """A sine of frequency 1e308 (found by fuzzing): its phase 2 pi f t overflows to inf and math.sin raised a
+    bare ValueError out of the step; the time function now gives NaN and the step names the non-finite
+    prescribed velocity, leaving the state as it was."""
+    sim = Simulator.load("pendulum")
+    sim.prescribe_joints({"hinge": {"position": {"type": "sine", "amplitude": 1.0, "frequency": 1e308}}})
+    before = sim.state
+    with pytest.raises(StepError):
+        sim.step()
+    assert sim.state is before
