@@ -9,6 +9,8 @@ StepError("step budget exceeded: ...").
 """
 from __future__ import annotations
 
+import dataclasses
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -26,7 +28,7 @@ from redmax_ros.core.step.backends import make_backend
 from redmax_ros.core.step import body_twist, trajectory
 from redmax_ros.core.step.compile import compile_scene
 from redmax_ros.core.step.deformable_stages import deform_state
-from redmax_ros.core.step.state import Commands, State, StepResult, step_each
+from redmax_ros.core.step.state import BatchResult, Commands, State, StepResult, step_each
 
 
 _AXES = {"x": (1.0, 0.0, 0.0), "y": (0.0, 1.0, 0.0), "z": (0.0, 0.0, 1.0)}
@@ -79,6 +81,34 @@ class SceneDescription:
     deformables: list = field(default_factory=list)  # (name, kind 'string'|'fem', vertices, elements) per deformable
 
 
+def _mapping(what, value) -> dict:
+    """``value`` if it is a mapping name -> value, else CommandError."""
+    if not isinstance(value, dict):
+        raise CommandError(f"{what} must be a mapping of names to values, got {value!r}")
+    return value
+
+
+def _names(what, value) -> list:
+    """``value`` as a list of names (a list, tuple or set of strings), else CommandError."""
+    if not isinstance(value, (list, tuple, set, frozenset)) or not all(isinstance(n, str) for n in value):
+        raise CommandError(f"{what} must be a list of names, got {value!r}")
+    return list(value)
+
+
+def _step_count(n) -> int:
+    """n as a step count (an integer >= 1, given as an int or an integral float), else CommandError."""
+    if isinstance(n, (bool, np.bool_)) or not isinstance(n, (int, float, np.integer, np.floating)) \
+            or not math.isfinite(n) or int(n) != n or not 1 <= n <= MAX_STEPS:
+        raise CommandError(f"step count must be a positive integer (at most {MAX_STEPS}), got {n!r}")
+    return int(n)
+
+
+def _linalg_reason(e) -> str:
+    return (f"linear algebra failed ({e}); the numbers overflowed or are degenerate (a huge position, size, "
+            f"stiffness or time step?)")
+
+
+MAX_STEPS = 2 ** 62  # steps of one call (the kernels count them in int64)
 RECORD_ROWS = 4096  # steps recorded per kernel call by step_results (the record array: rows x ~10^2 floats)
 DEFAULT_BUDGET = StepBudget()  # 50 ms CPU time of the iterative solvers (JIT excluded), QP caps 1000 / 50
 
@@ -87,7 +117,10 @@ class Simulator:
     def __init__(self, spec: SceneSpec, solver: str | None = None, budget: StepBudget | None = DEFAULT_BUDGET):
         self.spec = spec
         self.budget = budget
-        self.mech: Mechanism = compile_scene(spec)
+        try:
+            self.mech: Mechanism = compile_scene(spec)
+        except np.linalg.LinAlgError as e:
+            raise SceneError(spec.source, "scene", f"the model cannot be set up: {_linalg_reason(e)}") from None
         # solver: the scene's 'solver' key (direct | pcg | auto) unless overridden; see docs/solvers.md
         self.backend = make_backend(self.mech, solver or spec.solver)
         self._query = Context(self.mech)  # kinematics for body poses, spring ends, energies between steps
@@ -162,9 +195,40 @@ class Simulator:
         )
         self.last: StepResult | None = None
 
+    def _checked_state(self, state, what="state") -> State:
+        """``state`` with q (nq,) and v (ndof,) as float arrays, or CommandError naming what does not fit this
+        scene (non-finite values are the step's to report)."""
+        if not isinstance(state, State):
+            raise CommandError(f"{what} must be a State, got {type(state).__name__}")
+        m = self.mech
+        arrays = {}
+        for key, ref in (("q", m.q0), ("v", m.v0)):
+            x = getattr(state, key)
+            try:
+                a = np.asarray(x, dtype=float)
+            except (TypeError, ValueError):
+                a = None
+            if a is None or a.shape != ref.shape:
+                shape = None if a is None else a.shape
+                raise CommandError(f"{what}.{key} must be {len(ref)} numbers for scene '{self.scene_name}', got "
+                                   f"{type(x).__name__} of shape {shape}")
+            arrays[key] = a if a is x else a.copy()
+        t = state.t
+        if isinstance(t, bool) or not isinstance(t, (int, float, np.integer, np.floating)) or not math.isfinite(t):
+            raise CommandError(f"{what}.t must be a finite number, got {t!r}")
+        if state.t0 is not None and not (isinstance(state.t0, (int, float, np.floating)) and math.isfinite(state.t0)):
+            raise CommandError(f"{what}.t0 must be None or a finite number, got {state.t0!r}")
+        if isinstance(state.k, bool) or not isinstance(state.k, (int, np.integer)) or not 0 <= state.k <= MAX_STEPS:
+            raise CommandError(f"{what}.k must be a step count >= 0, got {state.k!r}")
+        if arrays["q"] is state.q and arrays["v"] is state.v:
+            return state
+        return dataclasses.replace(state, **arrays)
+
     def set_state(self, state: State) -> None:
-        self.state = state
+        """Make ``state`` the current state; CommandError (nothing changed) if it does not fit the scene."""
+        state = self._checked_state(state)
         self.backend.at_state(state.q, state.t)  # configuration-dependent J_rR at the new configuration
+        self.state = state
 
     def joint_positions(self) -> np.ndarray:
         return self.state.q.copy()
@@ -185,15 +249,25 @@ class Simulator:
         return ek, ep, es
 
     # -- commands
+    @staticmethod
+    def _floats(what, value) -> np.ndarray:
+        """``value`` (a number or a list of numbers) as a 1-d float array, else CommandError naming ``what``."""
+        if isinstance(value, (str, bytes, dict)) or value is None:
+            raise CommandError(f"{what}: expected a number or a list of numbers, got {value!r}")
+        try:
+            return np.atleast_1d(np.asarray(value, dtype=float))
+        except (TypeError, ValueError):
+            raise CommandError(f"{what}: expected a number or a list of numbers, got {value!r}") from None
+
     def _joint_vector(self, name, value, allowed=None, what="joint"):
         m = self.mech
-        if name not in m.joint_index:
+        if not isinstance(name, str) or name not in m.joint_index:
             raise CommandError(f"unknown joint '{name}' (known: {', '.join(m.joint_index)})")
         if allowed is not None and name not in allowed:
             raise CommandError(f"joint '{name}' is not prescribable in scene '{self.scene_name}' "
                                f"(prescribable: {', '.join(allowed)})")
         nv = m.joint_index[name].nv
-        arr = np.atleast_1d(np.asarray(value, dtype=float))
+        arr = self._floats(f"{what} '{name}'", value)
         if arr.shape != (nv,):
             raise CommandError(f"{what} '{name}' needs {nv} value(s), got {arr.size}")
         if not np.all(np.isfinite(arr)):
@@ -202,12 +276,12 @@ class Simulator:
 
     def _site_vector(self, name, value, allowed=None, what="site"):
         m = self.mech
-        if name not in m.site_index:
+        if not isinstance(name, str) or name not in m.site_index:
             raise CommandError(f"unknown site '{name}' (known: {', '.join(m.site_names)})")
         if allowed is not None and name not in allowed:
             raise CommandError(f"site '{name}' is not prescribable in scene '{self.scene_name}' "
                                f"(prescribable: {', '.join(allowed)})")
-        arr = np.asarray(value, dtype=float).reshape(-1)
+        arr = self._floats(f"{what} '{name}'", value).reshape(-1)
         if arr.shape != (3,):
             raise CommandError(f"{what} '{name}' needs 3 values, got {arr.size}")
         if not np.all(np.isfinite(arr)):
@@ -238,7 +312,7 @@ class Simulator:
 
         Either replaces the joint's previous prescription; the required torque is ``StepResult.effort``."""
         vel, traj = {}, {}
-        for n, v in prescriptions.items():
+        for n, v in _mapping("joint prescriptions", prescriptions).items():
             if isinstance(v, dict):
                 traj[n] = self._joint_trajectory(n, v)
             else:
@@ -252,6 +326,7 @@ class Simulator:
         cmd.joint_trajectories.update(traj)
 
     def release_joints(self, names) -> None:
+        names = _names("joints to release", names)
         for n in names:
             if n not in self.mech.joint_index:
                 raise CommandError(f"unknown joint '{n}'")
@@ -266,9 +341,9 @@ class Simulator:
         'z' or unit vectors), e.g. ['x', 'z'] for a planar mechanism moving in the xz plane; sites
         without an entry are prescribed along all three."""
         new = {n: self._site_vector(n, v, self.mech.prescribable_sites, "prescribed velocity of site")
-               for n, v in velocities.items()}
+               for n, v in _mapping("site velocities", velocities).items()}
         new_axes = {}
-        for n, ax in (axes or {}).items():
+        for n, ax in _mapping("site axes", axes or {}).items():
             if n not in new:
                 raise CommandError(f"axes given for site '{n}' without a velocity")
             new_axes[n] = _axes_matrix(n, ax)
@@ -278,6 +353,7 @@ class Simulator:
         self.commands.site_axes.update(new_axes)
 
     def release_sites(self, names) -> None:
+        names = _names("sites to release", names)
         for n in names:
             if n not in self.mech.site_index:
                 raise CommandError(f"unknown site '{n}'")
@@ -302,7 +378,7 @@ class Simulator:
         ``StepResult.body_wrenches[body]`` (6,) [torque N m; force N] in the prescription's frame.
         Pinocchio pipeline only (CommandError on the data-free path)."""
         new = {}
-        for n, d in twists.items():
+        for n, d in _mapping("body twists", twists).items():
             entry = f"body '{n}'"
             try:
                 new[n] = body_twist.parse(n, d, self.mech.bodies,
@@ -316,6 +392,7 @@ class Simulator:
 
     def release_bodies(self, names) -> None:
         """Release body-twist prescriptions (CommandError for unknown bodies; not prescribed: no-op)."""
+        names = _names("bodies to release", names)
         for n in names:
             if n not in self.mech.bodies:
                 raise CommandError(f"unknown body '{n}'")
@@ -332,7 +409,7 @@ class Simulator:
 
     def set_joint_torques(self, torques: dict) -> None:
         """Explicit applied joint torques [N m or N], held until changed."""
-        new = {n: self._joint_vector(n, v, None, "torque of joint") for n, v in torques.items()}
+        new = {n: self._joint_vector(n, v, None, "torque of joint") for n, v in _mapping("joint torques", torques).items()}
         tau = self.commands.joint_torques.copy()
         for n, v in new.items():
             j = self.mech.joint_index[n]
@@ -341,12 +418,13 @@ class Simulator:
 
     def set_site_forces(self, forces: dict) -> None:
         """Explicit world-frame forces [N] at sites, held until changed (empty dict clears)."""
-        new = {n: self._site_vector(n, f, None, "force on site") for n, f in forces.items()}
+        new = {n: self._site_vector(n, f, None, "force on site") for n, f in _mapping("site forces", forces).items()}
         self.commands.site_forces = new
 
     def restore_prescriptions(self, joints=(), sites=(), bodies=()) -> None:
         """Joints and sites back to the scene's own prescription (its ``prescribed:`` entry, as after
         reset), or to passive dynamics where the scene prescribes none. CommandError for unknown names."""
+        joints, sites, bodies = _names("joints", joints), _names("sites", sites), _names("bodies", bodies)
         for n in joints:
             if n not in self.mech.joint_index:
                 raise CommandError(f"unknown joint '{n}'")
@@ -400,8 +478,7 @@ class Simulator:
     def step(self, n: int = 1) -> StepResult:
         """Advance n steps; returns the last StepResult. On StepError the state is that after the last
         successful step (``err.steps_done`` of them); the failing step changed nothing."""
-        if int(n) != n or n < 1:
-            raise CommandError(f"step count must be a positive integer, got {n}")
+        n = _step_count(n)
         res = None
         run = getattr(self.backend, "step_run", None)  # the compiled backend: runs of steps in one call
         done = 0
@@ -414,6 +491,8 @@ class Simulator:
                     self.state, res, k = run(self.state, self.commands, self.dt, int(n) - done, self._budget)
             except StepError as e:
                 raise StepError(f"step at t = {self.state.t:.6g} s failed: {e.reason}", steps_done=done) from None
+            except np.linalg.LinAlgError as e:  # non-finite numbers reaching a factorisation (huge scene values)
+                raise StepError(f"step at t = {self.state.t:.6g} s failed: {_linalg_reason(e)}", steps_done=done) from None
             done += k
             self.last = res
         return res
@@ -424,8 +503,7 @@ class Simulator:
         per step costs no step call of its own (the node publishing joint_states every step). The results are
         those of n single steps (test_step_results.py). On StepError the state is that after the last
         successful step (``err.steps_done`` of them) and ``err.results`` holds their results."""
-        if int(n) != n or n < 1:
-            raise CommandError(f"step count must be a positive integer, got {n}")
+        n = _step_count(n)
         out = []
         run = getattr(self.backend, "step_run", None)
         while len(out) < n:
@@ -437,8 +515,9 @@ class Simulator:
                     self.state, res, _ = run(self.state, self.commands, self.dt, min(int(n) - len(out), RECORD_ROWS),
                                              self._budget, record=True)
                     out.extend(res)
-            except StepError as e:
-                err = StepError(f"step at t = {self.state.t:.6g} s failed: {e.reason}", steps_done=len(out))
+            except (StepError, np.linalg.LinAlgError) as e:
+                reason = e.reason if isinstance(e, StepError) else _linalg_reason(e)
+                err = StepError(f"step at t = {self.state.t:.6g} s failed: {reason}", steps_done=len(out))
                 err.results = out
                 raise err from None
             self.last = out[-1]
@@ -449,12 +528,19 @@ class Simulator:
         and dt; the simulator's own state is untouched. On the compiled path the instances run in parallel in
         one call, each bitwise equal to stepping it alone. Returns a BatchResult (states, steps_done, errors:
         None or the StepError message that stopped an instance, whose state is from before that step)."""
-        if int(n) != n or n < 1:
-            raise CommandError(f"step count must be a positive integer, got {n}")
+        n = _step_count(n)
+        if not isinstance(states, (list, tuple)):
+            raise CommandError(f"states must be a list of State, got {type(states).__name__}")
+        states = [self._checked_state(s, f"states[{i}]") for i, s in enumerate(states)]
+        if not states:
+            return BatchResult([], np.zeros(0, dtype=np.int64), [])
         batch = getattr(self.backend, "step_batch", None)
-        if batch is not None:
-            return batch(list(states), self.commands, self.dt, int(n), self._budget)
-        return step_each(self.backend.step, list(states), self.commands, self.dt, int(n), self._budget)
+        try:
+            if batch is not None:
+                return batch(list(states), self.commands, self.dt, int(n), self._budget)
+            return step_each(self.backend.step, list(states), self.commands, self.dt, int(n), self._budget)
+        except np.linalg.LinAlgError as e:
+            raise StepError(f"batch step failed: {_linalg_reason(e)}") from None
 
     # -- description and geometry for markers
     def describe(self) -> SceneDescription:

@@ -161,7 +161,8 @@ def build(mech, ws, G_loop, J_sites, q, prescribed_joints: dict, prescribed_site
         G_l, g_l, sp = ws.extras.rows(ws)
         G, g, spans = np.vstack([G, G_l]), np.concatenate([g, g_l]), spans + sp
     out = Constraints(G=G, g=g, label_spans=spans, joint_rows=lay.joint_rows, site_rows=lay.site_rows,
-                      loop_rows=lay.loop_rows)
+                      loop_rows=lay.loop_rows,
+                      site_axes={n: axes[n] for n in prescribed_sites if axes.get(n) is not None} if axes else {})
     if len(mech.limited):
         out.C = mech.limit_rows
         ql = q[mech.limited_q]

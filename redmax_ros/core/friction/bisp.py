@@ -331,6 +331,9 @@ def linear_wrenches(mech, fm, work: FrictionWork, kin, ws, Z, h, v0, PX, v_prev_
         x = kin.X[kin.row[s]]
         j = mech.site_jid[s]
         f0, dFs = -lam0[sl] / h, -LamX[sl] / h
+        P = cons.site_axes.get(name)
+        if P is not None:  # rows along the site's k prescribed directions: their world force P^T f
+            f0, dFs = P.T @ f0, P.T @ dFs
         E0[j] += np.concatenate([f0, _cross(x, f0)])
         E[j] += np.concatenate([dFs, _cross(x[:, None], dFs, axis=0)], axis=0)
     if cs is None:

@@ -40,8 +40,8 @@ def shape_inertia(shape: dict, mass: float) -> np.ndarray:
     if t == "capsule":
         # Cylinder of length L plus two hemispheres (standard closed form).
         r, L = shape["radius"], shape["length"]
-        vc, vs = math.pi * r * r * L, 4.0 / 3.0 * math.pi * r ** 3
-        mc, ms = mass * vc / (vc + vs), mass * vs / (vc + vs)
+        fc = L / (L + 4.0 / 3.0 * r)  # cylinder's share of the volume, pi r^2 L / (pi r^2 L + 4/3 pi r^3)
+        mc, ms = mass * fc, mass * (1.0 - fc)
         izz = 0.5 * mc * r * r + 0.4 * ms * r * r
         ixx = mc * (3 * r * r + L * L) / 12.0 + ms * (0.4 * r * r + L * L / 4.0 + 3.0 * L * r / 8.0)
         return np.diag([ixx, ixx, izz])

@@ -24,6 +24,8 @@ derivative Bt_i'(q) there, which the finite-difference tests confirm).
 """
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pinocchio as pin
 
@@ -39,12 +41,15 @@ B_CUM = np.array([B_MATRIX[k:].sum(axis=0) for k in range(4)])
 
 
 def _powers(u):
-    return (np.array([1.0, u, u * u, u ** 3]), np.array([0.0, 1.0, 2 * u, 3 * u * u]),
+    u3 = u ** 3 if abs(u) < 1e100 else u * u * u  # float ** raises OverflowError where * gives inf (a huge q)
+    return (np.array([1.0, u, u * u, u3]), np.array([0.0, 1.0, 2 * u, 3 * u * u]),
             np.array([0.0, 0.0, 2.0, 6 * u]))
 
 
 def _segment(s, n):
     """(first control index, local parameter u) for parameter s on a spline with n control points."""
+    if not math.isfinite(s):  # a non-finite configuration: NaN geometry, which the step's checks name
+        return 0, math.nan
     i = int(np.clip(np.floor(s), 0, n - 4))
     return i, s - i
 
@@ -71,7 +76,7 @@ class SplineCurve:
     def eval(self, s):
         """(Q (SE3), S (6,1), dS/ds (6,1)) at parameter s (Alg. 3)."""
         n = len(self.C)
-        if self.cyclic:
+        if self.cyclic and math.isfinite(s):
             f = np.floor(float(s))
             i, u = int(f) % n, float(s) - f
         else:

@@ -94,6 +94,8 @@ def _mesh(v, entry, shape, base_dir, density=None, mass=None):
         m, c, I, vol = mass_properties(mesh, density=density, mass=mass)
     except MeshError as e:
         v.err(entry, f"mesh {p.name}: {e}")
+    except OverflowError:
+        v.err(entry, f"mesh {p.name}: its coordinates overflow with shape.scale {scale.tolist()} (too large)")
     return m, c, I, {"type": "mesh", "file": str(p), "scale": scale.tolist(), "volume": vol}
 
 
@@ -138,6 +140,7 @@ def validate_body(v, entry, d, base_dir):
         dens = v.number(entry, "density", d["density"], positive=True) if "density" in d else None
         mass = v.number(entry, "mass", d["mass"], positive=True) if "mass" in d else None
         m, c, I, shape = _mesh(v, entry, d["shape"], base_dir, dens, mass)
+    v.finite_mass_properties(entry, m, c, I)
     ev = np.linalg.eigvalsh(I)
     if ev[0] <= 0:
         v.err(entry, f"inertia is not positive definite (eigenvalues {ev.tolist()}); a flat or degenerate body?")

@@ -52,7 +52,7 @@ def hagfish(params: dict) -> dict:
     seg = [Lb * wi / sum(w) for wi in w]  # segment lengths [m], sum = length
     rad = [r0 + (r1 - r0) * x for x in u]
     lim = [float(p["limit_head"]) + (float(p["limit_tail"]) - float(p["limit_head"])) * x for x in u]
-    skip = p["skip"]
+    skip = None if p["skip"] is None else int_param(p, "skip", 1, n)
     if skip is None:  # segments whose capsules overlap in the straight body (centres nearer than 2 r)
         skip = max(1, max(math.ceil(2.0 * r / l) for r, l in zip(rad, seg)) + 1)
     skip = int(skip)

@@ -43,6 +43,7 @@ from __future__ import annotations
 
 import math
 
+from redmax_ros.core.scene.files import MAX_BODIES
 from redmax_ros.core.scene.registry import int_param, register_builder, take
 from redmax_ros.core.scene.spec import numeric
 
@@ -63,7 +64,7 @@ def bridge(params: dict) -> dict:
     variant = p["variant"]
     if variant not in ("rigid", "flexy"):
         raise ValueError(f"'variant' must be 'rigid' or 'flexy', got {variant!r}")
-    scale = int_param(p, "scale", 1)
+    scale = int_param(p, "scale", 1, MAX_BODIES // 40)  # 80 (rigid) or 50 (flexy) bodies per unit
     flexy = variant == "flexy"
     n_deck = int_param(p, "n_deck", 2) if p["n_deck"] is not None else (40 if flexy else 80) * scale
     n_tower = (int_param(p, "n_tower", 1) if p["n_tower"] is not None else 10 * scale) if flexy else 0

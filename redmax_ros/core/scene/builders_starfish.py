@@ -18,6 +18,7 @@ import math
 import numpy as np
 
 from redmax_ros.core.deformable import meshes
+from redmax_ros.core.scene.deformable_schema import MAX_VERTICES
 from redmax_ros.core.scene.registry import int_param, register_builder, take
 
 DEFAULTS = {"radius": 0.25, "core": 0.05, "width": 0.06, "thickness": 0.04, "cell": 0.028, "layers": 1,
@@ -42,7 +43,10 @@ def star_mesh(radius, core, width, thickness, cell, layers, z0=0.0):
                 return True
         return False
 
-    n = int(math.ceil(2 * radius / cell))
+    n = math.ceil(2 * radius / cell)
+    if (n + 1) ** 2 * (int(layers) + 1) > MAX_VERTICES:  # before the grid is allocated
+        raise ValueError(f"radius {radius:g} m / cell {cell:g} m gives a {n} x {n} x {int(layers)} cell grid, above "
+                         f"{MAX_VERTICES} vertices")
     lo = np.array([-radius, -radius, z0 - thickness / 2])
     return meshes.box_tets(lo, np.array([2 * radius, 2 * radius, thickness]), (n, n, int(layers)), keep)
 

@@ -72,7 +72,7 @@ def _axes(v, entry, d, key, n, default):
 def _sub_joint(v, entry, d):
     v.keys(entry, d, {"type", "axis", "axes", "chart", "placement"}, required=("type",))
     t = d["type"]
-    if t not in SUB_TYPES:
+    if not isinstance(t, str) or t not in SUB_TYPES:
         v.err(entry, f"type '{t}' cannot be part of a composite joint (allowed: {', '.join(SUB_TYPES)})")
     nv, nq0 = SUB_TYPES[t]
     axes, extra = np.zeros((0, 3)), {"nv": nv, "nq0": nq0}
@@ -280,7 +280,7 @@ def _joint_dof(v, entry, spec, name, dof):
     if spec.urdf:
         return
     known = {j.name: j for j in spec.joints}
-    if name not in known or known[name].type == "fixed":
+    if not isinstance(name, str) or name not in known or known[name].type == "fixed":
         v.err(entry, f"unknown (or fixed) joint '{name}'")
     j = known[name]
     nv = j.nv
@@ -352,11 +352,11 @@ def _force(v, entry, d, spec, sites, bodies, cat):
             None if rl is None else v.number(entry, "rest_length", rl), implicit))
     elif t == "wrench":
         v.keys(entry, d, {"name", "type", "body", "site", "force", "torque"}, required=("body",))
-        if d["body"] not in bodies or d["body"] == "world":
+        if not isinstance(d["body"], str) or d["body"] not in bodies or d["body"] == "world":
             v.err(entry, f"unknown body '{d['body']}'")
         site = d.get("site")
         if site is not None:
-            if site not in sites:
+            if not isinstance(site, str) or site not in sites:
                 v.err(entry, f"unknown site '{site}'")
             owner = {s.name: s.body for s in spec.sites}[site]
             if owner != d["body"]:
@@ -368,7 +368,7 @@ def _force(v, entry, d, spec, sites, bodies, cat):
         v.keys(entry, d, {"name", "type", "joint", "torque"}, required=("joint", "torque"))
         known = {j.name: j for j in spec.joints}
         jn = d["joint"]
-        if not spec.urdf and (jn not in known or known[jn].type == "fixed"):
+        if not isinstance(jn, str) or not spec.urdf and (jn not in known or known[jn].type == "fixed"):
             v.err(entry, f"unknown (or fixed) joint '{jn}'")
         nv = known[jn].nv if jn in known else 1
         cat.torques.append(TimedTorqueSpec(d["name"], jn, timefunctions.parse_vector(v, entry, "torque", d["torque"], nv)))

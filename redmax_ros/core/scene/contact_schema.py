@@ -18,6 +18,7 @@ import numpy as np
 
 CONTACT_TYPES = ("point", "sphere", "capsule", "box")
 FRICTION_JOINT_TYPES = ("revolute", "prismatic", "spherical", "spherical_exp")
+MAX_POINTS = 1000  # joints[].friction.points: contact points per end circle
 JOINT_SECTIONS = ("cylinder", "box")  # cross-sections of a prismatic joint's bearing
 
 
@@ -104,7 +105,7 @@ def parse(v, raw: dict, spec, bodies: set):
     for entry, d in v.entries(raw, "contacts"):
         v.keys(entry, d, {"name", "body", "type", "pos", "rpy", "radius", "length", "size", "mu"},
                required=("body", "type"))
-        if d["body"] not in bodies or d["body"] == "world":
+        if not isinstance(d["body"], str) or d["body"] not in bodies or d["body"] == "world":
             v.err(entry, f"unknown body '{d['body']}'")
         t = d["type"]
         if t not in CONTACT_TYPES:
@@ -189,8 +190,8 @@ def _joint_friction(v, entry, d, jt) -> JointFrictionSpec:
     v.keys(entry, d, {"mu", "radius", "length", "points", "shape"}, required=("mu", "radius"))
     v.number(entry, "radius", d["radius"], positive=True)
     pts = d.get("points", 8)
-    if isinstance(pts, bool) or not isinstance(pts, int) or pts < 3:
-        v.err(entry, f"'points' must be an integer >= 3, got {pts!r}")
+    if isinstance(pts, bool) or not isinstance(pts, int) or not 3 <= pts <= MAX_POINTS:
+        v.err(entry, f"'points' must be an integer from 3 to {MAX_POINTS}, got {pts!r}")
     length = v.number(entry, "length", d.get("length", 0.0 if ball else 2 * float(d["radius"])),
                       nonneg=True)
     if not ball and length <= 0:

@@ -30,6 +30,8 @@ MAX_SCENE_BYTES = 4 * MiB  # a scene YAML file
 MAX_MESH_BYTES = 64 * MiB  # a file a scene names: OBJ mesh, URDF
 MAX_YAML_NODES = 1_000_000  # nodes of a YAML document (scene file or override value), aliases expanded
 MAX_YAML_DEPTH = 64  # nesting of collections, aliases expanded
+MAX_BODIES = 25_000  # bodies (and joints) of a scene, as written or as a builder makes them; the largest builder count
+MAX_ENTRIES = 200_000  # entries of any other list section of a scene (sites, springs, loops, contacts, ...)
 
 
 class FileProblem(ValueError):

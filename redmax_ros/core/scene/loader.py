@@ -243,7 +243,7 @@ def _apply_override(source, raw, keys, value, create):
 
 def _expand_builder(raw, source):
     name = raw.pop("builder")
-    if name not in BUILDERS:
+    if not isinstance(name, str) or name not in BUILDERS:
         raise SceneError(source, "builder", f"unknown builder '{name}' (known: {', '.join(sorted(BUILDERS))})")
     params = raw.pop("params", {}) or {}
     if not isinstance(params, dict):
@@ -262,6 +262,10 @@ def _expand_builder(raw, source):
             built[key] = {**built[key], **val}
         else:
             built[key] = val
+    n = len(built.get("bodies") or [])
+    if n > files.MAX_BODIES:
+        raise SceneError(source, f"params of builder '{name}'", f"the scene would have {n} bodies, above the limit "
+                                                                f"of {files.MAX_BODIES}")
     built["params"] = params
     return built
 
@@ -349,6 +353,12 @@ class _Validator:
             out.append(float(x))
         return np.array(out)
 
+    def finite_mass_properties(self, entry, mass, com, inertia):
+        """SceneError unless mass, COM and inertia are finite (huge sizes, positions or densities overflow)."""
+        if not (math.isfinite(mass) and np.all(np.isfinite(com)) and np.all(np.isfinite(inertia))):
+            self.err(entry, f"mass properties are not finite (mass {mass:.3g}, largest inertia "
+                            f"{np.max(np.abs(inertia)):.3g}): a size, position or density is too large")
+
     def keys(self, entry, d, allowed, required=()):
         if not isinstance(d, dict):
             self.err(entry, f"must be a mapping, got {d!r}")
@@ -363,6 +373,9 @@ class _Validator:
         val = raw.get(key, []) or []
         if not isinstance(val, list):
             self.err(key, "must be a list")
+        limit = files.MAX_BODIES if key in ("bodies", "joints") else files.MAX_ENTRIES
+        if len(val) > limit:
+            self.err(key, f"has {len(val)} entries, above the limit of {limit}")
         seen = {}
         out = []
         for i, e in enumerate(val):
@@ -489,7 +502,7 @@ class _Validator:
         shape = d.get("shape")
         if shape is not None:
             self.keys(f"{entry} shape", shape, {"type", "size", "radius", "length"}, required=("type",))
-            if shape["type"] not in SHAPES:
+            if not isinstance(shape["type"], str) or shape["type"] not in SHAPES:
                 self.err(entry, f"unknown shape type '{shape['type']}' (known: {', '.join(SHAPES)})")
             shape = dict(shape)
             for k in SHAPES[shape["type"]]:
@@ -531,6 +544,7 @@ class _Validator:
             I = shape_inertia(shape, mass)
         else:
             self.err(entry, "needs 'inertia' or a 'shape' to compute it from")
+        self.finite_mass_properties(entry, mass, com, I)
         ev = np.linalg.eigvalsh(I)
         if ev[0] <= 0:
             self.err(entry, f"inertia is not positive definite (eigenvalues {np.round(ev, 12).tolist()})")
@@ -541,7 +555,7 @@ class _Validator:
         return BodySpec(d["name"], mass, com, I, shape, damping, rgba, dform)
 
     def joint(self, entry, d) -> JointSpec:
-        if d.get("type") in catalogue_schema.TYPES:  # notes §2.5 catalogue joints
+        if isinstance(d.get("type"), str) and d["type"] in catalogue_schema.TYPES:  # notes §2.5 catalogue joints
             return catalogue_schema.validate_joint(self, entry, d, self.base_dir)
         allowed = {"name", "type", "parent", "child", "placement", "body_placement", "axis", "axes", "q0", "v0",
                    "limits", "stiffness", "rest", "damping", "armature", "torque", "friction", "conserve_momentum"}
@@ -557,7 +571,7 @@ class _Validator:
                 self.err(entry, "'conserve_momentum' needs a root joint (parent: world)")
             if d["conserve_momentum"]:
                 extra["conserve_momentum"] = True
-        if jt not in JOINT_TYPES:
+        if not isinstance(jt, str) or jt not in JOINT_TYPES:
             self.err(entry, f"unknown joint type '{jt}' (known: {', '.join(JOINT_TYPES)})")
         nv, nq0 = JOINT_TYPES[jt]
         for k in ("parent", "child"):
@@ -619,6 +633,8 @@ class _Validator:
 
     def tree(self, spec):
         bodies = {b.name for b in spec.bodies}
+        if not bodies:
+            self.err("bodies", "the scene has no bodies (give at least one body and the joint that attaches it)")
         if WORLD in bodies:
             self.err("bodies", "'world' is reserved")
         parent_of = {}
@@ -671,14 +687,14 @@ class _Validator:
 
     def site(self, entry, d, bodies) -> SiteSpec:
         self.keys(entry, d, {"name", "body", "pos"}, required=("body",))
-        if d["body"] not in bodies:
+        if not isinstance(d["body"], str) or d["body"] not in bodies:
             self.err(entry, f"unknown body '{d['body']}'")
         return SiteSpec(d["name"], d["body"], self.vector(entry, "pos", d.get("pos", [0, 0, 0]), 3))
 
     def site_ref(self, entry, key, d, sites):
         if key not in d:
             self.err(entry, f"missing '{key}' (a site name)")
-        if d[key] not in sites:
+        if not isinstance(d[key], str) or d[key] not in sites:
             self.err(entry, f"unknown site '{d[key]}' in '{key}'")
         return d[key]
 
@@ -697,7 +713,7 @@ class _Validator:
 
     def wrench(self, entry, d, bodies) -> WrenchSpec:
         self.keys(entry, d, {"name", "body", "force", "torque"}, required=("body",))
-        if d["body"] not in bodies or d["body"] == WORLD:
+        if not isinstance(d["body"], str) or d["body"] not in bodies or d["body"] == WORLD:
             self.err(entry, f"unknown body '{d['body']}'")
         return WrenchSpec(d["name"], d["body"], self.vector(entry, "force", d.get("force", [0, 0, 0]), 3),
                           self.vector(entry, "torque", d.get("torque", [0, 0, 0]), 3))
@@ -720,6 +736,8 @@ class _Validator:
         if not isinstance(joints, list) or len(joints) < 2:
             self.err(entry, "'joints' must list at least two joints")
         for j in joints:
+            if not isinstance(j, str):
+                self.err(entry, f"'joints' must list joint names, got {j!r}")
             if not spec.urdf and j not in known:
                 self.err(entry, f"unknown joint '{j}'")
             if not spec.urdf and known[j].nv != 1:
@@ -736,6 +754,9 @@ class _Validator:
         p = raw.get("prescribable")
         if p is not None:
             self.keys("prescribable", p, {"joints", "sites"})
+            for k in ("joints", "sites"):
+                if k in p and (not isinstance(p[k], list) or not all(isinstance(x, str) for x in p[k])):
+                    self.err(f"prescribable.{k}", f"must be a list of {k[:-1]} names, got {p[k]!r}")
             if "joints" in p:
                 for j in p["joints"]:
                     if not spec.urdf and j not in joint_names:
@@ -748,6 +769,9 @@ class _Validator:
                 spec.prescribable_sites = list(p["sites"])
         pr = raw.get("prescribed") or {}
         self.keys("prescribed", pr, {"joints", "sites", "bodies"})
+        for k in ("joints", "sites", "bodies"):
+            if not isinstance(pr.get(k) or {}, dict):
+                self.err(f"prescribed.{k}", f"must be a mapping {k[:-1]} name -> prescription, got {pr[k]!r}")
         nv_of = {j.name: j.nv for j in spec.joints}
         for name, val in (pr.get("joints") or {}).items():
             if not spec.urdf and name not in joint_names:

@@ -2,6 +2,8 @@
 helpers builders use to read their parameters."""
 from __future__ import annotations
 
+from redmax_ros.core.scene.files import MAX_BODIES
+
 BUILDERS: dict = {}
 
 
@@ -25,9 +27,12 @@ def take(params: dict, defaults: dict) -> dict:
     return out
 
 
-def int_param(p, key, lo=0):
-    """``p[key]`` as an integer >= lo (ValueError otherwise)."""
+def int_param(p, key, lo=0, hi=MAX_BODIES):
+    """``p[key]`` as an integer in [lo, hi] (ValueError otherwise; ``hi``: a count larger than a scene may be
+    is refused before anything is built)."""
     v = p[key]
     if isinstance(v, bool) or not isinstance(v, int) or v < lo:
         raise ValueError(f"'{key}' must be an integer >= {lo}, got {v!r}")
+    if v > hi:
+        raise ValueError(f"'{key}' = {v} is above the limit of {hi}")
     return v

@@ -88,6 +88,17 @@ def _spline_slopes(t: np.ndarray, y: np.ndarray) -> np.ndarray:
     return m
 
 
+def _sin(a: float) -> float:
+    """sin(a), NaN for an infinite phase (a huge frequency or time overflows it; math.sin would raise), which
+    the step's input checks then name."""
+    return math.sin(a) if math.isfinite(a) else math.nan
+
+
+def _cos(a: float) -> float:
+    """cos(a), NaN for an infinite phase (see _sin)."""
+    return math.cos(a) if math.isfinite(a) else math.nan
+
+
 def _logistic(x: float) -> float:
     if x >= 0.0:
         return 1.0 / (1.0 + math.exp(-x))
@@ -112,7 +123,7 @@ class TimeFunction:
         if k == "constant":
             return p["value"]
         if k == "sine":
-            return p["offset"] + p["amplitude"] * math.sin(2.0 * math.pi * p["frequency"] * t + p["phase"])
+            return p["offset"] + p["amplitude"] * _sin(2.0 * math.pi * p["frequency"] * t + p["phase"])
         if k == "step":
             return p["before"] if t < p["time"] else p["after"]
         if k == "ramp":
@@ -163,7 +174,7 @@ class TimeFunction:
             return 0.0
         if k == "sine":
             w = 2.0 * math.pi * p["frequency"]
-            return p["amplitude"] * w * math.cos(w * t + p["phase"])
+            return p["amplitude"] * w * _cos(w * t + p["phase"])
         if k == "ramp":
             if t < p["start"] or t >= p["end"]:
                 return 0.0
@@ -206,7 +217,7 @@ class TimeFunction:
             p = self.p
             w = 2.0 * math.pi * p["frequency"]
             a = w * t + p["phase"]  # the argument of both (self(t) forms 2 pi f t + phase, the same operations)
-            return p["offset"] + p["amplitude"] * math.sin(a), p["amplitude"] * w * math.cos(a)
+            return p["offset"] + p["amplitude"] * _sin(a), p["amplitude"] * w * _cos(a)
         if self.kind == "constant":  # self(t), self.derivative(t) without their dispatch on the kind
             return self.p["value"], 0.0
         return self(t), self.derivative(t)
@@ -225,7 +236,7 @@ def parse(v, entry: str, key: str, d) -> TimeFunction:
     if not isinstance(d, dict):
         return TimeFunction("constant", {"value": v.number(entry, key, d)})
     kind = d.get("type")
-    if kind not in KEYS:
+    if not isinstance(kind, str) or kind not in KEYS:
         v.err(entry, f"'{key}': unknown time function type {kind!r} (known: {', '.join(KEYS)}, or a number)")
     allowed, required = KEYS[kind]
     v.keys(where, d, allowed | {"type"}, required=tuple(sorted(required)))

@@ -24,6 +24,8 @@ class Constraints:
     label_spans: list  # (label, number of rows) in row order; labels are built only for error messages
     joint_rows: dict = field(default_factory=dict)  # prescribed joint -> slice of rows
     site_rows: dict = field(default_factory=dict)  # prescribed site -> slice of rows
+    site_axes: dict = field(default_factory=dict)  # prescribed site -> (k,3) world directions of its k rows (k < 3 or
+    #                                                given axes; absent: the rows are world x, y, z)
     loop_rows: slice = field(default_factory=lambda: slice(0, 0))
     C: np.ndarray | None = None  # (p,n) unilateral rows
     lo: np.ndarray | None = None

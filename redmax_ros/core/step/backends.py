@@ -65,6 +65,7 @@ class DataFreeBackend:
 
 # The auto rule (docs/solvers.md). Per-step cost models [s], fitted to redmax_bench scaling on the
 # project's 2-core benchmark machine (CPU time, single-threaded BLAS); only their ratio matters.
+DENSE_MAX_NV = 4096  # above: no dense solver (its nv x nv matrices: 134 MB each, ~8 s a step at 4096 DOF)
 AUTO_DIRECT_NV = 48  # at or below: direct without probing (PCG's fixed per-step Python cost dominates)
 AUTO_PROBE_STEPS = 5
 PCG_S_PER_STEP = 1.0e-3  # fixed: numpy/Python work of a step (rows, small solves, stabilization)
@@ -116,6 +117,8 @@ class AutoBackend:
 
     def _choose(self, what, reason):
         self.reason = reason
+        if what == "direct" and self.mech.nv > DENSE_MAX_NV:  # no dense solver at this size: PCG stays
+            what, self.reason = "pcg", f"{reason}; nv = {self.mech.nv} > {DENSE_MAX_NV}, no dense solver"
         if what == "pcg":
             self.choice, self.impl = "pcg", self.pcg
             return
@@ -169,6 +172,11 @@ def make_backend(mech, solver: str, rtol: float = DEFAULT_RTOL, max_iter: int | 
         raise SceneError(mech.spec.source, "solver",
                          f"solver '{solver}' does not support deformables (the coupled sparse solve is on the "
                          "Pinocchio reference pipeline: use direct, reference or auto)")
+    if solver in ("direct", "compiled", "reference") and mech.nv > DENSE_MAX_NV:
+        raise SceneError(mech.spec.source, "solver",
+                         f"solver '{solver}' factors dense {mech.nv} x {mech.nv} matrices "
+                         f"({8 * mech.nv ** 2 / 2 ** 30:.1f} GiB each, O(nv^3) a step); above {DENSE_MAX_NV} DOFs "
+                         "use solver pcg or auto")
     if solver == "compiled":
         return CompiledBackend(mech)
     if solver == "direct":

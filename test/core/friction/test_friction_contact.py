@@ -340,3 +340,19 @@ def test_primitives_drop_and_rest_on_the_floor(contact, rest_z, v0):
     assert zs.min() > rest_z - 1e-3
     assert abs(zs[-1] - rest_z) < 1e-4
     assert np.abs(sim.state.v).max() < 1e-6
+
+
+def test_site_prescribed_along_one_axis_with_joint_friction():
+    """A site prescribed along one world axis in a scene with joint friction (found by fuzzing: the BISP
+    joint-wrench map took the site's one multiplier as a 3-vector and raised IndexError): the site moves at
+    the prescribed speed along that axis (constraint residual), and its required force lies along it."""
+    for axis, e in (("y", 1), ("z", 2)):
+        sim = Simulator.load("friction_chain", solver="reference")
+        sim.prescribe_sites({"tip4": [0.05, 0.05, 0.05]}, axes={"tip4": [axis]})
+        x0 = sim.site_positions()[sim.mech.site_index["tip4"]][e]
+        r = sim.step(20)
+        assert r.diagnostics.solver == "staggered"
+        f = r.site_forces["tip4"]
+        assert abs(f[e]) > 1e-3 and np.abs(np.delete(f, e)).max() == 0.0
+        x1 = sim.site_positions()[sim.mech.site_index["tip4"]][e]
+        assert abs((x1 - x0) - 20 * sim.dt * 0.05) < 1e-3 * 20 * sim.dt * 0.05  # chord vs velocity rows: O(h^2)
