@@ -339,11 +339,12 @@ def rhs(ctx: Context, q, v_r, tau, h, site_forces=None, springs=None) -> np.ndar
     b = M v_r + h (tau - nle - K_r (q - q_rest) + J_s^T f_springs + wrenches + J^T site forces).
     ``springs``: (f_a (P,3), positions of mech.jac_sites) from :func:`spring_terms`."""
     mech, topo, ws = ctx.mech, ctx.topo, ctx.ws
-    acc = rc.bias_acceleration(topo, ws)
+    if ws.v is None:
+        raise ValueError("rhs needs a velocity: call update_kinematics(topo, ws, q, v)")
     W = np.empty((topo.njoints, 6))
-    nle_wrench_kernel(ws.I, ws.ov, acc, ctx.gravity, W)
+    bias_wrench_kernel(topo.parents, topo.idx_v, topo.nv_j, ws.St, ws.ov, ws.v, ws.R, ws.p, ws.c_local, ws.I,
+                       ctx.gravity, h, np.empty((topo.njoints, 6)), W)
     # W_total = I ov - h W_nle + h W_ext, then one J^T pass
-    W *= -h
     W += np.einsum("jab,jb->ja", ws.I, ws.ov)
     ext = np.zeros((topo.njoints, 6))
     if springs is not None and len(mech.spring_ab):
@@ -362,15 +363,42 @@ def rhs(ctx: Context, q, v_r, tau, h, site_forces=None, springs=None) -> np.ndar
         idx = np.array(list(site_forces), dtype=int)
         F = np.array([site_forces[i] for i in idx], dtype=float).reshape(-1, 3)
         rc.accumulate_site_forces(ext, ctx.site_jid[idx], ctx.site_positions(idx), F)
-    ext[0] = 0.0
-    W += h * ext
-    b = rc.jtw(topo, ws, W)
-    b += ctx.armature * v_r
-    f_r = np.array(tau, dtype=float)
     if mech.has_stiffness:
+        f_r = np.array(tau, dtype=float)
         f_r -= mech.stiffness * joint_displacement(mech, q)
-    b += h * f_r
+    else:
+        f_r = np.asarray(tau, dtype=float)
+    b = np.empty(topo.nv)
+    rhs_sum_kernel(topo.parents, topo.idx_v, topo.nv_j, ws.St, W, ext, h, ctx.armature,
+                   np.ascontiguousarray(v_r, dtype=float), f_r, ws.tmp6, b)
     return b
+
+
+@njit
+def bias_wrench_kernel(parents, idx_v, nv_j, St, ov, v, R, p, c_local, I, g, h, acc, W):
+    """W = -h W_nle: the Newton-Euler wrenches of :func:`nle_wrench_kernel` at the bias accelerations
+    acc = Jdot qdot (recursive.bias_kernel, left in acc), scaled as in the RHS of Eq. (2) (:func:`rhs`)."""
+    rc.bias_kernel(parents, idx_v, nv_j, St, ov, v, R, p, c_local, acc)
+    nle_wrench_kernel(I, ov, acc, g, W)
+    for j in range(W.shape[0]):
+        for a in range(6):
+            W[j, a] *= -h
+
+
+@njit
+def rhs_sum_kernel(parents, idx_v, nv_j, St, W, ext, h, armature, v_r, f_r, F, b):
+    """The last sums of :func:`rhs` in its order: W += h ext (ext[0], the world's, cleared), b = J^T W (Alg. 6,
+    F scratch), b += armature v_r, b += h f_r."""
+    for a in range(6):
+        ext[0, a] = 0.0
+    for j in range(W.shape[0]):
+        for a in range(6):
+            W[j, a] += h * ext[j, a]
+    rc.jtw_kernel(parents, idx_v, nv_j, St, W, F, b)
+    for i in range(b.shape[0]):
+        b[i] += armature[i] * v_r[i]
+    for i in range(b.shape[0]):
+        b[i] += h * f_r[i]
 
 
 def dense_lhs(ctx: Context, h: float, blocks: np.ndarray, springs_C: np.ndarray | None,

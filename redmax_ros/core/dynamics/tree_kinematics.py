@@ -124,10 +124,10 @@ class Context:
     def fk(self, q: np.ndarray, v: np.ndarray | None = None) -> rc.Workspace:
         """Forward kinematics (and body twists with ``v``) into the workspace; cached on (q, v)."""
         ws = self.ws
-        if self._fk_key is not None and np.array_equal(ws.q, q):
+        if self._fk_key is not None and same_vector(ws.q, q):
             if v is None:
                 return ws
-            if self._fk_key == "qv" and np.array_equal(ws.v, v):
+            if self._fk_key == "qv" and same_vector(ws.v, v):
                 return ws
         self._fk_key = None
         self._update_kinematics(q, v)
@@ -157,15 +157,7 @@ class Context:
             ws.jR[j], ws.jp[j] = jd.M.rotation, jd.M.translation
             i0, n = topo.idx_v[j], topo.nv_j[j]
             ws.Sl[i0:i0 + n, :] = np.asarray(jd.S).reshape(6, n).T
-        rc.fk_kernel(topo.parents, topo.kind, topo.idx_q, topo.idx_v, topo.nv_j, topo.axis, topo.pitch,
-                      topo.place_R, topo.place_p, q, ws.jR, ws.jp, ws.Sl, ws.R, ws.p, ws.St)
-        rc.world_inertia_kernel(topo.mass, topo.com, topo.inertia_com, ws.R, ws.p, ws.I)
-        if v is None:
-            ws.v = None
-            ws.ov[:] = 0.0
-        else:
-            ws.v = v.copy()
-            rc.jv_kernel(topo.parents, topo.idx_v, topo.nv_j, ws.St, v, ws.ov)
+        rc.kinematics_passes(topo, ws, q, v)
 
     def invalidate(self):
         self._fk_key = None
@@ -249,6 +241,23 @@ class Context:
             phis.append(P @ (X[ka] - X[kb]))
         return np.vstack(Gs), np.concatenate(phis)
 
+
+
+def same_vector(a: np.ndarray, b) -> bool:
+    """np.array_equal(a, b) for the fk cache's 1-D float vector ``a``, the common case (``b`` a 1-D array of the
+    same length) in one compiled call (~0.3 us instead of ~1.7 us)."""
+    if isinstance(b, np.ndarray) and b.shape == a.shape and b.dtype == a.dtype:
+        return _same_values(a, b)
+    return np.array_equal(a, b)
+
+
+@njit
+def _same_values(a, b):
+    """a[i] == b[i] for every i (equal length): np.array_equal's comparison (0.0 == -0.0, NaN != NaN)."""
+    for i in range(a.shape[0]):
+        if a[i] != b[i]:
+            return False
+    return True
 
 
 @njit

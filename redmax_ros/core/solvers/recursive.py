@@ -512,16 +512,35 @@ def update_kinematics(topo: Topology, ws: Workspace, q: np.ndarray, v: np.ndarra
         ws.jR[j], ws.jp[j] = jd.M.rotation, jd.M.translation
         i0, n = topo.idx_v[j], topo.nv_j[j]
         ws.Sl[i0:i0 + n, :] = np.asarray(jd.S).reshape(6, n).T
-    fk_kernel(topo.parents, topo.kind, topo.idx_q, topo.idx_v, topo.nv_j, topo.axis, topo.pitch,
-               topo.place_R, topo.place_p, q, ws.jR, ws.jp, ws.Sl, ws.R, ws.p, ws.St)
-    world_inertia_kernel(topo.mass, topo.com, topo.inertia_com, ws.R, ws.p, ws.I)
-    if v is None:
-        ws.v = None
-        ws.ov[:] = 0.0
-    else:
-        ws.v = v.copy()
-        jv_kernel(topo.parents, topo.idx_v, topo.nv_j, ws.St, v, ws.ov)
+    kinematics_passes(topo, ws, q, v)
     return ws
+
+
+def kinematics_passes(topo: Topology, ws: Workspace, q: np.ndarray, v: np.ndarray | None) -> None:
+    """The compiled part of :func:`update_kinematics` (q, v contiguous; the FALLBACK joints' transforms and
+    subspaces already in ws): forward kinematics, world inertias and, with ``v``, the body twists (ws.v a copy
+    of v), in one call of :func:`kinematics_kernel`."""
+    ws.v = None if v is None else v.copy()
+    kinematics_kernel(topo.parents, topo.kind, topo.idx_q, topo.idx_v, topo.nv_j, topo.axis, topo.pitch,
+                      topo.place_R, topo.place_p, topo.mass, topo.com, topo.inertia_com, q,
+                      _NO_VELOCITY if v is None else v, v is not None, ws.jR, ws.jp, ws.Sl, ws.R, ws.p, ws.St,
+                      ws.I, ws.ov)
+
+
+_NO_VELOCITY = np.zeros(0)
+
+
+@njit
+def kinematics_kernel(parents, kind, idx_q, idx_v, nv_j, axis, pitch, place_R, place_p, mass, com, inertia_com,
+                      q, v, use_v, jR, jp, Sl, R, p, St, I, ov):
+    """:func:`fk_kernel`, :func:`world_inertia_kernel` and the body twists ov = J v (:func:`jv_kernel`; zero
+    without ``use_v``) in one call (Sueda's notes §2.1, Alg. 5)."""
+    fk_kernel(parents, kind, idx_q, idx_v, nv_j, axis, pitch, place_R, place_p, q, jR, jp, Sl, R, p, St)
+    world_inertia_kernel(mass, com, inertia_com, R, p, I)
+    if use_v:
+        jv_kernel(parents, idx_v, nv_j, St, v, ov)
+    else:
+        ov[:, :] = 0.0
 
 
 # --------------------------------------------------------------------------------------------

@@ -85,6 +85,20 @@ def coupling_scale(mech, ws) -> float:
     return s
 
 
+def lhs_system(ws, rws, h: float, springs: PointSprings | None, blocks: np.ndarray | None) -> MatrixFreeSystem:
+    """This step's LHS of Eq. (2) as an O(n + m) operator: the workspace's MatrixFreeSystem (made at its first
+    step, kept in ws.cache) renewed for the kinematics ``rws``, h, the springs and the maximal blocks."""
+    ctx = ws.tree
+    system = ws.cache.get(_SYSTEM_KEY)
+    if system is None:
+        system = ws.cache[_SYSTEM_KEY] = MatrixFreeSystem(ctx.topo, rws, h, ctx.reduced_diag(h), springs, blocks)
+        return system
+    return system.renew(rws, h, ctx.reduced_diag(h), springs, blocks)
+
+
+_SYSTEM_KEY = "matrix-free LHS"  # ws.cache: the data-free step's MatrixFreeSystem
+
+
 def build_rows(mech, ws, cmd, q, h, hyper: bool) -> Constraints:
     """Stage 3 on the recursive kinematics: loop rows and prescribed-site Jacobians from the Context,
     then constraints.build (reduced coordinates for PCG, hyper-reduced for the dense direct solver)."""
@@ -223,7 +237,7 @@ def data_free_velocity(mech, ws, state, cmd, tau, h, solver="pcg", rtol=DEFAULT_
     if not math.isfinite(float(b.sum())):
         raise StepError("non-finite right-hand side of Eq. (2) (state or forces out of range)")
     ps = PointSprings(ctx.spring_ja, ctx.spring_oa, ctx.spring_jb, ctx.spring_ob, K, D) if K is not None else None
-    system = MatrixFreeSystem(ctx.topo, rws, h, ctx.reduced_diag(h), ps, tf.maximal_blocks(ctx, h, springs))
+    system = lhs_system(ws, rws, h, ps, tf.maximal_blocks(ctx, h, springs))
     # 3: constraint rows (reduced coordinates for PCG)
     cons = build_rows(mech, ws, cmd, q_base, h, hyper=solver != "pcg")
     if cons.m:
