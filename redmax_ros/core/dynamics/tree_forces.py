@@ -326,10 +326,9 @@ def maximal_blocks(ctx: Context, h: float, springs=None) -> np.ndarray | None:
         return D
     fs, X = springs
     B = np.zeros((ctx.topo.njoints, 6, 6))
-    rows = mech.spring_rows
-    ex = np.zeros(len(fs), np.int64) if mech.spring_explicit is None else mech.spring_explicit.astype(np.int64)
-    geometric_blocks_kernel(ctx.spring_ja, np.ascontiguousarray(X[rows[:, 0]]), ctx.spring_jb,
-                            np.ascontiguousarray(X[rows[:, 1]]), np.ascontiguousarray(fs), ex, h * h, ctx.ws.I, B)
+    sa = ctx.spring_arrays
+    geometric_blocks_kernel(ctx.spring_ja, np.ascontiguousarray(X[sa.a]), ctx.spring_jb, np.ascontiguousarray(X[sa.b]),
+                            np.ascontiguousarray(fs), sa.explicit, h * h, ctx.ws.I, B)
     clamp_lever_blocks(ctx.ws.I, B)
     return B if D is None else B + D
 
@@ -349,9 +348,9 @@ def rhs(ctx: Context, q, v_r, tau, h, site_forces=None, springs=None) -> np.ndar
     ext = np.zeros((topo.njoints, 6))
     if springs is not None and len(mech.spring_ab):
         fs, X = springs
-        a, b = mech.spring_rows[:, 0], mech.spring_rows[:, 1]
-        rc.accumulate_site_forces(ext, ctx.spring_ja, X[a], fs)
-        rc.accumulate_site_forces(ext, ctx.spring_jb, X[b], -fs)
+        sa = ctx.spring_arrays
+        rc.spring_wrench_kernel(ctx.spring_ja, sa.a, ctx.spring_jb, sa.b, np.ascontiguousarray(X, dtype=float),
+                                np.ascontiguousarray(fs, dtype=float), ext)
     if len(ctx.wrench_jid):
         for j, com, fw in zip(ctx.wrench_jid, ctx.wrench_com, ctx.wrench_fw):
             if j == 0:

@@ -618,17 +618,32 @@ def _site_vel_kernel(Y, joint, pos, out):
 
 
 @njit
+def add_point_force(W, j, x, f0, f1, f2):
+    """W[j] += (f, x x f): a point force f at world point x as a wrench at the world origin."""
+    W[j, 0] += f0
+    W[j, 1] += f1
+    W[j, 2] += f2
+    W[j, 3] += x[1] * f2 - x[2] * f1
+    W[j, 4] += x[2] * f0 - x[0] * f2
+    W[j, 5] += x[0] * f1 - x[1] * f0
+
+
+@njit
 def _site_wrench_kernel(joint, pos, f, W):
-    """W[body] += (f, x x f): a point force f at world point x as a wrench at the world origin."""
+    """W[body] += (f, x x f) per site (:func:`add_point_force`)."""
     for s in range(joint.shape[0]):
-        j = joint[s]
-        x = pos[s]
-        W[j, 0] += f[s, 0]
-        W[j, 1] += f[s, 1]
-        W[j, 2] += f[s, 2]
-        W[j, 3] += x[1] * f[s, 2] - x[2] * f[s, 1]
-        W[j, 4] += x[2] * f[s, 0] - x[0] * f[s, 2]
-        W[j, 5] += x[0] * f[s, 1] - x[1] * f[s, 0]
+        add_point_force(W, joint[s], pos[s], f[s, 0], f[s, 1], f[s, 2])
+
+
+@njit
+def spring_wrench_kernel(ja, a, jb, b, X, f, W):
+    """W += the world-origin wrenches of point springs: f[s] on end a (world point X[a[s]], body ja[s]), then
+    -f[s] on end b (X[b[s]], body jb[s]); :func:`accumulate_site_forces` of the a ends and then of the b ends
+    with -f, in one call without gathering the points."""
+    for s in range(ja.shape[0]):
+        add_point_force(W, ja[s], X[a[s]], f[s, 0], f[s, 1], f[s, 2])
+    for s in range(jb.shape[0]):
+        add_point_force(W, jb[s], X[b[s]], -f[s, 0], -f[s, 1], -f[s, 2])
 
 
 def site_positions(ws: Workspace, joint: np.ndarray, offset: np.ndarray) -> np.ndarray:
