@@ -289,15 +289,28 @@ def joint_displacement(mech, q: np.ndarray) -> np.ndarray:
     return pin.difference(mech.model, mech.q_rest, q)
 
 
-def spring_energy(mech, X, q) -> float:
+def spring_energy(mech, X, q, arrays: SpringArrays | None = None) -> float:
     """E_spring [J]: maximal springs (ends at X, rows of mech.jac_sites) + joint springs at q.
-    Shared by the direct and matrix-free paths."""
+    Shared by the direct and matrix-free paths. ``arrays``: :func:`spring_arrays` of mech, when the caller
+    keeps them (the end differences in one compiled call)."""
     es = 0.0
     if len(mech.spring_ab):
-        d = X[mech.spring_rows[:, 0]] - X[mech.spring_rows[:, 1]]
+        if arrays is None:
+            d = X[mech.spring_rows[:, 0]] - X[mech.spring_rows[:, 1]]
+        else:
+            d = np.empty((len(arrays.a), 3))
+            end_difference_kernel(np.ascontiguousarray(X, dtype=float), arrays.a, arrays.b, d)
         l = np.sqrt(np.einsum("pi,pi->p", d, d))
         es += 0.5 * float(mech.spring_k @ (l - mech.spring_rest) ** 2)
     if mech.has_stiffness:
         dq = joint_displacement(mech, q)
         es += 0.5 * float(mech.stiffness @ (dq * dq))
     return es
+
+
+@njit
+def end_difference_kernel(X, a, b, d):
+    """d[s] = X[a[s]] - X[b[s]] (the spring ends' difference, rows of X)."""
+    for s in range(a.shape[0]):
+        for r in range(3):
+            d[s, r] = X[a[s], r] - X[b[s], r]

@@ -314,12 +314,13 @@ def body_damping_blocks(ctx: Context, h: float) -> np.ndarray | None:
     return B
 
 
-def maximal_blocks(ctx: Context, h: float, springs=None) -> np.ndarray | None:
+def maximal_blocks(ctx: Context, h: float, springs=None, ends: tuple | None = None) -> np.ndarray | None:
     """The maximal 6x6 blocks per joint (world twists) of the LHS: body damping h D_m
     (:func:`body_damping_blocks`) plus, with integrator.spring_stiffness: full, the springs' lever-arm
     stiffness h^2 B (springs.geometric_blocks_kernel, kept above minus half of each body's spatial inertia by
     springs.clamp_lever_blocks) from ``springs`` = (f_a (P,3), positions of mech.jac_sites); None when there is
-    neither. The same terms as forces.assemble."""
+    neither. The same terms as forces.assemble. ``ends``: the springs' end points (X[a], X[b]) (rows of
+    springs.spring_arrays) when the caller has them."""
     D = body_damping_blocks(ctx, h)
     mech = ctx.mech
     if springs is None or not len(mech.spring_ab) or not mech.spring_geometric:
@@ -327,7 +328,8 @@ def maximal_blocks(ctx: Context, h: float, springs=None) -> np.ndarray | None:
     fs, X = springs
     B = np.zeros((ctx.topo.njoints, 6, 6))
     sa = ctx.spring_arrays
-    geometric_blocks_kernel(ctx.spring_ja, np.ascontiguousarray(X[sa.a]), ctx.spring_jb, np.ascontiguousarray(X[sa.b]),
+    pa, pb = (X[sa.a], X[sa.b]) if ends is None else ends
+    geometric_blocks_kernel(ctx.spring_ja, np.ascontiguousarray(pa), ctx.spring_jb, np.ascontiguousarray(pb),
                             np.ascontiguousarray(fs), sa.explicit, h * h, ctx.ws.I, B)
     clamp_lever_blocks(ctx.ws.I, B)
     return B if D is None else B + D

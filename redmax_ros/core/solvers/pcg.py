@@ -241,22 +241,26 @@ class MatrixFreeSystem:
         self._W = np.zeros((nj, 6))
         self._F = np.zeros((nj, 6))
         self._noblocks = np.zeros((1, 6, 6))
+        self._zero_blocks = np.zeros((nj, 6, 6))
         self._zero_diag = np.zeros(nv)
         self._no_springs = PointSprings(np.zeros(0), np.zeros((0, 3)), np.zeros(0), np.zeros((0, 3)),
                                         np.zeros((0, 3, 3)))
         self.renew(ws, h, reduced_diag, springs, body_blocks)
 
     def renew(self, ws: Workspace, h: float, reduced_diag: np.ndarray | None = None,
-              springs: PointSprings | None = None, body_blocks: np.ndarray | None = None) -> "MatrixFreeSystem":
+              springs: PointSprings | None = None, body_blocks: np.ndarray | None = None,
+              ends: tuple | None = None) -> "MatrixFreeSystem":
         """The LHS of another step on the same tree (the constructor's arguments but the topology), keeping the
-        scratch arrays: one system per step workspace serves every step of the data-free pipeline."""
+        scratch arrays: one system per step workspace serves every step of the data-free pipeline. ``ends``:
+        the springs' world end points (pa, pb) at ``ws`` when the caller has them (else :meth:`refresh`
+        computes them)."""
         self.ws, self.h = ws, float(h)
         self.reduced_diag = (self._zero_diag if reduced_diag is None
                              else np.asarray(reduced_diag, dtype=float).reshape(self.topo.nv).copy())
         self.springs = springs if springs is not None else self._no_springs
         self.body_blocks = (None if body_blocks is None
                             else np.ascontiguousarray(body_blocks, dtype=float).reshape(self.topo.njoints, 6, 6))
-        self.refresh()
+        self.refresh(ends)
         return self
 
     @property
@@ -264,12 +268,16 @@ class MatrixFreeSystem:
         """Reduced diagonal: armature + h D_r + h^2 K_r."""
         return self.reduced_diag + (self.topo.armature if self.include_armature else 0.0)
 
-    def refresh(self) -> None:
-        """Recompute the springs' world points and C_s = h D_s + h^2 K_s from ``ws``."""
+    def refresh(self, ends: tuple | None = None) -> None:
+        """Recompute the springs' world points (or take ``ends`` = (pa, pb), (m, 3) contiguous) and
+        C_s = h D_s + h^2 K_s from ``ws``."""
         sp = self.springs
         if sp.m:
-            self.pa = site_positions(self.ws, sp.joint_a, sp.offset_a)
-            self.pb = site_positions(self.ws, sp.joint_b, sp.offset_b)
+            if ends is None:
+                self.pa = site_positions(self.ws, sp.joint_a, sp.offset_a)
+                self.pb = site_positions(self.ws, sp.joint_b, sp.offset_b)
+            else:
+                self.pa, self.pb = ends
             self.C = np.ascontiguousarray(self.h * sp.damping + self.h * self.h * sp.stiffness)
         else:
             self.pa = self.pb = _NO_POINTS
@@ -313,8 +321,9 @@ class MatrixFreeSystem:
     def preconditioner(self, P: ProjectedBlockJacobi | None = None) -> ProjectedBlockJacobi:
         """Factor (Alg. 1 lines 1-8) the Projected Block Jacobi Preconditioner of this system."""
         P = ProjectedBlockJacobi(self.topo) if P is None else P
-        return P.factor(self.ws, self.preconditioner_blocks(), self.reduced_diag,
-                        include_armature=self.include_armature)
+        # without springs and body blocks the maximal term is zero: a kept zero array (factor only reads it)
+        blocks = self._zero_blocks if self.body_blocks is None and not self.springs.m else self.preconditioner_blocks()
+        return P.factor(self.ws, blocks, self.reduced_diag, include_armature=self.include_armature)
 
     def solve(self, b: np.ndarray, x0: np.ndarray | None = None, rtol: float = 1e-6,
               max_iter: int | None = None, P: ProjectedBlockJacobi | None = None) -> PCGResult:

@@ -85,18 +85,34 @@ def coupling_scale(mech, ws) -> float:
     return s
 
 
-def lhs_system(ws, rws, h: float, springs: PointSprings | None, blocks: np.ndarray | None) -> MatrixFreeSystem:
+def lhs_system(ws, rws, h: float, springs: PointSprings | None, blocks: np.ndarray | None,
+               ends: tuple | None = None) -> MatrixFreeSystem:
     """This step's LHS of Eq. (2) as an O(n + m) operator: the workspace's MatrixFreeSystem (made at its first
-    step, kept in ws.cache) renewed for the kinematics ``rws``, h, the springs and the maximal blocks."""
+    step, kept in ws.cache) renewed for the kinematics ``rws``, h, the springs (world end points ``ends``) and
+    the maximal blocks."""
     ctx = ws.tree
     system = ws.cache.get(_SYSTEM_KEY)
     if system is None:
         system = ws.cache[_SYSTEM_KEY] = MatrixFreeSystem(ctx.topo, rws, h, ctx.reduced_diag(h), springs, blocks)
         return system
-    return system.renew(rws, h, ctx.reduced_diag(h), springs, blocks)
+    return system.renew(rws, h, ctx.reduced_diag(h), springs, blocks, ends)
+
+
+def point_springs(ws, K: np.ndarray, D: np.ndarray) -> PointSprings:
+    """The maximal springs of the LHS with this step's stiffness K and damping D ((P, 3, 3) arrays of
+    springs.spring_forces): one PointSprings per workspace (ws.cache; its ends from the Context), whose K
+    and D are replaced each step."""
+    ps = ws.cache.get(_SPRINGS_KEY)
+    if ps is None:
+        ctx = ws.tree
+        ps = ws.cache[_SPRINGS_KEY] = PointSprings(ctx.spring_ja, ctx.spring_oa, ctx.spring_jb, ctx.spring_ob, K, D)
+    else:
+        ps.stiffness, ps.damping = K, D
+    return ps
 
 
 _SYSTEM_KEY = "matrix-free LHS"  # ws.cache: the data-free step's MatrixFreeSystem
+_SPRINGS_KEY = "matrix-free springs"  # ws.cache: its PointSprings
 
 
 def build_rows(mech, ws, cmd, q, h, hyper: bool) -> Constraints:
@@ -245,8 +261,11 @@ def data_free_velocity(mech, ws, state, cmd, tau, h, solver="pcg", rtol=DEFAULT_
             b += h * rc.jtw(ctx.topo, rws, np.einsum("jab,jb->ja", B, rc.jv(ctx.topo, rws, pt.back)))
     if not math.isfinite(float(b.sum())):
         raise StepError("non-finite right-hand side of Eq. (2) (state or forces out of range)")
-    ps = PointSprings(ctx.spring_ja, ctx.spring_oa, ctx.spring_jb, ctx.spring_ob, K, D) if K is not None else None
-    system = lhs_system(ws, rws, h, ps, tf.maximal_blocks(ctx, h, springs))
+    ps = ends = None
+    if K is not None:
+        ps = point_springs(ws, K, D)
+        ends = (X[ctx.spring_arrays.a], X[ctx.spring_arrays.b])  # = the springs' site positions, same kernel
+    system = lhs_system(ws, rws, h, ps, tf.maximal_blocks(ctx, h, springs, ends), ends)
     # 3: constraint rows (reduced coordinates for PCG)
     cons = build_rows(mech, ws, cmd, q_base, h, hyper=solver != "pcg")
     if cons.m:
