@@ -42,7 +42,7 @@ def tree_energies(ctx: Context, q, v_r, extras=None) -> tuple:
     ek, ep = body_energies(ws.R, ws.p, ws.ov, topo.mass, topo.com, topo.inertia_com, ctx.gravity)
     if mech.has_armature:
         ek += 0.5 * float(mech.armature @ (v_r * v_r))
-    es = spring_energy(mech, ctx.jac_positions() if len(mech.spring_ab) else None, q)
+    es = spring_energy(mech, ctx.jac_positions() if len(mech.spring_ab) else None, q, ctx.spring_arrays)
     if extras is not None:  # direction springs (catalogue_hooks.py)
         es += extras.energy(ctx.site_positions())
     return float(ek), float(ep), es

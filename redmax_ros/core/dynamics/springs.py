@@ -2,16 +2,18 @@
 formula for every pipeline (forces.py, tree_forces.py, energy.py, friction/bisp.py)."""
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 import pinocchio as pin
 
 from redmax_ros.core.jit import njit
 
 
-def spring_forces(mech, X: np.ndarray, V: np.ndarray | None = None):
+def spring_forces(mech, X: np.ndarray, V: np.ndarray | None = None, arrays: SpringArrays | None = None):
     """Per spring, from the positions X (rows in mech.spring_rows): force on end a (P,3), 3x3 stiffness
     K (P,3,3), 3x3 damping D (P,3,3), lengths (P,). Shared by every pipeline (the compiled step calls
-    :func:`spring_kernel` itself).
+    :func:`spring_kernel` itself). ``arrays``: :func:`spring_arrays` of mech, when the caller keeps them.
 
     f_a = -k (l - L0) u,  K = k [u u^T + max(0, 1 - L0/l) (I - u u^T)],  D = c u u^T
     (notes §1.9.5 point-to-point force, §1.9.9 spring damper).
@@ -24,19 +26,39 @@ def spring_forces(mech, X: np.ndarray, V: np.ndarray | None = None):
     Eq. (2), and their whole force is evaluated at step k, f_a = -k (l - L0) u - c (u . (v_a - v_b)) u
     with the site velocities V (rows as X; needed only when such a spring has damping).
     """
-    P = len(mech.spring_k)
-    ex = getattr(mech, "spring_explicit", None)  # None: all implicit (also for stand-ins)
-    ex = np.zeros(P, dtype=np.int64) if ex is None else np.asarray(ex, dtype=np.int64)
+    sa = spring_arrays(mech) if arrays is None else arrays
+    P = len(sa.k)
     if V is None:
-        if needs_velocities(mech):
+        if sa.needs_velocities:
             raise ValueError("explicit spring dampers need the site velocities V")
         V = _NO_V
     f, K, D, l = np.empty((P, 3)), np.empty((P, 3, 3)), np.empty((P, 3, 3)), np.empty(P)
-    rows = np.asarray(mech.spring_rows, dtype=np.int64)
-    spring_kernel(np.ascontiguousarray(X, dtype=float), rows[:, 0].copy(), rows[:, 1].copy(),
-                  np.asarray(mech.spring_k, float), np.asarray(mech.spring_d, float), np.asarray(mech.spring_rest, float),
-                  ex, np.ascontiguousarray(V, dtype=float), f, K, D, l)
+    spring_kernel(np.ascontiguousarray(X, dtype=float), sa.a, sa.b, sa.k, sa.d, sa.rest, sa.explicit,
+                  np.ascontiguousarray(V, dtype=float), f, K, D, l)
     return f, K, D, l
+
+
+@dataclass(frozen=True, eq=False)
+class SpringArrays:
+    """The per-spring constants of :func:`spring_kernel` for a Mechanism (made once by :func:`spring_arrays`)."""
+    a: np.ndarray  # (P,) int64 rows of end a in mech.jac_sites (contiguous)
+    b: np.ndarray  # (P,) int64 rows of end b
+    k: np.ndarray  # (P,) stiffness [N/m]
+    d: np.ndarray  # (P,) damping [N s/m]
+    rest: np.ndarray  # (P,) rest length [m]
+    explicit: np.ndarray  # (P,) int64, 1 for implicit: false
+    needs_velocities: bool  # :func:`needs_velocities`
+
+
+def spring_arrays(mech) -> SpringArrays:
+    """:class:`SpringArrays` of mech's maximal springs."""
+    P = len(mech.spring_k)
+    ex = getattr(mech, "spring_explicit", None)  # None: all implicit (also for stand-ins)
+    ex = np.zeros(P, dtype=np.int64) if ex is None else np.asarray(ex, dtype=np.int64)
+    rows = np.asarray(mech.spring_rows, dtype=np.int64).reshape(P, 2)
+    return SpringArrays(rows[:, 0].copy(), rows[:, 1].copy(), np.asarray(mech.spring_k, float),
+                        np.asarray(mech.spring_d, float), np.asarray(mech.spring_rest, float), ex,
+                        needs_velocities(mech))
 
 
 _NO_V = np.zeros((0, 3))
@@ -267,15 +289,28 @@ def joint_displacement(mech, q: np.ndarray) -> np.ndarray:
     return pin.difference(mech.model, mech.q_rest, q)
 
 
-def spring_energy(mech, X, q) -> float:
+def spring_energy(mech, X, q, arrays: SpringArrays | None = None) -> float:
     """E_spring [J]: maximal springs (ends at X, rows of mech.jac_sites) + joint springs at q.
-    Shared by the direct and matrix-free paths."""
+    Shared by the direct and matrix-free paths. ``arrays``: :func:`spring_arrays` of mech, when the caller
+    keeps them (the end differences in one compiled call)."""
     es = 0.0
     if len(mech.spring_ab):
-        d = X[mech.spring_rows[:, 0]] - X[mech.spring_rows[:, 1]]
+        if arrays is None:
+            d = X[mech.spring_rows[:, 0]] - X[mech.spring_rows[:, 1]]
+        else:
+            d = np.empty((len(arrays.a), 3))
+            end_difference_kernel(np.ascontiguousarray(X, dtype=float), arrays.a, arrays.b, d)
         l = np.sqrt(np.einsum("pi,pi->p", d, d))
         es += 0.5 * float(mech.spring_k @ (l - mech.spring_rest) ** 2)
     if mech.has_stiffness:
         dq = joint_displacement(mech, q)
         es += 0.5 * float(mech.stiffness @ (dq * dq))
     return es
+
+
+@njit
+def end_difference_kernel(X, a, b, d):
+    """d[s] = X[a[s]] - X[b[s]] (the spring ends' difference, rows of X)."""
+    for s in range(a.shape[0]):
+        for r in range(3):
+            d[s, r] = X[a[s], r] - X[b[s], r]

@@ -314,22 +314,23 @@ def body_damping_blocks(ctx: Context, h: float) -> np.ndarray | None:
     return B
 
 
-def maximal_blocks(ctx: Context, h: float, springs=None) -> np.ndarray | None:
+def maximal_blocks(ctx: Context, h: float, springs=None, ends: tuple | None = None) -> np.ndarray | None:
     """The maximal 6x6 blocks per joint (world twists) of the LHS: body damping h D_m
     (:func:`body_damping_blocks`) plus, with integrator.spring_stiffness: full, the springs' lever-arm
     stiffness h^2 B (springs.geometric_blocks_kernel, kept above minus half of each body's spatial inertia by
     springs.clamp_lever_blocks) from ``springs`` = (f_a (P,3), positions of mech.jac_sites); None when there is
-    neither. The same terms as forces.assemble."""
+    neither. The same terms as forces.assemble. ``ends``: the springs' end points (X[a], X[b]) (rows of
+    springs.spring_arrays) when the caller has them."""
     D = body_damping_blocks(ctx, h)
     mech = ctx.mech
     if springs is None or not len(mech.spring_ab) or not mech.spring_geometric:
         return D
     fs, X = springs
     B = np.zeros((ctx.topo.njoints, 6, 6))
-    rows = mech.spring_rows
-    ex = np.zeros(len(fs), np.int64) if mech.spring_explicit is None else mech.spring_explicit.astype(np.int64)
-    geometric_blocks_kernel(ctx.spring_ja, np.ascontiguousarray(X[rows[:, 0]]), ctx.spring_jb,
-                            np.ascontiguousarray(X[rows[:, 1]]), np.ascontiguousarray(fs), ex, h * h, ctx.ws.I, B)
+    sa = ctx.spring_arrays
+    pa, pb = (X[sa.a], X[sa.b]) if ends is None else ends
+    geometric_blocks_kernel(ctx.spring_ja, np.ascontiguousarray(pa), ctx.spring_jb, np.ascontiguousarray(pb),
+                            np.ascontiguousarray(fs), sa.explicit, h * h, ctx.ws.I, B)
     clamp_lever_blocks(ctx.ws.I, B)
     return B if D is None else B + D
 
@@ -339,18 +340,19 @@ def rhs(ctx: Context, q, v_r, tau, h, site_forces=None, springs=None) -> np.ndar
     b = M v_r + h (tau - nle - K_r (q - q_rest) + J_s^T f_springs + wrenches + J^T site forces).
     ``springs``: (f_a (P,3), positions of mech.jac_sites) from :func:`spring_terms`."""
     mech, topo, ws = ctx.mech, ctx.topo, ctx.ws
-    acc = rc.bias_acceleration(topo, ws)
+    if ws.v is None:
+        raise ValueError("rhs needs a velocity: call update_kinematics(topo, ws, q, v)")
     W = np.empty((topo.njoints, 6))
-    nle_wrench_kernel(ws.I, ws.ov, acc, ctx.gravity, W)
+    bias_wrench_kernel(topo.parents, topo.idx_v, topo.nv_j, ws.St, ws.ov, ws.v, ws.R, ws.p, ws.c_local, ws.I,
+                       ctx.gravity, h, np.empty((topo.njoints, 6)), W)
     # W_total = I ov - h W_nle + h W_ext, then one J^T pass
-    W *= -h
     W += np.einsum("jab,jb->ja", ws.I, ws.ov)
     ext = np.zeros((topo.njoints, 6))
     if springs is not None and len(mech.spring_ab):
         fs, X = springs
-        a, b = mech.spring_rows[:, 0], mech.spring_rows[:, 1]
-        rc.accumulate_site_forces(ext, ctx.spring_ja, X[a], fs)
-        rc.accumulate_site_forces(ext, ctx.spring_jb, X[b], -fs)
+        sa = ctx.spring_arrays
+        rc.spring_wrench_kernel(ctx.spring_ja, sa.a, ctx.spring_jb, sa.b, np.ascontiguousarray(X, dtype=float),
+                                np.ascontiguousarray(fs, dtype=float), ext)
     if len(ctx.wrench_jid):
         for j, com, fw in zip(ctx.wrench_jid, ctx.wrench_com, ctx.wrench_fw):
             if j == 0:
@@ -362,15 +364,42 @@ def rhs(ctx: Context, q, v_r, tau, h, site_forces=None, springs=None) -> np.ndar
         idx = np.array(list(site_forces), dtype=int)
         F = np.array([site_forces[i] for i in idx], dtype=float).reshape(-1, 3)
         rc.accumulate_site_forces(ext, ctx.site_jid[idx], ctx.site_positions(idx), F)
-    ext[0] = 0.0
-    W += h * ext
-    b = rc.jtw(topo, ws, W)
-    b += ctx.armature * v_r
-    f_r = np.array(tau, dtype=float)
     if mech.has_stiffness:
+        f_r = np.array(tau, dtype=float)
         f_r -= mech.stiffness * joint_displacement(mech, q)
-    b += h * f_r
+    else:
+        f_r = np.asarray(tau, dtype=float)
+    b = np.empty(topo.nv)
+    rhs_sum_kernel(topo.parents, topo.idx_v, topo.nv_j, ws.St, W, ext, h, ctx.armature,
+                   np.ascontiguousarray(v_r, dtype=float), f_r, ws.tmp6, b)
     return b
+
+
+@njit
+def bias_wrench_kernel(parents, idx_v, nv_j, St, ov, v, R, p, c_local, I, g, h, acc, W):
+    """W = -h W_nle: the Newton-Euler wrenches of :func:`nle_wrench_kernel` at the bias accelerations
+    acc = Jdot qdot (recursive.bias_kernel, left in acc), scaled as in the RHS of Eq. (2) (:func:`rhs`)."""
+    rc.bias_kernel(parents, idx_v, nv_j, St, ov, v, R, p, c_local, acc)
+    nle_wrench_kernel(I, ov, acc, g, W)
+    for j in range(W.shape[0]):
+        for a in range(6):
+            W[j, a] *= -h
+
+
+@njit
+def rhs_sum_kernel(parents, idx_v, nv_j, St, W, ext, h, armature, v_r, f_r, F, b):
+    """The last sums of :func:`rhs` in its order: W += h ext (ext[0], the world's, cleared), b = J^T W (Alg. 6,
+    F scratch), b += armature v_r, b += h f_r."""
+    for a in range(6):
+        ext[0, a] = 0.0
+    for j in range(W.shape[0]):
+        for a in range(6):
+            W[j, a] += h * ext[j, a]
+    rc.jtw_kernel(parents, idx_v, nv_j, St, W, F, b)
+    for i in range(b.shape[0]):
+        b[i] += armature[i] * v_r[i]
+    for i in range(b.shape[0]):
+        b[i] += h * f_r[i]
 
 
 def dense_lhs(ctx: Context, h: float, blocks: np.ndarray, springs_C: np.ndarray | None,

@@ -7,7 +7,8 @@ and one backward pass plus O(m) spring work) and the Projected Block Jacobi Prec
 inside one compiled call. A column stops when ||r_c|| <= rtol ||b_c|| or when p^T A p <= 0 (A not
 positive definite on p). :func:`lockstep_start` computes the initial residuals, preconditioned residuals
 and search directions; :func:`lockstep_iterate` runs iterations it_from .. it_to - 1 and can be resumed
-(the step budget checks its deadline between calls, solvers/lockstep_pcg.block_pcg). Memory: O(k n). Dot
+(the step budget checks its deadline between calls, solvers/lockstep_pcg.block_pcg); :func:`lockstep_solve`
+is the two in one call (the start and the iterations before the first check). Memory: O(k n). Dot
 products are linalg.dot's four interleaved sums. :func:`spd_solve_kernel` is the small dense solve
 (H Z) lambda = H u - g of Eq. (4).
 
@@ -106,6 +107,29 @@ def lockstep_iterate(parents, idx_v, nv_j, St, I, blocks, use_blocks, ja, pa, jb
         if n_active == 0:
             break
     return n_active
+
+
+@njit
+def lockstep_solve(parents, idx_v, nv_j, St, I, blocks, use_blocks, ja, pa, jb, pb, C, diag,
+                   PSt, Ut, psi, psi_off, Y, W, F, beta, u, acc,
+                   B, X, warm, rtol, R, Zr, Pd, AP, bn, tol, rn, rz, active, conv, its, it_to):
+    """:func:`lockstep_start`, then iterations 0 .. it_to - 1 (:func:`lockstep_iterate`) in the same call.
+    Returns the number of columns still active."""
+    lockstep_start(parents, idx_v, nv_j, St, I, blocks, use_blocks, ja, pa, jb, pb, C, diag,
+                   PSt, Ut, psi, psi_off, Y, W, F, beta, u, acc,
+                   B, X, warm, rtol, R, Zr, Pd, AP, bn, tol, rn, rz, active, conv, its)
+    return lockstep_iterate(parents, idx_v, nv_j, St, I, blocks, use_blocks, ja, pa, jb, pb, C, diag,
+                            PSt, Ut, psi, psi_off, Y, W, F, beta, u, acc,
+                            X, R, Zr, Pd, AP, tol, rn, rz, active, conv, its, 0, it_to)
+
+
+@njit
+def relative_residuals(bn, rn):
+    """||r_c|| / ||b_c|| per column (0 where b_c = 0)."""
+    out = np.empty(bn.shape[0])
+    for c in range(bn.shape[0]):
+        out[c] = rn[c] / bn[c] if bn[c] > 0 else 0.0
+    return out
 
 
 @njit

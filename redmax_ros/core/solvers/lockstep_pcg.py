@@ -16,7 +16,7 @@ from __future__ import annotations
 import numpy as np
 
 from redmax_ros.core.solvers.direct import check_rank
-from redmax_ros.core.solvers.lockstep_kernel import lockstep_iterate, lockstep_start, spd_solve_kernel
+from redmax_ros.core.solvers.lockstep_kernel import lockstep_iterate, lockstep_solve, relative_residuals, spd_solve_kernel
 from redmax_ros.core.solvers.pcg import MatrixFreeSystem
 from redmax_ros.core.solvers.preconditioner import ProjectedBlockJacobi
 
@@ -60,20 +60,14 @@ def block_pcg(ops: Ops, B: np.ndarray, X0: np.ndarray | None, rtol: float, max_i
     k, n = B.shape
     X = np.zeros((k, n)) if X0 is None else np.array(X0, dtype=float)
     R, Zr, Pd, AP, bn, tol, rn, rz, active, conv, its = ops.work(k, n)
-    left = lockstep_start(*ops.args, B, X, X0 is not None, float(rtol), R, Zr, Pd, AP, bn, tol, rn, rz, active,
-                          conv, its)
-    it = 0
+    it = max_iter if deadline is None else min(1, max_iter)  # the iterations before the first check
+    left = lockstep_solve(*ops.args, B, X, X0 is not None, float(rtol), R, Zr, Pd, AP, bn, tol, rn, rz, active,
+                          conv, its, it)
     while left and it < max_iter:
-        if deadline is None:
-            stop = max_iter
-        else:
-            if it:
-                deadline.check(PCG_NAME, it)
-            stop = it + 1
-        left = lockstep_iterate(*ops.args, X, R, Zr, Pd, AP, tol, rn, rz, active, conv, its, it, stop)
-        it = stop
-    rel = np.where(bn > 0, rn / np.where(bn > 0, bn, 1.0), 0.0)
-    return X, its.copy(), conv.copy(), rel
+        deadline.check(PCG_NAME, it)
+        left = lockstep_iterate(*ops.args, X, R, Zr, Pd, AP, tol, rn, rz, active, conv, its, it, it + 1)
+        it += 1
+    return X, its.copy(), conv.copy(), relative_residuals(bn, rn)
 
 
 def default_max_iter(nv: int) -> int:

@@ -218,6 +218,10 @@ def spring_blocks_kernel(ja, pa, jb, pb, C, blocks):
             blocks[0, a, b] = 0.0
 
 
+_NO_POINTS = np.zeros((0, 3))  # pa, pb and C of a system without springs
+_NO_MATRICES = np.zeros((0, 3, 3))
+
+
 class MatrixFreeSystem:
     """The LHS matrix A of Eq. (2) (module docstring) as an O(n + m) operator, for the
     configuration held in ``ws`` (call :meth:`refresh` after each ``update_kinematics``).
@@ -230,32 +234,54 @@ class MatrixFreeSystem:
     def __init__(self, topo: Topology, ws: Workspace, h: float, reduced_diag: np.ndarray | None = None,
                  springs: PointSprings | None = None, body_blocks: np.ndarray | None = None,
                  include_armature: bool = True):
-        self.topo, self.ws, self.h = topo, ws, float(h)
-        nv, nj = topo.nv, topo.njoints
-        self.reduced_diag = (np.zeros(nv) if reduced_diag is None
-                             else np.asarray(reduced_diag, dtype=float).reshape(nv).copy())
+        self.topo = topo
         self.include_armature = include_armature
-        self.springs = springs if springs is not None else PointSprings(
-            np.zeros(0), np.zeros((0, 3)), np.zeros(0), np.zeros((0, 3)), np.zeros((0, 3, 3)))
-        self.body_blocks = (None if body_blocks is None
-                            else np.ascontiguousarray(body_blocks, dtype=float).reshape(nj, 6, 6))
+        nv, nj = topo.nv, topo.njoints
         self._Y = np.zeros((nj, 6))
         self._W = np.zeros((nj, 6))
         self._F = np.zeros((nj, 6))
         self._noblocks = np.zeros((1, 6, 6))
-        self.refresh()
+        self._zero_blocks = np.zeros((nj, 6, 6))
+        self._zero_diag = np.zeros(nv)
+        self._no_springs = PointSprings(np.zeros(0), np.zeros((0, 3)), np.zeros(0), np.zeros((0, 3)),
+                                        np.zeros((0, 3, 3)))
+        self.renew(ws, h, reduced_diag, springs, body_blocks)
+
+    def renew(self, ws: Workspace, h: float, reduced_diag: np.ndarray | None = None,
+              springs: PointSprings | None = None, body_blocks: np.ndarray | None = None,
+              ends: tuple | None = None) -> "MatrixFreeSystem":
+        """The LHS of another step on the same tree (the constructor's arguments but the topology), keeping the
+        scratch arrays: one system per step workspace serves every step of the data-free pipeline. ``ends``:
+        the springs' world end points (pa, pb) at ``ws`` when the caller has them (else :meth:`refresh`
+        computes them)."""
+        self.ws, self.h = ws, float(h)
+        self.reduced_diag = (self._zero_diag if reduced_diag is None
+                             else np.asarray(reduced_diag, dtype=float).reshape(self.topo.nv).copy())
+        self.springs = springs if springs is not None else self._no_springs
+        self.body_blocks = (None if body_blocks is None
+                            else np.ascontiguousarray(body_blocks, dtype=float).reshape(self.topo.njoints, 6, 6))
+        self.refresh(ends)
+        return self
 
     @property
     def diag(self) -> np.ndarray:
         """Reduced diagonal: armature + h D_r + h^2 K_r."""
         return self.reduced_diag + (self.topo.armature if self.include_armature else 0.0)
 
-    def refresh(self) -> None:
-        """Recompute the springs' world points and C_s = h D_s + h^2 K_s from ``ws``."""
+    def refresh(self, ends: tuple | None = None) -> None:
+        """Recompute the springs' world points (or take ``ends`` = (pa, pb), (m, 3) contiguous) and
+        C_s = h D_s + h^2 K_s from ``ws``."""
         sp = self.springs
-        self.pa = site_positions(self.ws, sp.joint_a, sp.offset_a)
-        self.pb = site_positions(self.ws, sp.joint_b, sp.offset_b)
-        self.C = np.ascontiguousarray(self.h * sp.damping + self.h * self.h * sp.stiffness)
+        if sp.m:
+            if ends is None:
+                self.pa = site_positions(self.ws, sp.joint_a, sp.offset_a)
+                self.pb = site_positions(self.ws, sp.joint_b, sp.offset_b)
+            else:
+                self.pa, self.pb = ends
+            self.C = np.ascontiguousarray(self.h * sp.damping + self.h * self.h * sp.stiffness)
+        else:
+            self.pa = self.pb = _NO_POINTS
+            self.C = _NO_MATRICES
         self._diag = np.ascontiguousarray(self.diag)
 
     def apply(self, x: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
@@ -295,8 +321,9 @@ class MatrixFreeSystem:
     def preconditioner(self, P: ProjectedBlockJacobi | None = None) -> ProjectedBlockJacobi:
         """Factor (Alg. 1 lines 1-8) the Projected Block Jacobi Preconditioner of this system."""
         P = ProjectedBlockJacobi(self.topo) if P is None else P
-        return P.factor(self.ws, self.preconditioner_blocks(), self.reduced_diag,
-                        include_armature=self.include_armature)
+        # without springs and body blocks the maximal term is zero: a kept zero array (factor only reads it)
+        blocks = self._zero_blocks if self.body_blocks is None and not self.springs.m else self.preconditioner_blocks()
+        return P.factor(self.ws, blocks, self.reduced_diag, include_armature=self.include_armature)
 
     def solve(self, b: np.ndarray, x0: np.ndarray | None = None, rtol: float = 1e-6,
               max_iter: int | None = None, P: ProjectedBlockJacobi | None = None) -> PCGResult:

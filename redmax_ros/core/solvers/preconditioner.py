@@ -124,6 +124,25 @@ def factor_kernel(parents, idx_v, nv_j, St, I, blocks, use_blocks, dr, Mhat, Ut,
 
 
 @njit
+def factor_at_kernel(parents, idx_v, nv_j, St_now, St, I, blocks, use_blocks, armature, use_armature, rd, dr, Mhat,
+                     Ut, psi, psi_off):
+    """:func:`factor_kernel` for the configuration whose world subspaces are St_now (copied to St, kept for
+    apply), with the reduced term dr = armature (with ``use_armature``) + rd (an empty rd: none) of lines 4/6."""
+    St[:, :] = St_now
+    for i in range(dr.shape[0]):
+        d = 0.0
+        if use_armature:
+            d += armature[i]
+        if rd.shape[0]:
+            d += rd[i]
+        dr[i] = d
+    return factor_kernel(parents, idx_v, nv_j, St, I, blocks, use_blocks, dr, Mhat, Ut, psi, psi_off)
+
+
+_NO_DIAG = np.zeros(0)
+
+
+@njit
 def apply_kernel(parents, idx_v, nv_j, St, Ut, psi, psi_off, x, y, beta, u, acc):
     """Alg. 1 lines 10-18 (world frame), Psi_j compact as :func:`factor_kernel` stores it. beta, acc:
     (njoints, 6) scratch; u: (nv,) scratch holding x_j - S_j^T Bhat_j between the two passes."""
@@ -199,6 +218,7 @@ class ProjectedBlockJacobi:
         self.beta = np.zeros((nj, 6))
         self.acc = np.zeros((nj, 6))
         self.u = np.zeros(nv)
+        self._dr = np.zeros(nv)  # the reduced term A^r of line 4 (armature + h D_r + h^2 K_r)
         self._noblocks = np.zeros((1, 6, 6))
         self.factored = False
 
@@ -207,19 +227,15 @@ class ProjectedBlockJacobi:
         """Alg. 1 lines 1-8 for the configuration in ``ws`` (see the module docstring for the
         inputs). Raises ValueError if a joint's S^T Mhat S + A^r (line 6) is not positive definite."""
         topo = self.topo
-        dr = np.zeros(topo.nv)
-        if include_armature:
-            dr += topo.armature
-        if reduced_diag is not None:
-            dr += np.asarray(reduced_diag, dtype=float).reshape(topo.nv)
+        rd = _NO_DIAG if reduced_diag is None else np.asarray(reduced_diag, dtype=float).reshape(topo.nv)
         if body_blocks is None:
             blocks, use = self._noblocks, False
         else:
             blocks = np.ascontiguousarray(body_blocks, dtype=float).reshape(topo.njoints, 6, 6)
             use = True
-        self.St[:] = ws.St  # keep the world subspaces of the factored configuration
-        bad = factor_kernel(topo.parents, topo.idx_v, topo.nv_j, self.St, ws.I, blocks, use, dr,
-                            self._Mhat, self.Ut, self.psi, self.psi_off)
+        bad = factor_at_kernel(topo.parents, topo.idx_v, topo.nv_j, ws.St, self.St, ws.I, blocks, use,
+                               topo.armature, include_armature, rd, self._dr, self._Mhat, self.Ut, self.psi,
+                               self.psi_off)
         if bad:
             self.factored = False
             raise ValueError(f"Alg. 1 line 6: S^T Mhat S + A^r is not positive definite at joint {bad}")

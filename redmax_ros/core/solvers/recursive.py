@@ -512,16 +512,35 @@ def update_kinematics(topo: Topology, ws: Workspace, q: np.ndarray, v: np.ndarra
         ws.jR[j], ws.jp[j] = jd.M.rotation, jd.M.translation
         i0, n = topo.idx_v[j], topo.nv_j[j]
         ws.Sl[i0:i0 + n, :] = np.asarray(jd.S).reshape(6, n).T
-    fk_kernel(topo.parents, topo.kind, topo.idx_q, topo.idx_v, topo.nv_j, topo.axis, topo.pitch,
-               topo.place_R, topo.place_p, q, ws.jR, ws.jp, ws.Sl, ws.R, ws.p, ws.St)
-    world_inertia_kernel(topo.mass, topo.com, topo.inertia_com, ws.R, ws.p, ws.I)
-    if v is None:
-        ws.v = None
-        ws.ov[:] = 0.0
-    else:
-        ws.v = v.copy()
-        jv_kernel(topo.parents, topo.idx_v, topo.nv_j, ws.St, v, ws.ov)
+    kinematics_passes(topo, ws, q, v)
     return ws
+
+
+def kinematics_passes(topo: Topology, ws: Workspace, q: np.ndarray, v: np.ndarray | None) -> None:
+    """The compiled part of :func:`update_kinematics` (q, v contiguous; the FALLBACK joints' transforms and
+    subspaces already in ws): forward kinematics, world inertias and, with ``v``, the body twists (ws.v a copy
+    of v), in one call of :func:`kinematics_kernel`."""
+    ws.v = None if v is None else v.copy()
+    kinematics_kernel(topo.parents, topo.kind, topo.idx_q, topo.idx_v, topo.nv_j, topo.axis, topo.pitch,
+                      topo.place_R, topo.place_p, topo.mass, topo.com, topo.inertia_com, q,
+                      _NO_VELOCITY if v is None else v, v is not None, ws.jR, ws.jp, ws.Sl, ws.R, ws.p, ws.St,
+                      ws.I, ws.ov)
+
+
+_NO_VELOCITY = np.zeros(0)
+
+
+@njit
+def kinematics_kernel(parents, kind, idx_q, idx_v, nv_j, axis, pitch, place_R, place_p, mass, com, inertia_com,
+                      q, v, use_v, jR, jp, Sl, R, p, St, I, ov):
+    """:func:`fk_kernel`, :func:`world_inertia_kernel` and the body twists ov = J v (:func:`jv_kernel`; zero
+    without ``use_v``) in one call (Sueda's notes §2.1, Alg. 5)."""
+    fk_kernel(parents, kind, idx_q, idx_v, nv_j, axis, pitch, place_R, place_p, q, jR, jp, Sl, R, p, St)
+    world_inertia_kernel(mass, com, inertia_com, R, p, I)
+    if use_v:
+        jv_kernel(parents, idx_v, nv_j, St, v, ov)
+    else:
+        ov[:, :] = 0.0
 
 
 # --------------------------------------------------------------------------------------------
@@ -599,17 +618,32 @@ def _site_vel_kernel(Y, joint, pos, out):
 
 
 @njit
+def add_point_force(W, j, x, f0, f1, f2):
+    """W[j] += (f, x x f): a point force f at world point x as a wrench at the world origin."""
+    W[j, 0] += f0
+    W[j, 1] += f1
+    W[j, 2] += f2
+    W[j, 3] += x[1] * f2 - x[2] * f1
+    W[j, 4] += x[2] * f0 - x[0] * f2
+    W[j, 5] += x[0] * f1 - x[1] * f0
+
+
+@njit
 def _site_wrench_kernel(joint, pos, f, W):
-    """W[body] += (f, x x f): a point force f at world point x as a wrench at the world origin."""
+    """W[body] += (f, x x f) per site (:func:`add_point_force`)."""
     for s in range(joint.shape[0]):
-        j = joint[s]
-        x = pos[s]
-        W[j, 0] += f[s, 0]
-        W[j, 1] += f[s, 1]
-        W[j, 2] += f[s, 2]
-        W[j, 3] += x[1] * f[s, 2] - x[2] * f[s, 1]
-        W[j, 4] += x[2] * f[s, 0] - x[0] * f[s, 2]
-        W[j, 5] += x[0] * f[s, 1] - x[1] * f[s, 0]
+        add_point_force(W, joint[s], pos[s], f[s, 0], f[s, 1], f[s, 2])
+
+
+@njit
+def spring_wrench_kernel(ja, a, jb, b, X, f, W):
+    """W += the world-origin wrenches of point springs: f[s] on end a (world point X[a[s]], body ja[s]), then
+    -f[s] on end b (X[b[s]], body jb[s]); :func:`accumulate_site_forces` of the a ends and then of the b ends
+    with -f, in one call without gathering the points."""
+    for s in range(ja.shape[0]):
+        add_point_force(W, ja[s], X[a[s]], f[s, 0], f[s, 1], f[s, 2])
+    for s in range(jb.shape[0]):
+        add_point_force(W, jb[s], X[b[s]], -f[s, 0], -f[s, 1], -f[s, 2])
 
 
 def site_positions(ws: Workspace, joint: np.ndarray, offset: np.ndarray) -> np.ndarray:

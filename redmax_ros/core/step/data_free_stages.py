@@ -32,7 +32,7 @@ from redmax_ros.core.dynamics import constraints
 from redmax_ros.core.dynamics import tree_forces as tf
 from redmax_ros.core.solvers.problem import Constraints
 from redmax_ros.core.solvers.problem import LinearSystem
-from redmax_ros.core.dynamics.springs import geometric_blocks_kernel, needs_velocities, spring_forces, spring_shift_kernel
+from redmax_ros.core.dynamics.springs import geometric_blocks_kernel, spring_forces, spring_shift_kernel
 from redmax_ros.core.errors import StepError
 from redmax_ros.core.solvers.direct import solve_direct
 from redmax_ros.core.solvers.lockstep_pcg import DEFAULT_RTOL, Fallback, Ops, active_set, block_pcg, default_max_iter, spd_solve
@@ -85,11 +85,41 @@ def coupling_scale(mech, ws) -> float:
     return s
 
 
+def lhs_system(ws, rws, h: float, springs: PointSprings | None, blocks: np.ndarray | None,
+               ends: tuple | None = None) -> MatrixFreeSystem:
+    """This step's LHS of Eq. (2) as an O(n + m) operator: the workspace's MatrixFreeSystem (made at its first
+    step, kept in ws.cache) renewed for the kinematics ``rws``, h, the springs (world end points ``ends``) and
+    the maximal blocks."""
+    ctx = ws.tree
+    system = ws.cache.get(_SYSTEM_KEY)
+    if system is None:
+        system = ws.cache[_SYSTEM_KEY] = MatrixFreeSystem(ctx.topo, rws, h, ctx.reduced_diag(h), springs, blocks)
+        return system
+    return system.renew(rws, h, ctx.reduced_diag(h), springs, blocks, ends)
+
+
+def point_springs(ws, K: np.ndarray, D: np.ndarray) -> PointSprings:
+    """The maximal springs of the LHS with this step's stiffness K and damping D ((P, 3, 3) arrays of
+    springs.spring_forces): one PointSprings per workspace (ws.cache; its ends from the Context), whose K
+    and D are replaced each step."""
+    ps = ws.cache.get(_SPRINGS_KEY)
+    if ps is None:
+        ctx = ws.tree
+        ps = ws.cache[_SPRINGS_KEY] = PointSprings(ctx.spring_ja, ctx.spring_oa, ctx.spring_jb, ctx.spring_ob, K, D)
+    else:
+        ps.stiffness, ps.damping = K, D
+    return ps
+
+
+_SYSTEM_KEY = "matrix-free LHS"  # ws.cache: the data-free step's MatrixFreeSystem
+_SPRINGS_KEY = "matrix-free springs"  # ws.cache: its PointSprings
+
+
 def build_rows(mech, ws, cmd, q, h, hyper: bool) -> Constraints:
     """Stage 3 on the recursive kinematics: loop rows and prescribed-site Jacobians from the Context,
     then constraints.build (reduced coordinates for PCG, hyper-reduced for the dense direct solver)."""
     ctx = ws.tree
-    G_loop = ctx.loop_rows()[0] if ctx.n_loop_rows else None
+    G_loop = ctx.loop_jacobian() if ctx.n_loop_rows else None
     psites = cmd.site_velocities
     J_sites = ctx.point_jacobians([mech.site_index[n] for n in psites])[1] if psites else None
     return constraints.build(mech, ws, G_loop, J_sites, q, cmd.joint_velocities, psites, h, cmd.site_axes, hyper)
@@ -119,7 +149,8 @@ def solve_dense(mech, ws, system: MatrixFreeSystem, b: np.ndarray, cons: Constra
 
 def solve_pcg(mech, ws, system: MatrixFreeSystem, b, cons: Constraints, x0, rtol, max_iter, stats):
     """Eq. (4) with lockstep PCG solves, plus the joint-limit active set. ``cons`` in reduced coordinates.
-    Returns (v_r, y_H, mu, iters). The step's deadline (ws.deadline) is checked every PCG iteration."""
+    Returns (v_r, y_H, mu, iters, H) with H the bilateral rows (cons's, then the couplings'). The step's
+    deadline (ws.deadline) is checked every PCG iteration."""
     ctx = ws.tree
     nv = ctx.topo.nv
     try:
@@ -144,7 +175,12 @@ def solve_pcg(mech, ws, system: MatrixFreeSystem, b, cons: Constraints, x0, rtol
             X0[1:] = zc[1]
         else:
             X0[1:] = 0.0
-    B = np.vstack([b[None], H]) if l else b[None]
+    if l:
+        B = np.empty((l + 1, nv))
+        B[0] = b
+        B[1:] = H
+    else:
+        B = b[None]
     X, its, conv, rel = block_pcg(ops, B, X0, rtol, max_iter, ws.deadline)
     stats["solves"] = list(its)
     total = int(its.sum())
@@ -161,12 +197,15 @@ def solve_pcg(mech, ws, system: MatrixFreeSystem, b, cons: Constraints, x0, rtol
     else:
         y = np.zeros(0)
         v = u
-    limits = _LimitRows(np.asarray(mech.limited, dtype=int), cons.lo, cons.hi)
-    mu = np.zeros(len(limits.C_idx))
-    if len(limits.C_idx):
+    mu = _NO_LIMITS
+    if len(mech.limited):
+        limits = _LimitRows(np.asarray(mech.limited, dtype=int), cons.lo, cons.hi)
         v, y, mu, extra = active_set(ops, limits, H, gH, Z, u, v, y, labels, rtol, max_iter, stats, ws.deadline)
         total += extra
-    return v, y, mu, total
+    return v, y, mu, total, H
+
+
+_NO_LIMITS = np.zeros(0)  # mu without limit rows
 
 
 @dataclasses.dataclass
@@ -197,15 +236,15 @@ def data_free_velocity(mech, ws, state, cmd, tau, h, solver="pcg", rtol=DEFAULT_
     if len(mech.spring_ab):
         X = ctx.jac_positions()  # at q*: where the spring forces act (their Jacobians)
         V = None
-        if needs_velocities(mech):  # site velocities v_o + w x x of explicit spring dampers (implicit: false)
+        if ctx.spring_arrays.needs_velocities:  # site velocities v_o + w x x of explicit dampers (implicit: false)
             ov = rws.ov[ctx.jac_jid]
             V = ov[:, :3] + np.cross(ov[:, 3:], X)
-        fs, K, D, _ = spring_forces(mech, X, V)
+        fs, K, D, _ = spring_forces(mech, X, V, ctx.spring_arrays)
         springs = rhs_springs = (fs, X)
         if pt is not None:  # BDF2: f(q+) ~ f(q*) + K' (q* (-) q^) - K hat h qdot+ (springs.spring_shift), O(n + m)
             rows = mech.spring_rows
             corr = np.empty_like(fs)
-            ex = np.zeros(len(fs), np.int64) if mech.spring_explicit is None else mech.spring_explicit.astype(np.int64)
+            ex = ctx.spring_arrays.explicit
             spring_shift_kernel(X, rows[:, 0].copy(), rows[:, 1].copy(), mech.spring_k, mech.spring_rest, ex,
                                 rc.site_jv(ctx.topo, rws, ctx.jac_jid, X, pt.back), ctx.spring_ja, ctx.spring_jb,
                                 ctx.topo.mass, h * h, corr)
@@ -222,8 +261,11 @@ def data_free_velocity(mech, ws, state, cmd, tau, h, solver="pcg", rtol=DEFAULT_
             b += h * rc.jtw(ctx.topo, rws, np.einsum("jab,jb->ja", B, rc.jv(ctx.topo, rws, pt.back)))
     if not math.isfinite(float(b.sum())):
         raise StepError("non-finite right-hand side of Eq. (2) (state or forces out of range)")
-    ps = PointSprings(ctx.spring_ja, ctx.spring_oa, ctx.spring_jb, ctx.spring_ob, K, D) if K is not None else None
-    system = MatrixFreeSystem(ctx.topo, rws, h, ctx.reduced_diag(h), ps, tf.maximal_blocks(ctx, h, springs))
+    ps = ends = None
+    if K is not None:
+        ps = point_springs(ws, K, D)
+        ends = (X[ctx.spring_arrays.a], X[ctx.spring_arrays.b])  # = the springs' site positions, same kernel
+    system = lhs_system(ws, rws, h, ps, tf.maximal_blocks(ctx, h, springs, ends), ends)
     # 3: constraint rows (reduced coordinates for PCG)
     cons = build_rows(mech, ws, cmd, q_base, h, hyper=solver != "pcg")
     if cons.m:
@@ -236,13 +278,11 @@ def data_free_velocity(mech, ws, state, cmd, tau, h, solver="pcg", rtol=DEFAULT_
     sol = None
     if solver == "pcg":
         try:
-            v_red, y, mu, iters = solve_pcg(mech, ws, system, b, cons, v_r, rtol, max_iter, stats)
+            v_red, y, mu, iters, H = solve_pcg(mech, ws, system, b, cons, v_r, rtol, max_iter, stats)
             y_rows = y[:cons.m]
             v_hyp = ctx.to_hyper(v_red)
             # true residual of the KKT stationarity equation (one more O(n + m) LHS product)
             r = system.apply(v_red) - b
-            Gc = coupling_rows(mech, ws)
-            H = np.vstack([cons.G, Gc]) if len(Gc) else cons.G
             if len(H):
                 r += H.T @ y
             if len(mu):

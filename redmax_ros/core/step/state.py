@@ -155,18 +155,41 @@ def applied_torques(mech, state, cmd, h) -> np.ndarray:
     if not (h > 0 and math.isfinite(h)):
         raise StepError(f"time step must be positive and finite, got {h}")
     tau = mech.torque0 if cmd.joint_torques is None else mech.torque0 + cmd.joint_torques
-    vv = state.v @ state.v
-    if not math.isfinite(state.q @ state.q + vv + tau @ tau):  # cheap test; names it below
+    q, v = state.q, state.v
+    if isinstance(q, np.ndarray) and isinstance(v, np.ndarray) and q.dtype == v.dtype == tau.dtype == np.float64:
+        finite, vmax = _finite_and_speed(q, v, tau)  # the usual case: one compiled pass
+    else:
+        vv = v @ v
+        finite, vmax = math.isfinite(q @ q + vv + tau @ tau), (math.inf if vv > MAX_SPEED * MAX_SPEED else 0.0)
+    if not finite:  # names it below
         check_inputs(state, tau, cmd)
-    if vv > MAX_SPEED * MAX_SPEED:
-        k = int(np.argmax(np.abs(state.v)))
-        if abs(state.v[k]) > MAX_SPEED:
-            raise StepError(f"{_UP_FRONT}: the state's velocity {state.v[k]:.3g} (DOF {k}) is beyond the limit "
+    if vmax > MAX_SPEED:
+        k = int(np.argmax(np.abs(v)))
+        if abs(v[k]) > MAX_SPEED:
+            raise StepError(f"{_UP_FRONT}: the state's velocity {v[k]:.3g} (DOF {k}) is beyond the limit "
                             f"{MAX_SPEED:g}")
     for f in cmd.site_forces.values():
         if not np.all(np.isfinite(f)):
             check_inputs(state, tau, cmd)
     return tau
+
+
+@njit
+def _all_finite(x):
+    for i in range(x.shape[0]):
+        if not np.isfinite(x[i]):
+            return False
+    return True
+
+
+@njit
+def _finite_and_speed(q, v, tau):
+    """(every entry of q, v and tau finite, max |v|): applied_torques' input test in one pass."""
+    finite = _all_finite(q) and _all_finite(v) and _all_finite(tau)
+    vmax = 0.0
+    for i in range(v.shape[0]):
+        vmax = max(vmax, abs(v[i]))
+    return finite, vmax
 
 
 @njit
