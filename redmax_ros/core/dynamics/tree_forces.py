@@ -26,28 +26,28 @@ from redmax_ros.core.solvers import recursive as rc
 
 
 @njit
+def _row6(M, j, r, x):
+    """sum_c M[j, r, c] x[c] over c < 6 (one row of a body's 6x6 block times a 6-vector or 6-tuple)."""
+    s = 0.0
+    for c in range(6):
+        s += M[j, r, c] * x[c]
+    return s
+
+
+@njit
 def nle_wrench_kernel(I, ov, acc, g, W):
     """Newton-Euler wrenches (world, at the origin) for the quadratic-velocity and gravity terms:
     W_j = I_j (a_j - (g, 0)) + ov_j x* (I_j ov_j), with a_j = Jdot_j qdot (bias acceleration).
     J^T W = nle = -J^T (f_m - M_m Jdot qdot) of Eq. (1)-(2) (Pinocchio's RNEA at zero acceleration)."""
     nj = I.shape[0]
-    a = np.empty(6)
-    hm = np.empty(6)
     for j in range(1, nj):
+        a = (acc[j, 0] - g[0], acc[j, 1] - g[1], acc[j, 2] - g[2], acc[j, 3], acc[j, 4], acc[j, 5])
         for r in range(6):
-            a[r] = acc[j, r]
-        a[0] -= g[0]
-        a[1] -= g[1]
-        a[2] -= g[2]
-        for r in range(6):
-            s = 0.0
-            t = 0.0
-            for c in range(6):
-                s += I[j, r, c] * a[c]
-                t += I[j, r, c] * ov[j, c]
-            W[j, r] = s
-            hm[r] = t
-        rc.add_motion_cross_force(ov[j], hm, W[j])  # W += v x* h (gyroscopic/bias wrench)
+            W[j, r] = _row6(I, j, r, a)
+        o = ov[j]
+        hm = (_row6(I, j, 0, o), _row6(I, j, 1, o), _row6(I, j, 2, o), _row6(I, j, 3, o), _row6(I, j, 4, o),
+              _row6(I, j, 5, o))
+        rc.add_motion_cross_force(o, hm, W[j])  # W += v x* h (gyroscopic/bias wrench)
     for r in range(6):
         W[0, r] = 0.0
 
@@ -87,11 +87,19 @@ def all_support_runs(parents, idx_v, nv_j):
 
 @njit
 def crba_lower_kernel(parents, idx_v, nv_j, St, Ic, A):
+    """:func:`crba_runs_kernel` with its support runs and scratch made here (allocates)."""
+    ptr, runs = all_support_runs(parents, idx_v, nv_j)
+    crba_runs_kernel(parents, idx_v, nv_j, St, Ic, A, ptr, runs, np.empty((6, St.shape[0])))
+
+
+@njit
+def crba_runs_kernel(parents, idx_v, nv_j, St, Ic, A, ptr, runs, StT):
     """A's lower triangle (diagonal included) += that of J^T blkdiag(Ic) J, by the composite-rigid-body
     algorithm in the world frame (Featherstone, Rigid Body Dynamics Algorithms, §6.2). Ic (njoints,6,6) holds
     each body's 6x6 block on entry and is overwritten by the composites. Column c of joint j gives row c of the
-    lower triangle: A[c, c2] += S_c2^T (Ic_j S_c) for c2 <= c on the DOFs supporting j (:func:`all_support_runs`),
-    each run as one contiguous (vectorised) row update."""
+    lower triangle: A[c, c2] += S_c2^T (Ic_j S_c) for c2 <= c on the DOFs supporting j (``ptr``, ``runs``: the
+    constant :func:`all_support_runs` of the tree), each run as one contiguous (vectorised) row update over
+    ``StT`` (6, nv) scratch, St transposed."""
     nj = parents.shape[0]
     nv = St.shape[0]
     for j in range(nj - 1, 0, -1):
@@ -100,20 +108,14 @@ def crba_lower_kernel(parents, idx_v, nv_j, St, Ic, A):
             for a in range(6):
                 for b in range(6):
                     Ic[p, a, b] += Ic[j, a, b]
-    StT = np.empty((6, nv))
     for c in range(nv):
         for a in range(6):
             StT[a, c] = St[c, a]
-    ptr, runs = all_support_runs(parents, idx_v, nv_j)
-    F = np.empty(6)
     for j in range(1, nj):
         for c in range(idx_v[j], idx_v[j] + nv_j[j]):
-            for a in range(6):
-                s = 0.0
-                for b in range(6):
-                    s += Ic[j, a, b] * St[c, b]
-                F[a] = s
-            f0, f1, f2, f3, f4, f5 = F[0], F[1], F[2], F[3], F[4], F[5]
+            Sc = St[c]  # F = Ic_j S_c
+            f0, f1, f2 = _row6(Ic, j, 0, Sc), _row6(Ic, j, 1, Sc), _row6(Ic, j, 2, Sc)
+            f3, f4, f5 = _row6(Ic, j, 3, Sc), _row6(Ic, j, 4, Sc), _row6(Ic, j, 5, Sc)
             for r in range(ptr[j], ptr[j + 1]):
                 lo, hi = runs[r, 0], (c + 1 if r == ptr[j] else runs[r, 1])
                 Ar = A[c, lo:hi]

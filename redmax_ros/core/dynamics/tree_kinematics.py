@@ -308,20 +308,18 @@ def _sites_at_kernel(parents, kind, idx_q, idx_v, nv_j, axis, pitch, place_R, pl
 
 @njit
 def universal_kernel(joints, idx_q, idx_v, a1, a2, q, v, use_v, jR, jp, Sl, c_local):
-    R1 = np.empty((3, 3))
-    R2 = np.empty((3, 3))
     for k in range(joints.shape[0]):
         j = joints[k]
         iq, iv = idx_q[j], idx_v[j]
-        rc.axis_rotation(a1[k], np.cos(q[iq]), np.sin(q[iq]), R1)
-        rc.axis_rotation(a2[k], np.cos(q[iq + 1]), np.sin(q[iq + 1]), R2)
+        R1 = rc.axis_rotation(a1[k], np.cos(q[iq]), np.sin(q[iq]))  # row-major 9-tuples
+        R2 = rc.axis_rotation(a2[k], np.cos(q[iq + 1]), np.sin(q[iq + 1]))
         for r in range(3):
             for c in range(3):
-                jR[j, r, c] = R1[r, 0] * R2[0, c] + R1[r, 1] * R2[1, c] + R1[r, 2] * R2[2, c]
+                jR[j, r, c] = R1[3 * r] * R2[c] + R1[3 * r + 1] * R2[3 + c] + R1[3 * r + 2] * R2[6 + c]
             jp[j, r] = 0.0
-        s0 = R2[0, 0] * a1[k, 0] + R2[1, 0] * a1[k, 1] + R2[2, 0] * a1[k, 2]
-        s1 = R2[0, 1] * a1[k, 0] + R2[1, 1] * a1[k, 1] + R2[2, 1] * a1[k, 2]
-        s2 = R2[0, 2] * a1[k, 0] + R2[1, 2] * a1[k, 1] + R2[2, 2] * a1[k, 2]
+        s0 = R2[0] * a1[k, 0] + R2[3] * a1[k, 1] + R2[6] * a1[k, 2]
+        s1 = R2[1] * a1[k, 0] + R2[4] * a1[k, 1] + R2[7] * a1[k, 2]
+        s2 = R2[2] * a1[k, 0] + R2[5] * a1[k, 1] + R2[8] * a1[k, 2]
         for r in range(3):
             Sl[iv, r] = 0.0
             Sl[iv + 1, r] = 0.0

@@ -463,8 +463,15 @@ def kkt_solve_lu(A, b, G, g, C, lo, hi):
 def kkt_residual(A, b, v, G, lam, C, mu):
     """Relative residual |A v - b + G^T lam + C^T mu| / |b| of the KKT stationarity equation (one
     compiled call; C may have zero rows)."""
+    return kkt_residual_into(A, b, v, G, lam, C, mu, np.empty(A.shape[0]))
+
+
+@njit
+def kkt_residual_into(A, b, v, G, lam, C, mu, r):
+    """:func:`kkt_residual` with the residual vector into ``r`` (n,) scratch (no allocation)."""
     n = A.shape[0]
-    r = -b.copy()
+    for i in range(n):
+        r[i] = -b[i]
     for i in range(n):
         r[i] += dot(A[i], v)
     for j in range(G.shape[0]):

@@ -229,38 +229,60 @@ def make_workspace(topo: Topology) -> Workspace:
         jdata=tuple(jm.createData() for jm in topo.fallback_models))
 
 
+# The per-step kernels below allocate nothing: their small temporaries (a joint's rotation, a body's 6-vectors) are
+# tuples and scalars, which live in registers (an np.empty in a compiled kernel costs ~40 ns, as much as the
+# arithmetic of a body; measured).
+
+
 @njit
-def axis_rotation(a, c, s, out):
-    """Rodrigues: rotation by angle (cos c, sin s) about unit axis a."""
+def axis_rotation(a, c, s):
+    """Rodrigues: rotation by angle (cos c, sin s) about unit axis a, row-major as a 9-tuple."""
     t = 1.0 - c
     x, y, z = a[0], a[1], a[2]
-    out[0, 0] = c + t * x * x
-    out[0, 1] = t * x * y - s * z
-    out[0, 2] = t * x * z + s * y
-    out[1, 0] = t * x * y + s * z
-    out[1, 1] = c + t * y * y
-    out[1, 2] = t * y * z - s * x
-    out[2, 0] = t * x * z - s * y
-    out[2, 1] = t * y * z + s * x
-    out[2, 2] = c + t * z * z
+    return (c + t * x * x, t * x * y - s * z, t * x * z + s * y,
+            t * x * y + s * z, c + t * y * y, t * y * z - s * x,
+            t * x * z - s * y, t * y * z + s * x, c + t * z * z)
 
 
 @njit
-def _quat_rotation(x, y, z, w, out):
-    """Eigen's Quaternion::toRotationMatrix for coefficients (x, y, z, w) (Pinocchio's q layout)."""
+def _quat_rotation(x, y, z, w):
+    """Eigen's Quaternion::toRotationMatrix for coefficients (x, y, z, w) (Pinocchio's q layout), row-major as a
+    9-tuple."""
     tx, ty, tz = 2.0 * x, 2.0 * y, 2.0 * z
     twx, twy, twz = tx * w, ty * w, tz * w
     txx, txy, txz = tx * x, ty * x, tz * x
     tyy, tyz, tzz = ty * y, tz * y, tz * z
-    out[0, 0] = 1.0 - (tyy + tzz)
-    out[0, 1] = txy - twz
-    out[0, 2] = txz + twy
-    out[1, 0] = txy + twz
-    out[1, 1] = 1.0 - (txx + tzz)
-    out[1, 2] = tyz - twx
-    out[2, 0] = txz - twy
-    out[2, 1] = tyz + twx
-    out[2, 2] = 1.0 - (txx + tyy)
+    return (1.0 - (tyy + tzz), txy - twz, txz + twy,
+            txy + twz, 1.0 - (txx + tzz), tyz - twx,
+            txz - twy, tyz + twx, 1.0 - (txx + tyy))
+
+
+_EYE3 = (1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0)
+_ZERO3 = (0.0, 0.0, 0.0)
+
+
+@njit
+def _joint_motion(k, axis, pitch, q, iq, jR, jp, j):
+    """M_joint(q) of joint j of kind k: (rotation, row-major 9-tuple; translation, 3-tuple); FALLBACK joints (and
+    universal, planar) read the transform their own kernel left in (jR[j], jp[j])."""
+    if k == 1:  # REVOLUTE
+        return axis_rotation(axis[j], np.cos(q[iq]), np.sin(q[iq])), _ZERO3
+    if k == 2:  # REVOLUTE_UNBOUNDED, q = (cos, sin)
+        return axis_rotation(axis[j], q[iq], q[iq + 1]), _ZERO3
+    if k == 3:  # PRISMATIC
+        x = q[iq]
+        return _EYE3, (axis[j, 0] * x, axis[j, 1] * x, axis[j, 2] * x)
+    if k == 4:  # HELICAL
+        x = pitch[j] * q[iq]
+        return axis_rotation(axis[j], np.cos(q[iq]), np.sin(q[iq])), (axis[j, 0] * x, axis[j, 1] * x, axis[j, 2] * x)
+    if k == 5:  # SPHERICAL, q = quaternion (x, y, z, w)
+        return _quat_rotation(q[iq], q[iq + 1], q[iq + 2], q[iq + 3]), _ZERO3
+    if k == 6:  # FREEFLYER, q = (p, quaternion)
+        return _quat_rotation(q[iq + 3], q[iq + 4], q[iq + 5], q[iq + 6]), (q[iq], q[iq + 1], q[iq + 2])
+    if k == 7:  # TRANSLATION
+        return _EYE3, (q[iq], q[iq + 1], q[iq + 2])
+    return ((jR[j, 0, 0], jR[j, 0, 1], jR[j, 0, 2], jR[j, 1, 0], jR[j, 1, 1], jR[j, 1, 2],
+             jR[j, 2, 0], jR[j, 2, 1], jR[j, 2, 2]), (jp[j, 0], jp[j, 1], jp[j, 2]))
 
 
 @njit
@@ -268,52 +290,24 @@ def fk_kernel(parents, kind, idx_q, idx_v, nv_j, axis, pitch, place_R, place_p, 
                jR, jp, Sl, R, p, St):
     """Forward kinematics (Sueda's notes §2.1) and world motion subspaces S = oX_j S_local."""
     nj = parents.shape[0]
-    Rj = np.empty((3, 3))
-    pj = np.zeros(3)
-    Rl = np.empty((3, 3))
-    pl = np.empty(3)
     for j in range(1, nj):
-        k = kind[j]
-        iq = idx_q[j]
-        if k == 1:  # REVOLUTE
-            axis_rotation(axis[j], np.cos(q[iq]), np.sin(q[iq]), Rj)
-            pj[:] = 0.0
-        elif k == 2:  # REVOLUTE_UNBOUNDED, q = (cos, sin)
-            axis_rotation(axis[j], q[iq], q[iq + 1], Rj)
-            pj[:] = 0.0
-        elif k == 3:  # PRISMATIC
-            Rj[:] = 0.0
-            Rj[0, 0] = Rj[1, 1] = Rj[2, 2] = 1.0
-            pj[:] = axis[j] * q[iq]
-        elif k == 4:  # HELICAL
-            axis_rotation(axis[j], np.cos(q[iq]), np.sin(q[iq]), Rj)
-            pj[:] = axis[j] * (pitch[j] * q[iq])
-        elif k == 5:  # SPHERICAL, q = quaternion (x, y, z, w)
-            _quat_rotation(q[iq], q[iq + 1], q[iq + 2], q[iq + 3], Rj)
-            pj[:] = 0.0
-        elif k == 6:  # FREEFLYER, q = (p, quaternion)
-            _quat_rotation(q[iq + 3], q[iq + 4], q[iq + 5], q[iq + 6], Rj)
-            pj[0], pj[1], pj[2] = q[iq], q[iq + 1], q[iq + 2]
-        elif k == 7:  # TRANSLATION
-            Rj[:] = 0.0
-            Rj[0, 0] = Rj[1, 1] = Rj[2, 2] = 1.0
-            pj[0], pj[1], pj[2] = q[iq], q[iq + 1], q[iq + 2]
-        else:  # FALLBACK: filled by Pinocchio's JointModel.calc
-            Rj[:] = jR[j]
-            pj[:] = jp[j]
-        # liMi = jointPlacement * M_joint(q)
+        Rj, pj = _joint_motion(kind[j], axis, pitch, q, idx_q[j], jR, jp, j)
+        # liMi = jointPlacement * M_joint(q), into (R[j], p[j])
         for a in range(3):
             for b in range(3):
-                Rl[a, b] = (place_R[j, a, 0] * Rj[0, b] + place_R[j, a, 1] * Rj[1, b]
-                            + place_R[j, a, 2] * Rj[2, b])
-            pl[a] = place_p[j, a] + (place_R[j, a, 0] * pj[0] + place_R[j, a, 1] * pj[1]
-                                     + place_R[j, a, 2] * pj[2])
-        # oMi = oMi[parent] * liMi
+                R[j, a, b] = (place_R[j, a, 0] * Rj[b] + place_R[j, a, 1] * Rj[3 + b]
+                              + place_R[j, a, 2] * Rj[6 + b])
+            p[j, a] = place_p[j, a] + (place_R[j, a, 0] * pj[0] + place_R[j, a, 1] * pj[1]
+                                       + place_R[j, a, 2] * pj[2])
+        # oMi = oMi[parent] * liMi, in place: a column of liMi (and its translation) read before it is replaced
         par = parents[j]
+        for b in range(3):
+            l0, l1, l2 = R[j, 0, b], R[j, 1, b], R[j, 2, b]
+            for a in range(3):
+                R[j, a, b] = R[par, a, 0] * l0 + R[par, a, 1] * l1 + R[par, a, 2] * l2
+        l0, l1, l2 = p[j, 0], p[j, 1], p[j, 2]
         for a in range(3):
-            for b in range(3):
-                R[j, a, b] = R[par, a, 0] * Rl[0, b] + R[par, a, 1] * Rl[1, b] + R[par, a, 2] * Rl[2, b]
-            p[j, a] = p[par, a] + R[par, a, 0] * pl[0] + R[par, a, 1] * pl[1] + R[par, a, 2] * pl[2]
+            p[j, a] = p[par, a] + R[par, a, 0] * l0 + R[par, a, 1] * l1 + R[par, a, 2] * l2
         # world motion subspace columns: S = oX_j S_local (lin' = R lin + p x R ang, ang' = R ang)
         for c in range(idx_v[j], idx_v[j] + nv_j[j]):
             w0 = R[j, 0, 0] * Sl[c, 3] + R[j, 0, 1] * Sl[c, 4] + R[j, 0, 2] * Sl[c, 5]
@@ -335,35 +329,29 @@ def world_inertia_kernel(mass, com, inertia_com, R, p, I):
     """Spatial inertia of each body at the world origin ([linear; angular] order):
     [[m 1, -m [c]], [m [c], R I_c R^T - m [c][c]]] with c = R com + p (= oMi.act(inertia).matrix())."""
     nj = mass.shape[0]
-    Ic = np.empty((3, 3))
     for j in range(1, nj):
         m = mass[j]
         c0 = R[j, 0, 0] * com[j, 0] + R[j, 0, 1] * com[j, 1] + R[j, 0, 2] * com[j, 2] + p[j, 0]
         c1 = R[j, 1, 0] * com[j, 0] + R[j, 1, 1] * com[j, 1] + R[j, 1, 2] * com[j, 2] + p[j, 1]
         c2 = R[j, 2, 0] * com[j, 0] + R[j, 2, 1] * com[j, 1] + R[j, 2, 2] * com[j, 2] + p[j, 2]
-        # R I R^T
+        cc = c0 * c0 + c1 * c1 + c2 * c2
+        cv = (c0, c1, c2)
         for a in range(3):
             for b in range(3):
-                s = 0.0
+                I[j, a, b] = 0.0
+            I[j, a, a] = m
+            for b in range(3):
+                s = 0.0  # (R I_c R^T)[a, b]
                 for k in range(3):
                     for l in range(3):
                         s += R[j, a, k] * inertia_com[j, k, l] * R[j, b, l]
-                Ic[a, b] = s
-        cc = c0 * c0 + c1 * c1 + c2 * c2
-        cv = (c0, c1, c2)
-        for a in range(6):
-            for b in range(6):
-                I[j, a, b] = 0.0
-        for a in range(3):
-            I[j, a, a] = m
-            for b in range(3):
                 # -m [c][c] = m (|c|^2 1 - c c^T)
-                I[j, 3 + a, 3 + b] = Ic[a, b] - m * cv[a] * cv[b]
+                I[j, 3 + a, 3 + b] = s - m * cv[a] * cv[b]
             I[j, 3 + a, 3 + a] += m * cc
         # m [c] (lower-left) and its transpose -m [c] (upper-right)
-        I[j, 3, 1], I[j, 3, 2] = -m * c2, m * c1
-        I[j, 4, 0], I[j, 4, 2] = m * c2, -m * c0
-        I[j, 5, 0], I[j, 5, 1] = -m * c1, m * c0
+        I[j, 3, 0], I[j, 3, 1], I[j, 3, 2] = 0.0, -m * c2, m * c1
+        I[j, 4, 0], I[j, 4, 1], I[j, 4, 2] = m * c2, 0.0, -m * c0
+        I[j, 5, 0], I[j, 5, 1], I[j, 5, 2] = -m * c1, m * c0, 0.0
         for a in range(3):
             for b in range(3):
                 I[j, a, 3 + b] = I[j, 3 + b, a]
@@ -417,15 +405,30 @@ def add_motion_cross_force(v, f, out):
 
 
 @njit
-def _motion_cross(m, u, out):
-    """out = m x u for twists m = (v, w), u = (v', w'): (w x v' + v x w', w x w')."""
+def _motion_cross(m, u):
+    """m x u for twists m = (v, w), u = (v', w'): (w x v' + v x w', w x w'), as a 6-tuple."""
     v0, v1, v2, w0, w1, w2 = m[0], m[1], m[2], m[3], m[4], m[5]
-    out[0] = w1 * u[2] - w2 * u[1] + v1 * u[5] - v2 * u[4]
-    out[1] = w2 * u[0] - w0 * u[2] + v2 * u[3] - v0 * u[5]
-    out[2] = w0 * u[1] - w1 * u[0] + v0 * u[4] - v1 * u[3]
-    out[3] = w1 * u[5] - w2 * u[4]
-    out[4] = w2 * u[3] - w0 * u[5]
-    out[5] = w0 * u[4] - w1 * u[3]
+    return (w1 * u[2] - w2 * u[1] + v1 * u[5] - v2 * u[4],
+            w2 * u[0] - w0 * u[2] + v2 * u[3] - v0 * u[5],
+            w0 * u[1] - w1 * u[0] + v0 * u[4] - v1 * u[3],
+            w1 * u[5] - w2 * u[4],
+            w2 * u[3] - w0 * u[5],
+            w0 * u[4] - w1 * u[3])
+
+
+@njit
+def _joint_twist(idx_v, nv_j, St, x, j):
+    """S_j x_j, the twist of joint j's own DOFs, as a 6-tuple."""
+    u0 = u1 = u2 = u3 = u4 = u5 = 0.0
+    for c in range(idx_v[j], idx_v[j] + nv_j[j]):
+        xc = x[c]
+        u0 += St[c, 0] * xc
+        u1 += St[c, 1] * xc
+        u2 += St[c, 2] * xc
+        u3 += St[c, 3] * xc
+        u4 += St[c, 4] * xc
+        u5 += St[c, 5] * xc
+    return u0, u1, u2, u3, u4, u5
 
 
 @njit
@@ -434,17 +437,10 @@ def _jdot_kernel(parents, idx_v, nv_j, St, ov, x, Z):
     S_j = oX_j S_local is ov_j x S_j (+ oX_j dS_local/dt, see :func:`bias_acceleration`), so
     Z_j = Z_parent + ov_j x (S_j x_j)."""
     nj = parents.shape[0]
-    u = np.empty(6)
-    cr = np.empty(6)
     Z[0, :] = 0.0
     for j in range(1, nj):
         par = parents[j]
-        for a in range(6):
-            u[a] = 0.0
-        for c in range(idx_v[j], idx_v[j] + nv_j[j]):
-            for a in range(6):
-                u[a] += St[c, a] * x[c]
-        _motion_cross(ov[j], u, cr)
+        cr = _motion_cross(ov[j], _joint_twist(idx_v, nv_j, St, x, j))
         for a in range(6):
             Z[j, a] = Z[par, a] + cr[a]
 
@@ -453,28 +449,18 @@ def _jdot_kernel(parents, idx_v, nv_j, St, ov, x, Z):
 def bias_kernel(parents, idx_v, nv_j, St, ov, v, R, p, c_local, Z):
     """Z_j = Z_parent + ov_j x (S_j v_j) + oX_j c_j (forward traversal)."""
     nj = parents.shape[0]
-    u = np.empty(6)
-    cr = np.empty(6)
-    cw = np.empty(6)
     Z[0, :] = 0.0
     for j in range(1, nj):
         par = parents[j]
-        for a in range(6):
-            u[a] = 0.0
-        for c in range(idx_v[j], idx_v[j] + nv_j[j]):
-            for a in range(6):
-                u[a] += St[c, a] * v[c]
-        _motion_cross(ov[j], u, cr)
+        cr = _motion_cross(ov[j], _joint_twist(idx_v, nv_j, St, v, j))
         c = c_local[j]
-        cw[3] = R[j, 0, 0] * c[3] + R[j, 0, 1] * c[4] + R[j, 0, 2] * c[5]
-        cw[4] = R[j, 1, 0] * c[3] + R[j, 1, 1] * c[4] + R[j, 1, 2] * c[5]
-        cw[5] = R[j, 2, 0] * c[3] + R[j, 2, 1] * c[4] + R[j, 2, 2] * c[5]
-        cw[0] = (R[j, 0, 0] * c[0] + R[j, 0, 1] * c[1] + R[j, 0, 2] * c[2]
-                 + p[j, 1] * cw[5] - p[j, 2] * cw[4])
-        cw[1] = (R[j, 1, 0] * c[0] + R[j, 1, 1] * c[1] + R[j, 1, 2] * c[2]
-                 + p[j, 2] * cw[3] - p[j, 0] * cw[5])
-        cw[2] = (R[j, 2, 0] * c[0] + R[j, 2, 1] * c[1] + R[j, 2, 2] * c[2]
-                 + p[j, 0] * cw[4] - p[j, 1] * cw[3])
+        w3 = R[j, 0, 0] * c[3] + R[j, 0, 1] * c[4] + R[j, 0, 2] * c[5]
+        w4 = R[j, 1, 0] * c[3] + R[j, 1, 1] * c[4] + R[j, 1, 2] * c[5]
+        w5 = R[j, 2, 0] * c[3] + R[j, 2, 1] * c[4] + R[j, 2, 2] * c[5]
+        cw = (R[j, 0, 0] * c[0] + R[j, 0, 1] * c[1] + R[j, 0, 2] * c[2] + p[j, 1] * w5 - p[j, 2] * w4,
+              R[j, 1, 0] * c[0] + R[j, 1, 1] * c[1] + R[j, 1, 2] * c[2] + p[j, 2] * w3 - p[j, 0] * w5,
+              R[j, 2, 0] * c[0] + R[j, 2, 1] * c[1] + R[j, 2, 2] * c[2] + p[j, 0] * w4 - p[j, 1] * w3,
+              w3, w4, w5)
         for a in range(6):
             Z[j, a] = Z[par, a] + cr[a] + cw[a]
 

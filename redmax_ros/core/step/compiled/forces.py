@@ -16,7 +16,7 @@ from __future__ import annotations
 import numpy as np
 
 from redmax_ros.core.dynamics.springs import clamp_lever_blocks, geometric_blocks_kernel, spring_kernel, spring_shift
-from redmax_ros.core.dynamics.tree_forces import crba_lower_kernel, nle_wrench_kernel, spring_cross_lower_kernel
+from redmax_ros.core.dynamics.tree_forces import crba_runs_kernel, nle_wrench_kernel, spring_cross_lower_kernel
 from redmax_ros.core.jit import njit, njit_inline
 from redmax_ros.core.linalg import mirror_lower
 from redmax_ros.core.solvers.pcg import add_point_block, spring_blocks_kernel
@@ -180,7 +180,7 @@ def lhs(m, d, h, A):
                 d.blocks[j, a, b] += d.I[j, a, b]
     d.blocks[0] = 0.0
     A[:, :] = 0.0
-    crba_lower_kernel(m.parents, m.idx_v, m.nv_j, d.St, d.blocks, A)
+    crba_runs_kernel(m.parents, m.idx_v, m.nv_j, d.St, d.blocks, A, m.support_ptr, m.support_runs, d.StT)
     if m.spring_a.shape[0]:
         spring_cross_lower_kernel(m.parents, m.idx_v, m.nv_j, d.St, m.spring_ja, d.pa, m.spring_jb, d.pb,
                                   d.spring_C, A)

@@ -31,7 +31,7 @@ from __future__ import annotations
 
 from redmax_ros.core.jit import njit, njit_inline
 from redmax_ros.core.step.compiled.cache import drop_stale
-from redmax_ros.core.solvers.kkt import kkt_residual, kkt_solve_tree_into
+from redmax_ros.core.solvers.kkt import kkt_residual_into, kkt_solve_tree_into
 from redmax_ros.core.step.compiled.data import (OUT_ITERS, OUT_E_KIN, OUT_E_POT, OUT_E_SPRING, OUT_ORDER, OUT_RESIDUAL,
                                                 OUT_STAGE, OUT_VIOL_POS, OUT_VIOL_VEL, data_views)
 from redmax_ros.core.step.compiled.energy import energies
@@ -116,7 +116,7 @@ def stages(m, d, q, vR, tau, h, gj, sv, qp, vp, hist, warm):
     if not (d.v_hyper @ d.v_hyper <= MAX_SPEED * MAX_SPEED):
         return _handoff(d.out, STAGE_SPEED)
     d.out[OUT_VIOL_VEL] = viol
-    d.out[OUT_RESIDUAL] = kkt_residual(d.AR, d.bR, d.v_hyper, d.G, d.lam, m.limit_rows, d.mu)
+    d.out[OUT_RESIDUAL] = kkt_residual_into(d.AR, d.bR, d.v_hyper, d.G, d.lam, m.limit_rows, d.mu, d.kkt_r)
     return tail_stages(m, d, tau, hh)  # 5-6
 
 

@@ -15,12 +15,13 @@ from collections import namedtuple
 import numpy as np
 
 from redmax_ros.core.dynamics.springs import needs_velocities
+from redmax_ros.core.dynamics.tree_forces import all_support_runs
 from redmax_ros.core.dynamics.tree_kinematics import PIN_DATA_MAX_NV, Context
 from redmax_ros.core.jit import njit_inline
 from redmax_ros.core.solvers import recursive as rc
 from redmax_ros.core.step.compiled.friction import friction_unsupported
 from redmax_ros.core.step.compiled.manifold import PLANAR, UNIVERSAL, joint_kinds
-from redmax_ros.core.step.compiled.packing import f1, f2, f3, i1, pack
+from redmax_ros.core.step.compiled.packing import f1, f2, f3, i1, i2, pack
 
 # (name, 'f' float64 | 'i' int64, ndim), in the order of the Model namedtuple
 MODEL_SPEC = (
@@ -53,6 +54,8 @@ MODEL_SPEC = (
     ("spring_ja", "i", 1), ("spring_jb", "i", 1),
     # J_rR as one entry per row (a coupled DOF moves with exactly one coupling): qdot_r[i] = T_ratio[i] qdot_R[T_col[i]]
     ("T_col", "i", 1), ("T_ratio", "f", 1),
+    # the DOFs supporting each joint's body as runs of consecutive indices (tree_forces.all_support_runs)
+    ("support_ptr", "i", 1), ("support_runs", "i", 2),
 )
 
 Model = namedtuple("Model", [n for n, _, _ in MODEL_SPEC])
@@ -76,7 +79,8 @@ def model_views(f, i, t):
                  f2(f, t, 44), i1(i, t, 45), f1(f, t, 46), f1(f, t, 47),
                  f1(f, t, 48),
                  i1(i, t, 49), i1(i, t, 50),
-                 i1(i, t, 51), f1(f, t, 52))
+                 i1(i, t, 51), f1(f, t, 52),
+                 i1(i, t, 53), i2(i, t, 54))
 
 
 SUPPORTED_KINDS = {rc.REVOLUTE, rc.REVOLUTE_UNBOUNDED, rc.PRISMATIC, rc.HELICAL, rc.SPHERICAL, rc.FREEFLYER,
@@ -158,5 +162,6 @@ def build_model(mech):
         scalars=np.array([float(mech.loop_baumgarte), float(mech.has_stiffness), float(mech.has_armature),
                           float(needs_velocities(mech)), float(mech.spring_geometric)]),
     )
+    values["support_ptr"], values["support_runs"] = all_support_runs(topo.parents, topo.idx_v, topo.nv_j)
     assert nv == mech.nv
     return pack(MODEL_SPEC, values)
