@@ -24,7 +24,7 @@ from redmax_ros.core.model.mechanism import Mechanism
 from redmax_ros.core.scene.loader import load_scene, parse_joint_trajectory, parse_time_function
 from redmax_ros.core.scene.spec import SceneSpec
 from redmax_ros.core.solvers.budget import StepBudget
-from redmax_ros.core.step.backends import make_backend
+from redmax_ros.core.step.backends import check_dense_size, make_backend
 from redmax_ros.core.step import body_twist, trajectory
 from redmax_ros.core.step.compile import compile_scene
 from redmax_ros.core.step.deformable_stages import deform_state
@@ -117,6 +117,7 @@ class Simulator:
     def __init__(self, spec: SceneSpec, solver: str | None = None, budget: StepBudget | None = DEFAULT_BUDGET):
         self.spec = spec
         self.budget = budget
+        check_dense_size(spec.source, solver or spec.solver, sum(j.nv for j in spec.joints))  # before the compile
         try:
             self.mech: Mechanism = compile_scene(spec)
         except np.linalg.LinAlgError as e:

@@ -85,6 +85,16 @@ def predicted_costs(nv: int, iters_per_step: float) -> tuple:
     return pcg_t, direct_t
 
 
+def check_dense_size(source: str, solver: str, nv: int) -> None:
+    """SceneError when ``solver`` (direct, compiled, reference: dense nv x nv matrices) is asked for more than
+    DENSE_MAX_NV DOFs; the Simulator calls it before compiling the scene too (from the scene's joint DOFs), so a
+    huge chain is refused in milliseconds, not after its model is built."""
+    if solver in ("direct", "compiled", "reference") and nv > DENSE_MAX_NV:
+        raise SceneError(source, "solver",
+                         f"solver '{solver}' factors dense {nv} x {nv} matrices ({8 * nv ** 2 / 2 ** 30:.1f} GiB each, "
+                         f"O(nv^3) a step); above {DENSE_MAX_NV} DOFs use solver pcg or auto")
+
+
 class AutoBackend:
     """``solver: auto``: direct for nv <= AUTO_DIRECT_NV; otherwise PCG for AUTO_PROBE_STEPS steps,
     then PCG if its predicted cost with the measured iterations per step is below the direct
@@ -172,11 +182,7 @@ def make_backend(mech, solver: str, rtol: float = DEFAULT_RTOL, max_iter: int | 
         raise SceneError(mech.spec.source, "solver",
                          f"solver '{solver}' does not support deformables (the coupled sparse solve is on the "
                          "Pinocchio reference pipeline: use direct, reference or auto)")
-    if solver in ("direct", "compiled", "reference") and mech.nv > DENSE_MAX_NV:
-        raise SceneError(mech.spec.source, "solver",
-                         f"solver '{solver}' factors dense {mech.nv} x {mech.nv} matrices "
-                         f"({8 * mech.nv ** 2 / 2 ** 30:.1f} GiB each, O(nv^3) a step); above {DENSE_MAX_NV} DOFs "
-                         "use solver pcg or auto")
+    check_dense_size(mech.spec.source, solver, mech.nv)
     if solver == "compiled":
         return CompiledBackend(mech)
     if solver == "direct":
