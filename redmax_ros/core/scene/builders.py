@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import math
 
-from redmax_ros.core.scene.registry import int_param, register_builder, take
+from redmax_ros.core.scene.registry import bool_param, int_param, register_builder, take
 
 
 @register_builder("chain")
@@ -100,7 +100,7 @@ def hand(params: dict) -> dict:
     r = float(p["ratio"])
     if r == 0:
         raise ValueError("'ratio' must be non-zero")
-    lim = bool(p["limits"])
+    lim = bool_param(p, "limits")
     fd, fk = p["finger_damping"], p["finger_stiffness"]
     bodies = [
         {"name": "forearm", "shape": {"type": "box", "size": [0.25, 0.06, 0.04]}, "mass": 1.2},

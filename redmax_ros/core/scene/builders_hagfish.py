@@ -33,7 +33,7 @@ from __future__ import annotations
 
 import math
 
-from redmax_ros.core.scene.registry import int_param, register_builder, take
+from redmax_ros.core.scene.registry import bool_param, int_param, register_builder, take
 
 
 @register_builder("hagfish")
@@ -88,7 +88,7 @@ def hagfish(params: dict) -> dict:
     obstacles = [{"name": "jar", "type": "shell", "radius": float(p["jar_radius"]), "length": float(p["jar_length"]),
                   "thickness": float(p["jar_thickness"]), "segments": 16,
                   "pos": [-float(p["jar_length"]) / 2 + 0.005, 0, z], "rpy": [0, math.pi / 2, 0]}]
-    if p["floor"]:
+    if bool_param(p, "floor"):
         obstacles.append({"name": "floor", "type": "plane", "normal": [0, 0, 1], "offset": 0.0})
     return {"bodies": bodies, "joints": joints, "sites": sites,
             "collision": {"margin": float(p["margin"]), "exclude": exclude, "obstacles": obstacles}}

@@ -36,3 +36,12 @@ def int_param(p, key, lo=0, hi=MAX_BODIES):
     if v > hi:
         raise ValueError(f"'{key}' = {v} is above the limit of {hi}")
     return v
+
+
+def bool_param(p, key) -> bool:
+    """``p[key]`` as a bool (true/false in the scene file), ValueError for anything else (a string such as
+    'maybe' would otherwise read as true)."""
+    v = p[key]
+    if not isinstance(v, bool):
+        raise ValueError(f"'{key}' must be true or false, got {v!r}")
+    return v

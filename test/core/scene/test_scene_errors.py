@@ -133,6 +133,8 @@ def test_capsule_inertia_unchanged():
     ("starfish", "params.cell=1e-9", "gives a 500000000 x 500000000 x 1 cell grid, above 200000 vertices"),
     ("starfish", "params.radius=1e9", "above 200000 vertices"),
     ("hagfish", "params.skip=-1", "'skip' must be an integer >= 1, got -1"),
+    ("hand", "params.limits=maybe", "'limits' must be true or false, got 'maybe'"),
+    ("hagfish", "params.floor=1", "'floor' must be true or false, got 1"),
 ])
 def test_huge_builder_counts_are_refused_quickly(scene, override, text):
     t = time.perf_counter()
