@@ -18,6 +18,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from redmax_ros.core.deformable.sparsity import stack, start_system
+from redmax_ros.core.spatial import skew
 
 
 @dataclass(frozen=True)
@@ -136,6 +137,20 @@ class Deformables:
         """(linear (3,), angular about the origin (3,)) of the deformable vertices."""
         p = self.mass[:, None] * v
         return p.sum(axis=0), np.cross(x, p).sum(axis=0)
+
+    def locked_inertia(self, x) -> np.ndarray:
+        """(6,6) spatial inertia of the vertices at x (N,3) [m] locked together, about the world origin, linear
+        rows first: [[M I, -[s]], [[s], tr(S) I - S]] with s = sum m_i x_i, S = sum m_i x_i x_i^T (a rigid twist
+        (v_O, w) of them has the momentum of :meth:`momentum` locked_inertia @ (v_O, w))."""
+        m = self.mass
+        s = m @ x
+        S = (x * m[:, None]).T @ x
+        out = np.zeros((6, 6))
+        out[:3, :3] = float(m.sum()) * np.eye(3)
+        out[3:, :3] = skew(s)
+        out[:3, 3:] = -out[3:, :3]
+        out[3:, 3:] = np.trace(S) * np.eye(3) - S
+        return out
 
     def describe(self) -> list:
         """(name, kind, vertices, elements) per deformable."""

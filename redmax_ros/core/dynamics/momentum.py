@@ -31,39 +31,11 @@ from redmax_ros.core.errors import SceneError, StepError
 
 def skeleton_momentum(model, data, q, v) -> tuple:
     """(momentum (6,), locked inertia (6,6)) of every body of ``model`` at (q, v) (reduced velocity), world
-    frame, angular part about the world origin. Runs forwardKinematics on ``data``."""
-    pin.forwardKinematics(model, data, q, v)
-    h = np.zeros(6)
-    inertia = np.zeros((6, 6))
-    for k in range(1, model.njoints):
-        M = data.oMi[k]
-        Y = model.inertias[k]
-        h += M.act(Y * data.v[k]).vector
-        inertia += M.act(Y).matrix()
-    return h, inertia
-
-
-def point_momentum(m, x, v) -> np.ndarray:
-    """(6,) momentum of point masses m (N,) [kg] at x (N,3) [m] with velocities v (N,3) [m/s]."""
-    p = m[:, None] * v
-    return np.concatenate([p.sum(axis=0), np.cross(x, p).sum(axis=0)])
-
-
-def point_inertia(m, x) -> np.ndarray:
-    """(6,6) locked inertia of point masses about the world origin: [[m I, -m [x]], [m [x], -m [x][x]]]."""
-    M = float(m.sum())
-    s = m @ x  # sum m_i x_i
-    S = (x * m[:, None]).T @ x  # sum m_i x_i x_i^T
-    I = np.zeros((6, 6))
-    I[:3, :3] = M * np.eye(3)
-    I[3:, :3] = _skew(s)
-    I[:3, 3:] = -_skew(s)
-    I[3:, 3:] = np.trace(S) * np.eye(3) - S  # -sum m [x][x]
-    return I
-
-
-def _skew(a) -> np.ndarray:
-    return np.array([[0.0, -a[2], a[1]], [a[2], 0.0, -a[0]], [-a[1], a[0], 0.0]])
+    frame, angular part about the world origin: Pinocchio's centroidal ones (pin.ccrba, about the centre of
+    mass) moved to the origin."""
+    pin.ccrba(model, data, q, v)
+    to_origin = pin.SE3(np.eye(3), data.com[0].copy())
+    return to_origin.act(data.hg).vector, to_origin.act(data.Ig).matrix()
 
 
 def com_of(inertia) -> np.ndarray:
@@ -95,11 +67,9 @@ class FreeRoot:
 class MomentumProjection:
     """The projection of a free skeleton with deformables (module docstring); its own pin.Data."""
 
-    def __init__(self, model, root: FreeRoot, mass, gravity):
-        self.model, self.root = model, root
+    def __init__(self, model, root: FreeRoot, dm):
+        self.model, self.root, self.dm = model, root, dm  # dm: deformable.system.Deformables
         self.data = model.createData()
-        self.mass = np.asarray(mass, float)  # (N,) vertex masses
-        self.gravity = np.asarray(gravity, float)
 
     def check_inputs(self, cmd, tau) -> None:
         """StepError for this step's commands that act from outside the system: prescribed sites, site forces,
@@ -115,13 +85,14 @@ class MomentumProjection:
     def momentum(self, q, v_r, x, v) -> tuple:
         """(momentum (6,), locked inertia (6,6)) of skeleton and vertices."""
         h, inertia = skeleton_momentum(self.model, self.data, q, v_r)
-        return h + point_momentum(self.mass, x, v), inertia + point_inertia(self.mass, x)
+        return h + np.concatenate(self.dm.momentum(x, v)), inertia + self.dm.locked_inertia(x)
 
-    def project(self, wanted, q, v_hyper, v_r, x, v) -> tuple:
+    def project(self, before, dt, q, v_hyper, v_r, x, v) -> tuple:
         """The corrected (hyper-reduced velocity, reduced velocity, vertex velocities (N,3)) at (q, x) whose
-        momentum is ``wanted``, and the twist (v_O, w) added. Inputs are not modified."""
+        momentum is the :func:`target` of ``before`` ((momentum, locked inertia) at the step's start, of
+        :meth:`momentum`) after dt, and the twist (v_O, w) added. Inputs are not modified."""
         h, inertia = self.momentum(q, v_r, x, v)
-        twist = np.linalg.solve(inertia, wanted - h)
+        twist = np.linalg.solve(inertia, target(*before, self.dm.gravity, dt) - h)
         local = self.data.oMi[self.root.jid].actInv(pin.Motion(twist)).vector  # root joint frame
         v_hyper, v_r = v_hyper.copy(), v_r.copy()
         v_hyper[self.root.cols] += local
@@ -177,4 +148,4 @@ def build(mech, dm) -> MomentumProjection | None:
         for n, (a, b) in zip(names, np.asarray(ab, dtype=int).reshape(-1, 2)):
             if mech.site_jid[a] == 0 or mech.site_jid[b] == 0:
                 no(f"{kind} '{n}' ends at a world point")
-    return MomentumProjection(model, FreeRoot(js.name, ji.jid, rows, cols), dm.mass, mech.spec.gravity)
+    return MomentumProjection(model, FreeRoot(js.name, ji.jid, rows, cols), dm)

@@ -409,7 +409,7 @@ def step(mech, ws, dm, state, cmd, h, timing=None, momentum=None):
     tau = applied_torques(mech, state, cmd, h)
     if momentum is not None:
         momentum.check_inputs(cmd, tau)
-        h0, inertia0 = momentum.momentum(state.q, ws.to_reduced(state.v), ds.x, ds.v)
+        before = momentum.momentum(state.q, ws.to_reduced(state.v), ds.x, ds.v)
     vs, v_d = coupled_velocity(mech, ws, dm, state, ds, cmd, tau, h, timing)
     check_speed(vs.sol.v)
     check_speed(v_d.ravel())
@@ -427,7 +427,7 @@ def step(mech, ws, dm, state, cmd, h, timing=None, momentum=None):
     if not math.isfinite(squares):
         raise StepError("non-finite deformable positions after the step")
     if momentum is not None:  # conserve_momentum: a rigid twist of the whole system (dynamics/momentum.py)
-        v_hyper, v_new, v_d, _ = momentum.project(system_momentum.target(h0, inertia0, dm.gravity, h), q_new, v_hyper, v_new, x_new, v_d)
+        v_hyper, v_new, v_d, _ = momentum.project(before, h, q_new, v_hyper, v_new, x_new, v_d)
     ek, ep, es = energies(mech, ws, q_new, v_new)
     ds_new = DeformState(x_new, v_d)  # both fresh float (N,3) arrays of this step: no copy (DeformState.of)
     t1 = cpu_time()
