@@ -16,7 +16,9 @@ eliminated, which the paper suggests for the small external systems.)
     iteration evaluates alpha_j = h L_j (W0 + Wx x)_j; loop pins from lambda (§5.3).
   * CONVERGENCE (Alg. 2 line 12): ||f_alpha - f_alpha^0||_{M^-1} <= eps, measured per contact as the
     velocity change the change of its normal impulse (ground) or of its friction bound (joints) makes,
-    max_k W_kk |delta_k| <= tol [m/s] (the diagonal of the Delassus operator stands in for M^-1).
+    max_k W_kk |delta_k| <= tol [m/s] (the diagonal of the Delassus operator stands in for M^-1), and the
+    friction impulses inside their bounds in the same measure, max_k W_kk max(|beta_k| - bound_k, 0) <= tol
+    (cone_excess: a sliding impulse sits on the bound of the previous friction stage).
   * FRICTION (Eq. 12): box QP over beta with W_T = T P T^T,
         min 1/2 beta^T W_T beta - beta^T T qdot(alpha, 0),  -bound <= beta <= bound   (PGS or ProxSuite)
     bounds: mu alpha on both tangents of a ground contact (four-sided pyramid), mu sum_k |alpha_k| on
@@ -71,6 +73,21 @@ class FrictionReport:
         if self._jn_values is None:
             return {}
         return {name: float(x) for name, x in zip(self._jn_names, self._jn_values)}
+
+
+@numba.njit(cache=True)
+def cone_excess(beta, bound, wT):
+    """max_k wT_k max(|beta_k| - bound_k, 0) [m/s]: how far the friction impulses lie outside their bounds,
+    measured as the residual is (Alg. 2 line 12): the velocity change that bringing each impulse back to
+    its bound would make (wT: the convergence weights of condense). The loop stops when this and the
+    change of the bounds are both within the tolerance: a sliding impulse sits on the bound of the
+    previous friction stage, which the last contact stage has moved by no more than the tolerance."""
+    big = 0.0
+    for i in range(beta.shape[0]):
+        e = (abs(beta[i]) - bound[i]) * wT[i]
+        if e > big:
+            big = e
+    return big
 
 
 @numba.njit(cache=True)
@@ -275,12 +292,7 @@ def staggered_kernel(W_U, X_UT, X_TU, U_v0, lo_U, W_T, T_v0, mu_g, a0, Mx, Lop, 
             resid = max(resid, abs(alpha[i] - prev_u[i]) * wU[i])
         for i in range(nf):
             resid = max(resid, abs(bound[i] - prev_b[i]) * wT[i])
-        feasible = True
-        for i in range(nf):
-            if abs(beta[i]) > bound[i] * (1 + 1e-9) + 1e-14:
-                feasible = False
-                break
-        if resid <= tol and feasible:
+        if resid <= tol and cone_excess(beta, bound, wT) <= tol:
             converged = True
             break
         if it >= max_iter:
@@ -422,7 +434,7 @@ def solve(mech, work, kin, system: LinearSystem, cons, q, v_prev_r, h, cache, si
     else:
         alpha, beta, bound, al, it, converged, resid = _python_loop(
             fm, st, W_U, X_UT, U_v0, lo_U, W_T, T_v0, mu_g, nc,
-            bisp.affine_alphas(fm, h, W0, Wx) if joint_fric else None, alpha, beta, deadline)
+            bisp.affine_alphas(fm, h, W0, Wx) if joint_fric else None, wU, wT, alpha, beta, deadline)
 
     if not joint_fric:
         kmax, al = 1, np.zeros(0)
@@ -518,14 +530,13 @@ def _compiled_loop(deadline, *args):
         cap = min(KERNEL_SLICE, deadline.remaining()) / per_work if per_work > 0 else KERNEL_FIRST_WORK
 
 
-def _python_loop(fm, st, W_U, X_UT, U_v0, lo_U, W_T, T_v0, mu_g, nc, affine, alpha, beta, deadline=None):
+def _python_loop(fm, st, W_U, X_UT, U_v0, lo_U, W_T, T_v0, mu_g, nc, affine, wU, wT, alpha, beta, deadline=None):
     """The staggered loop in Python (ProxSuite inner solves, spherical-joint bounds); same steps as
     staggered_kernel, with the step's deadline checked between iterations. Returns (alpha, beta, bound,
     al, iterations, converged, residual)."""
     if deadline is not None:
         deadline.begin()
     nu, nf, ng = len(U_v0), len(T_v0), 2 * nc
-    wU, wT = np.maximum(np.diag(W_U), 0.0), np.maximum(np.diag(W_T), 0.0)
     acc = Anderson(st.anderson)
     prev_u, prev_b = None, None
     bound = np.zeros(nf)
@@ -557,7 +568,7 @@ def _python_loop(fm, st, W_U, X_UT, U_v0, lo_U, W_T, T_v0, mu_g, nc, affine, alp
         du = np.abs(alpha - (prev_u if prev_u is not None else 0.0)) * wU  # f_alpha^0 = 0 at first
         db = np.abs(bound - (prev_b if prev_b is not None else 0.0)) * wT
         resid = max(du.max(initial=0.0), db.max(initial=0.0))
-        if resid <= st.tol and np.all(np.abs(beta) <= bound * (1 + 1e-9) + 1e-14):
+        if resid <= st.tol and cone_excess(beta, bound, wT) <= st.tol:
             converged = True
             break
         if it >= st.max_iter:
@@ -580,7 +591,8 @@ class Anderson:
     iteration on the walker: joint friction changes the loop forces, which change the joint normal
     forces); extrapolating over the last m iterates cuts the iteration count several-fold. The
     extrapolated impulses are clipped to the current friction bounds; the convergence test of Alg. 2
-    is unchanged (it still needs the contact forces to stop changing and beta inside its bounds)."""
+    is unchanged (it still needs the contact forces to stop changing and beta inside its bounds, both to
+    the tolerance)."""
 
     def __init__(self, m):
         self.m = m
