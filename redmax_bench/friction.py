@@ -65,7 +65,7 @@ _STAGES = (  # (module, function, label): the stages of a walker step, timed fro
     (staggered, "bisp.body_frames", "  body frames (FK, inertias, twists, Jdot qdot)"),
     (staggered, "staggered_rows", "  contact detection + rows"),
     (staggered, "condense", "  condensation (P, Delassus blocks, lambda map)"),
-    (staggered, "bisp.linear_wrenches", "  BISP joint-wrench map (Eq. 15-17)"),
+    (staggered, "bisp.wrench_map", "  BISP joint wrenches, constant part (Eq. 15-17)"),
     (staggered, "staggered_kernel", "  staggered iterations (compiled loop)"),
     (staggered, "finish", "  outputs"),
     (stepper, "stabilization.project_chord", "loop post-stabilization"),

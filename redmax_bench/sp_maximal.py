@@ -20,8 +20,9 @@ from __future__ import annotations
 import numpy as np
 import pinocchio as pin
 
+from redmax_ros.core.friction.bisp import dense_wrench_map
 from redmax_ros.core.friction.condense import fixed_row_weights
-from redmax_ros.core.friction.staggered import Anderson, box_qp, loop_kernel
+from redmax_ros.core.friction.staggered import Anderson, box_qp, cone_excess, loop_kernel
 
 
 def _skew(a):
@@ -199,7 +200,7 @@ class MaximalSP:
             Mx = np.ascontiguousarray((HLQ @ Lam).reshape(-1, nf))
             e0, e2_ = np.zeros(0), np.zeros((0, nf))
             _, beta, _, _, it, _, _ = loop_kernel(
-                np.zeros((0, 0)), e2_, np.zeros((nf, 0)), e0, e0, W, Tr @ v0, e0, a0, Mx, fm.bound_mu, kmax,
+                np.zeros((0, 0)), e2_, np.zeros((nf, 0)), e0, e0, W, Tr @ v0, e0, a0, dense_wrench_map(Mx), fm.bound_mu, kmax,
                 True, e0, wT, st.tol, st.max_iter, st.anderson, e0, np.ascontiguousarray(beta))
             self.iterations.append(it)
             self._efforts(prows, lam0 + Lam @ beta, h)
@@ -222,7 +223,7 @@ class MaximalSP:
             bound = fm.bound_B @ np.abs(al).reshape(-1)
             if prev is not None:
                 res = float((np.abs(bound - prev) * wT).max(initial=0.0))
-                if res <= st.tol and np.all(np.abs(beta) <= bound * (1 + 1e-9) + 1e-14):
+                if res <= st.tol and cone_excess(beta, bound, wT) <= st.tol:
                     break
             prev = bound
             c = Tr @ v0  # slip velocity without friction (joint reactions are in v0 through G)

@@ -15,22 +15,27 @@ data.f[j] the wrench joint j transmits to its subtree (joint frame). Its constra
 distributed over the implicit contact points by the constant local operator of Eq. (16) built in
 contact.compile_friction; the loop-closing pins get their reaction straight from lambda.
 
-In the step the whole map is compiled (numba) and affine in the staggered unknowns x = [alpha_U; beta]
-(linear_wrenches): the same Newton-Euler pass in the world frame at the origin (recursive.py's
-convention) on the FrictionModel's own kinematics workspace (body_frames), giving W = W0 + Wx x per
-frictional joint; each staggered iteration then needs only W and alpha_j = h L_j W_j. ExternalForces,
-static_external and joint_alphas are the direct Pinocchio evaluation (one RNEA with fext per iterate)
-kept as the test reference.
+In the step the map is compiled (numba) and affine in the staggered unknowns x = [alpha_U; beta],
+W = W0 + Wx x per frictional joint, evaluated by the same Newton-Euler pass in the world frame at the
+origin (recursive.py's convention) on the FrictionModel's own kinematics workspace (body_frames):
+the constant part W0 once per step (wrench_map), the linear part Wx x at each staggered iterate
+(apply_wrenches: one pass with that iterate's velocity change, multipliers and impulses; Wx itself is
+never formed: building it took one pass per column of x, ~50 us a walker step against ~1-2 us a pass);
+each iteration then needs alpha_j = h L_j W_j. ExternalForces, static_external and joint_alphas are the
+direct Pinocchio evaluation (one RNEA with fext per iterate) kept as the test reference.
 
 Deviation (stated): the implicit (h D_m, h^2 K_m) corrections of maximal springs and body damping
 are not in f_ext (their explicit values at q are); they change the joint normal forces by O(h).
 """
 from __future__ import annotations
 
+from collections import namedtuple
+
 import numpy as np
 import pinocchio as pin
 from numba import njit
 
+from redmax_ros.core.jit import njit_inline
 from redmax_ros.core.solvers import recursive as rc
 from redmax_ros.core.friction.contact import FrictionWork, coupling_csr
 from redmax_ros.core.dynamics.forces import spring_terms
@@ -103,10 +108,6 @@ def _cross(a, b, axis=-1):
     return np.stack([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0], axis=axis)
 
 
-# ------------------------------------------------------------------------------------------------
-# The affine map x = [alpha_U; beta] -> joint wrenches (compiled; world frame at the origin as in
-# recursive.py, Pinocchio's (linear, angular) order)
-# ------------------------------------------------------------------------------------------------
 def body_frames(fm, work: FrictionWork, q, v_prev_r):
     """Forward kinematics of the step for the BISP map and contact detection (recursive.py kernels on
     the friction stage's own workspace ``work.tree``: no per-joint Pinocchio calls): world placements R,
@@ -123,161 +124,6 @@ def body_frames(fm, work: FrictionWork, q, v_prev_r):
         ws.v = v_prev_r
         rc.jv_kernel(topo.parents, topo.idx_v, topo.nv_j, ws.St, v_prev_r, ws.ov)
     return ws, rc.bias_acceleration(topo, ws, work.Z)
-
-
-@njit(cache=True, nogil=True)
-def _add_wrench(E, j, col, x, f, s):
-    """E[j, :, col] += s [f; x x f] (world wrench about the origin of force f at point x)."""
-    E[j, 0, col] += s * f[0]
-    E[j, 1, col] += s * f[1]
-    E[j, 2, col] += s * f[2]
-    E[j, 3, col] += s * (x[1] * f[2] - x[2] * f[1])
-    E[j, 4, col] += s * (x[2] * f[0] - x[0] * f[2])
-    E[j, 5, col] += s * (x[0] * f[1] - x[1] * f[0])
-
-
-@njit(cache=True, nogil=True)
-def _external_kernel(nu, h, c_jid, c_X, c_n, c_t, pin_ja, pin_jb, pin_col0, pin_m, lp_ja, lp_jb, xa, xb, F0, dF,
-                     E0, E):
-    """External forces of the tree (§5.3, Eq. 17-18) as world wrenches per body: E0 (nj,6) at x = 0 and
-    E (nj,6,nx) per unit x = [alpha_U; beta]:
-      * ground contact c (Eq. 11-12): +n/h per unit alpha_c, -t_k/h per unit beta_(2c+k), at X_c;
-      * loop-pin friction moments r axis/h per unit beta (site b +, site a -);
-      * loop closures f_lambda = -J^T G^T lambda / h: F = Sel^T lambda / h on site b, -F on site a,
-        F0 (at lambda_0) into E0, dF (L,3,nx) per unit x into E."""
-    s = 1.0 / h
-    for c in range(len(c_jid)):
-        j = c_jid[c]
-        _add_wrench(E, j, c, c_X[c], c_n[c], s)
-        _add_wrench(E, j, nu + 2 * c, c_X[c], c_t[c, 0], -s)
-        _add_wrench(E, j, nu + 2 * c + 1, c_X[c], c_t[c, 1], -s)
-    for q in range(len(pin_ja)):
-        col = pin_col0 + q
-        for a in range(3):
-            E[pin_jb[q], 3 + a, col] += pin_m[q, a]
-            E[pin_ja[q], 3 + a, col] -= pin_m[q, a]
-    nx = E.shape[2]
-    f = np.empty(3)
-    for lp in range(len(lp_ja)):
-        ja, jb = lp_ja[lp], lp_jb[lp]
-        for a in range(3):
-            f[a] = F0[lp, a]
-        x, y = xa[lp], xb[lp]
-        E0[ja, 0] -= f[0]
-        E0[ja, 1] -= f[1]
-        E0[ja, 2] -= f[2]
-        E0[ja, 3] -= x[1] * f[2] - x[2] * f[1]
-        E0[ja, 4] -= x[2] * f[0] - x[0] * f[2]
-        E0[ja, 5] -= x[0] * f[1] - x[1] * f[0]
-        E0[jb, 0] += f[0]
-        E0[jb, 1] += f[1]
-        E0[jb, 2] += f[2]
-        E0[jb, 3] += y[1] * f[2] - y[2] * f[1]
-        E0[jb, 4] += y[2] * f[0] - y[0] * f[2]
-        E0[jb, 5] += y[0] * f[1] - y[1] * f[0]
-        d0, d1, d2 = dF[lp, 0], dF[lp, 1], dF[lp, 2]  # _add_wrench's terms, as row operations over the columns
-        Ea, Eb = E[ja], E[jb]
-        for col in range(nx):
-            f0, f1, f2 = d0[col], d1[col], d2[col]
-            Ea[0, col] += -1.0 * f0
-            Ea[1, col] += -1.0 * f1
-            Ea[2, col] += -1.0 * f2
-            Ea[3, col] += -1.0 * (x[1] * f2 - x[2] * f1)
-            Ea[4, col] += -1.0 * (x[2] * f0 - x[0] * f2)
-            Ea[5, col] += -1.0 * (x[0] * f1 - x[1] * f0)
-            Eb[0, col] += 1.0 * f0
-            Eb[1, col] += 1.0 * f1
-            Eb[2, col] += 1.0 * f2
-            Eb[3, col] += 1.0 * (y[1] * f2 - y[2] * f1)
-            Eb[4, col] += 1.0 * (y[2] * f0 - y[0] * f2)
-            Eb[5, col] += 1.0 * (y[0] * f1 - y[1] * f0)
-
-
-@njit(cache=True, nogil=True)
-def _reaction_kernel(parents, idx_v, nv_j, St, I, ov, Z, g, acc0, Ax, E0, E, R, p, jids, W0, Wx):
-    """Eq. (15)/(17) and the leaf-to-root distribution of §5.2.2 as one Newton-Euler pass, affine in x:
-    body accelerations a_i = J_i (acc0 + Ax x) + Z_i - (g, 0) (forward, tree prefix sums), body wrenches
-    F_i = I_i a_i + ov_i x* (I_i ov_i) - f_ext,i (E0 + E x), backward subtree sums (the backward pass of
-    the RNEA), and each frictional joint's wrench in its joint frame (f = R^T F, tau = R^T (tau_o - p x F)):
-    W0 (J,6) constant part, Wx (J,6,nx) per unit x. Equals Pinocchio's rnea(q, qdot^prev, acc, fext).f.
-    E is scratch: it is overwritten by the linear part of the body wrenches and their subtree sums."""
-    nj = parents.shape[0]
-    nx = Ax.shape[1]
-    A0 = np.zeros((nj, 6))
-    AX = np.zeros((nj, 6, nx))
-    F0 = np.zeros((nj, 6))
-    FX = E  # in place: FX_i = I_i AX_i - E_i element by element
-    A0[0, 0], A0[0, 1], A0[0, 2] = -g[0], -g[1], -g[2]
-    a = np.empty(6)
-    hm = np.empty(6)
-    for j in range(1, nj):  # the per-x parts as row operations over the columns (contiguous rows: vectorised)
-        par = parents[j]
-        AXj, AXp = AX[j], AX[par]
-        for r in range(6):
-            A0[j, r] = A0[par, r]
-            Rj, Rp = AXj[r], AXp[r]
-            for col in range(nx):
-                Rj[col] = Rp[col]
-        for c in range(idx_v[j], idx_v[j] + nv_j[j]):
-            Axc = Ax[c]
-            for r in range(6):
-                sc = St[c, r]
-                A0[j, r] += sc * acc0[c]
-                Rj = AXj[r]
-                for col in range(nx):
-                    Rj[col] += sc * Axc[col]
-        for r in range(6):
-            a[r] = A0[j, r] + Z[j, r]
-        for r in range(6):
-            s = 0.0
-            t = 0.0
-            for k in range(6):
-                s += I[j, r, k] * a[k]
-                t += I[j, r, k] * ov[j, k]
-            F0[j, r] = s - E0[j, r]
-            hm[r] = t
-        rc.add_motion_cross_force(ov[j], hm, F0[j])  # F0 += v x* h (gyroscopic/bias wrench)
-        FXj = FX[j]
-        X0, X1, X2, X3, X4, X5 = AXj[0], AXj[1], AXj[2], AXj[3], AXj[4], AXj[5]
-        for r in range(6):  # FX_j = I_j AX_j - E_j, the six products of a row in one pass over the columns
-            Fr = FXj[r]
-            i0, i1, i2, i3, i4, i5 = I[j, r, 0], I[j, r, 1], I[j, r, 2], I[j, r, 3], I[j, r, 4], I[j, r, 5]
-            for col in range(nx):
-                Fr[col] = -Fr[col] + i0 * X0[col] + i1 * X1[col] + i2 * X2[col] + i3 * X3[col] + i4 * X4[col] \
-                    + i5 * X5[col]
-    for j in range(nj - 1, 0, -1):
-        par = parents[j]
-        FXj, FXp = FX[j], FX[par]
-        for r in range(6):
-            F0[par, r] += F0[j, r]
-            Fp, Fj = FXp[r], FXj[r]
-            for col in range(nx):
-                Fp[col] += Fj[col]
-    tq = np.empty((3, nx))  # moments about the joint origin, per column
-    for q in range(len(jids)):
-        j = jids[q]
-        px, py, pz = p[j, 0], p[j, 1], p[j, 2]
-        fx, fy, fz, tx, ty, tz = F0[j, 0], F0[j, 1], F0[j, 2], F0[j, 3], F0[j, 4], F0[j, 5]
-        tx -= py * fz - pz * fy
-        ty -= pz * fx - px * fz
-        tz -= px * fy - py * fx
-        for r in range(3):
-            W0[q, r] = R[j, 0, r] * fx + R[j, 1, r] * fy + R[j, 2, r] * fz
-            W0[q, 3 + r] = R[j, 0, r] * tx + R[j, 1, r] * ty + R[j, 2, r] * tz
-        # the same per column x, as row operations over the columns (contiguous: vectorised)
-        Fx, Fy, Fz = FX[j, 0], FX[j, 1], FX[j, 2]
-        Tx, Ty, Tz = FX[j, 3], FX[j, 4], FX[j, 5]
-        mx, my, mz = tq[0], tq[1], tq[2]
-        for col in range(nx):
-            mx[col] = Tx[col] - (py * Fz[col] - pz * Fy[col])
-            my[col] = Ty[col] - (pz * Fx[col] - px * Fz[col])
-            mz[col] = Tz[col] - (px * Fy[col] - py * Fx[col])
-        for r in range(3):
-            r0, r1, r2 = R[j, 0, r], R[j, 1, r], R[j, 2, r]
-            Wf, Wt = Wx[q, r], Wx[q, 3 + r]
-            for col in range(nx):
-                Wf[col] = r0 * Fx[col] + r1 * Fy[col] + r2 * Fz[col]
-                Wt[col] = r0 * mx[col] + r1 * my[col] + r2 * mz[col]
 
 
 def static_external_world(mech, kin, ws, site_forces=None):
@@ -303,122 +149,297 @@ def static_external_world(mech, kin, ws, site_forces=None):
     return out
 
 
-def linear_wrenches(mech, fm, work: FrictionWork, kin, ws, Z, h, v0, PX, v_prev_r, lam0, LamX, cs, nu, nf, cons,
-                    site_forces=None, jdot_qdot=None):
-    """The joint wrenches of Eq. (15)-(17) as an affine function of the staggered unknowns
-    x = [alpha_U; beta]: W = W0 + Wx x, W0 (J+Lf, 6), Wx (J+Lf, 6, nx); the multipliers of Eq. (16) are
-    then alpha_j = h L_j W_j (L_j the constant local least-squares operator, contact.ls_operator).
+# ------------------------------------------------------------------------------------------------
+# The joint wrenches as a function of x = [alpha_U; beta] (compiled; world frame at the origin as in
+# recursive.py, Pinocchio's (linear, angular) order): the constant part once per step, the part linear
+# in x evaluated at each iterate (apply_wrenches) by one Newton-Euler pass over the tree
+# ------------------------------------------------------------------------------------------------
+WrenchMap = namedtuple("WrenchMap", [
+    "nu", "inv_h",  # unilateral rows of x; 1/h [1/s]
+    "PX", "T_ptr", "T_idx", "T_val",  # velocity per unit x (hyper-reduced, condense.py), coupling matrix (Eq. 9, CSR)
+    "LamX", "sel_r", "sel_c", "sel_v",  # bilateral multipliers per unit x; lambda -> point forces (triplets)
+    "loop_index", "n_tree",  # frictional loops' point forces (their pins' wrench rows follow the tree joints')
+    "c_jid", "c_X", "c_n", "c_t",  # ground contacts: body, point, normal, tangents (world)
+    "pin_ja", "pin_jb", "pin_col0", "pin_mh",  # loop-pin friction moments per unit beta (/h)
+    "f_ja", "f_jb", "f_xa", "f_xb",  # point forces: -F on body f_ja at f_xa (none: -1), +F on f_jb at f_xb
+    "parents", "idx_v", "nv_j", "St", "I", "R", "p", "jids",  # the tree (body_frames) and the frictional joints
+    "dense",  # (6J, nx): an explicitly given linear part (no tree: parents empty)
+    "s_u", "s_acc", "s_lam", "s_F", "s_E", "s_A", "s_a", "s_h", "s_f",  # scratch
+])
+
+
+@njit(cache=True, nogil=True)
+def _point_forces(lam, sel_r, sel_c, sel_v, inv_h, F):
+    """F (k,3) = Sel^T lambda / h: the point forces of the bilateral rows (loop closures, prescribed sites)."""
+    F[:] = 0.0
+    for q in range(len(sel_r)):
+        c = sel_c[q]
+        F[c // 3, c % 3] += sel_v[q] * lam[sel_r[q]]
+    for k in range(F.shape[0]):
+        for a in range(3):
+            F[k, a] *= inv_h
+
+
+@njit(cache=True, nogil=True)
+def _add_force(E, j, x, f, s):
+    """E[j] += s [f; x x f] (world wrench about the origin of force f at point x)."""
+    E[j, 0] += s * f[0]
+    E[j, 1] += s * f[1]
+    E[j, 2] += s * f[2]
+    E[j, 3] += s * (x[1] * f[2] - x[2] * f[1])
+    E[j, 4] += s * (x[2] * f[0] - x[0] * f[2])
+    E[j, 5] += s * (x[0] * f[1] - x[1] * f[0])
+
+
+@njit_inline
+def _external(wm, x, F, E):
+    """E (nj,6) += the external forces of the tree (§5.3, Eq. 17-18) as world wrenches per body:
+      * ground contact c (Eq. 11-12) at X_c: n alpha_c / h - t_k beta_(2c+k) / h;
+      * loop-pin friction moments r axis beta / h (site b +, site a -);
+      * point forces F of the bilateral rows (loop closures f_lambda = -J^T G^T lambda / h: -F on site a,
+        +F on site b; prescribed sites on one body).
+    The contact and pin terms are skipped with x empty (the constant part)."""
+    nu, s = wm.nu, wm.inv_h
+    if x.shape[0]:
+        f = wm.s_f
+        for c in range(len(wm.c_jid)):
+            a, b0, b1 = x[c], x[nu + 2 * c], x[nu + 2 * c + 1]
+            for k in range(3):
+                f[k] = wm.c_n[c, k] * a - wm.c_t[c, 0, k] * b0 - wm.c_t[c, 1, k] * b1
+            _add_force(E, wm.c_jid[c], wm.c_X[c], f, s)
+        for q in range(len(wm.pin_ja)):
+            b = x[wm.pin_col0 + q]
+            for a in range(3):
+                E[wm.pin_jb[q], 3 + a] += wm.pin_mh[q, a] * b
+                E[wm.pin_ja[q], 3 + a] -= wm.pin_mh[q, a] * b
+    for k in range(F.shape[0]):
+        if wm.f_ja[k] >= 0:
+            _add_force(E, wm.f_ja[k], wm.f_xa[k], F[k], -1.0)
+        _add_force(E, wm.f_jb[k], wm.f_xb[k], F[k], 1.0)
+
+
+@njit_inline
+def _reactions(wm, ov, Z, g, acc, E, bias, W):
+    """Eq. (15)/(17) and the leaf-to-root distribution of §5.2.2 as one Newton-Euler pass: body accelerations
+    a_i = J_i acc (+ Z_i - (g, 0) with ``bias``; forward, tree prefix sums), body wrenches F_i = I_i a_i
+    (+ ov_i x* (I_i ov_i) with ``bias``) - E_i, backward subtree sums (the backward pass of the RNEA), and each
+    frictional joint's wrench in its joint frame (f = R^T F, tau = R^T (tau_o - p x F)) into W (J,6).
+    With bias (the constant part) it equals Pinocchio's rnea(q, qdot^prev, acc, fext).f; without, its
+    part linear in (acc, E). E is overwritten by the subtree sums; the loop pins' rows of W are untouched."""
+    parents, idx_v, nv_j, St, I = wm.parents, wm.idx_v, wm.nv_j, wm.St, wm.I
+    nj = parents.shape[0]
+    A, a, hm = wm.s_A, wm.s_a, wm.s_h
+    A[0, :] = 0.0
+    if bias:
+        A[0, 0], A[0, 1], A[0, 2] = -g[0], -g[1], -g[2]
+    for j in range(1, nj):
+        par = parents[j]
+        for r in range(6):
+            A[j, r] = A[par, r]
+        for c in range(idx_v[j], idx_v[j] + nv_j[j]):
+            ac = acc[c]
+            for r in range(6):
+                A[j, r] += St[c, r] * ac
+        for r in range(6):
+            a[r] = A[j, r] + Z[j, r] if bias else A[j, r]
+        Ij, Ej = I[j], E[j]
+        for r in range(6):
+            s = 0.0
+            for k in range(6):
+                s += Ij[r, k] * a[k]
+            Ej[r] = s - Ej[r]
+        if bias:
+            for r in range(6):
+                t = 0.0
+                for k in range(6):
+                    t += Ij[r, k] * ov[j, k]
+                hm[r] = t
+            rc.add_motion_cross_force(ov[j], hm, Ej)  # F += v x* h (gyroscopic/bias wrench)
+    for j in range(nj - 1, 0, -1):
+        par = parents[j]
+        for r in range(6):
+            E[par, r] += E[j, r]
+    R, p, jids = wm.R, wm.p, wm.jids
+    for q in range(len(jids)):
+        j = jids[q]
+        px, py, pz = p[j, 0], p[j, 1], p[j, 2]
+        fx, fy, fz, tx, ty, tz = E[j, 0], E[j, 1], E[j, 2], E[j, 3], E[j, 4], E[j, 5]
+        tx -= py * fz - pz * fy
+        ty -= pz * fx - px * fz
+        tz -= px * fy - py * fx
+        for r in range(3):
+            W[q, r] = R[j, 0, r] * fx + R[j, 1, r] * fy + R[j, 2, r] * fz
+            W[q, 3 + r] = R[j, 0, r] * tx + R[j, 1, r] * ty + R[j, 2, r] * tz
+
+
+@njit_inline
+def _pin_rows(wm, F, W):
+    """The frictional loop pins' rows of W: their loop's point force (world)."""
+    for q in range(len(wm.loop_index)):
+        li = wm.loop_index[q]
+        for a in range(3):
+            W[wm.n_tree + q, a] = F[li, a]
+        for a in range(3, 6):
+            W[wm.n_tree + q, a] = 0.0
+
+
+@njit_inline
+def constant_wrenches(wm, ov, Z, g, v0, v_prev, lam0, E0, W0):
+    """W0 (J,6): the joint wrenches of Eq. (15)-(17) at x = 0: reduced accelerations (T qdot_0 - qdot^prev)/h,
+    the point forces of lambda_0, the constant world wrenches E0 (nj,6; overwritten) of the step."""
+    acc = wm.s_acc
+    for i in range(acc.shape[0]):
+        s = 0.0
+        for q in range(wm.T_ptr[i], wm.T_ptr[i + 1]):
+            s += wm.T_val[q] * v0[wm.T_idx[q]]
+        acc[i] = (s - v_prev[i]) * wm.inv_h
+    _point_forces(lam0, wm.sel_r, wm.sel_c, wm.sel_v, wm.inv_h, wm.s_F)
+    _external(wm, v0[:0], wm.s_F, E0)
+    _reactions(wm, ov, Z, g, acc, E0, True, W0)
+    _pin_rows(wm, wm.s_F, W0)
+
+
+@njit_inline
+def apply_wrenches(wm, x, out):
+    """out (6J,) = the part of the joint wrenches linear in x = [alpha_U; beta], W(x) - W(0) (Eq. 15-17), in
+    one Newton-Euler pass: the velocity change PX x gives the acceleration T PX x / h (Eq. 9), the
+    multipliers LamX x the point forces of the bilateral rows, x itself the contact impulses and pin
+    moments. With no tree (``dense`` map): out = dense x."""
+    if wm.parents.shape[0] == 0:
+        np.dot(wm.dense, x, out)
+        return
+    u, acc, lam, E = wm.s_u, wm.s_acc, wm.s_lam, wm.s_E
+    np.dot(wm.PX, x, u)
+    for i in range(acc.shape[0]):
+        s = 0.0
+        for q in range(wm.T_ptr[i], wm.T_ptr[i + 1]):
+            s += wm.T_val[q] * u[wm.T_idx[q]]
+        acc[i] = s * wm.inv_h
+    if lam.shape[0]:
+        np.dot(wm.LamX, x, lam)
+    _point_forces(lam, wm.sel_r, wm.sel_c, wm.sel_v, wm.inv_h, wm.s_F)
+    E[:] = 0.0
+    _external(wm, x, wm.s_F, E)
+    W = out.reshape((out.shape[0] // 6, 6))
+    _reactions(wm, E[:, :0], E[:, :0], E[0, :0], acc, E, False, W)
+    _pin_rows(wm, wm.s_F, W)
+
+
+@njit(cache=True, nogil=True)
+def wrench_work(wm):
+    """About the multiply-adds of one apply_wrenches (the staggered loop's work units, solvers/budget.py)."""
+    return float(wm.PX.size + wm.LamX.size + wm.dense.size + 90 * wm.parents.shape[0] + 40 * wm.jids.shape[0])
+
+
+@njit(cache=True, nogil=True)
+def make_wrench_map(nu, h, PX, T_ptr, T_idx, T_val, LamX, sel_r, sel_c, sel_v, loop_index, n_tree, c_jid, c_X, c_n,
+                    c_t, pin_ja, pin_jb, pin_moment, f_ja, f_jb, f_xa, f_xb, parents, idx_v, nv_j, St, I, R, p, jids):
+    """The WrenchMap of a step (its scratch allocated here; pin moments divided by h)."""
+    n_pts = f_ja.shape[0]
+    return WrenchMap(nu, 1.0 / h, PX, T_ptr, T_idx, T_val, LamX, sel_r, sel_c, sel_v, loop_index, n_tree, c_jid, c_X,
+                     c_n, c_t, pin_ja, pin_jb, PX.shape[1] - len(pin_ja), pin_moment / h, f_ja, f_jb, f_xa, f_xb,
+                     parents, idx_v, nv_j, St, I, R, p, jids, np.zeros((0, PX.shape[1])), np.empty(PX.shape[0]),
+                     np.empty(len(T_ptr) - 1), np.empty(LamX.shape[0]), np.empty((n_pts, 3)),
+                     np.empty((parents.shape[0], 6)), np.empty((parents.shape[0], 6)), np.empty(6), np.empty(6),
+                     np.empty(3))
+
+
+def dense_wrench_map(Mx):
+    """A WrenchMap whose linear part is the given matrix Mx (rows, nx) (apply_wrenches: Mx x), for callers
+    with the map in closed form (the maximal-coordinates baseline, tests)."""
+    Mx = np.ascontiguousarray(Mx, dtype=float)
+    nx = Mx.shape[1]
+    i0, f0 = np.zeros(0, dtype=np.int64), np.zeros(0)
+    f2, f3 = np.zeros((0, 3)), np.zeros((0, 6, 6))
+    return WrenchMap(0, 1.0, np.zeros((0, nx)), np.zeros(1, dtype=np.int64), i0, f0, np.zeros((0, nx)), i0, i0, f0,
+                     i0, 0, i0, f2, f2, np.zeros((0, 2, 3)), i0, i0, 0, f2, i0, i0, f2, f2, i0, i0, i0,
+                     np.zeros((0, 6)), f3, np.zeros((0, 3, 3)), f2, i0, Mx, f0, f0, f0, f2, np.zeros((0, 6)),
+                     np.zeros((0, 6)), np.empty(6), np.empty(6), np.empty(3))
+
+
+def wrench_map(mech, fm, work: FrictionWork, kin, ws, Z, h, v0, PX, v_prev_r, lam0, LamX, cs, nu, nf, cons,
+               site_forces=None, jdot_qdot=None):
+    """The joint wrenches of Eq. (15)-(17) as a function of the staggered unknowns x = [alpha_U; beta]:
+    W(x) = W0 + (the linear part, apply_wrenches(wm, x)), J = frictional joints + frictional loop pins rows;
+    the multipliers of Eq. (16) are then alpha_j = h L_j W_j (L_j the constant local least-squares operator,
+    contact.ls_operator). Returns (W0 (J,6), wm).
 
     Everything is linear in x once q and qdot^prev are fixed: the constrained velocity qdot_0 + PX x
     (hyper-reduced; PX = P [U^T, -T^T], condense.py) gives the acceleration (qdot^con - qdot^prev)/h in
     reduced coordinates through the coupling matrix (Eq. 9), the bilateral multipliers lambda = lambda_0 +
     LamX x (§5.3: loop closures and prescribed sites act as external forces), the ground impulses
-    (Eq. 11-12) and the loop-pin friction moments. One compiled Newton-Euler pass over the tree
-    (map_kernel) gives both parts; the loop pins' rows are the loop forces F = Sel^T lambda / h (world).
-    Same numbers as Pinocchio's RNEA with the external forces (bisp.joint_alphas, the test reference).
+    (Eq. 11-12) and the loop-pin friction moments. The constant part is one Newton-Euler pass over the tree
+    here, the linear part one pass per staggered iterate (a pass costs about what a product with the
+    dense (6J x nx) map would, which then needs no building). Same numbers as Pinocchio's RNEA with the
+    external forces (bisp.joint_alphas, the test reference).
     With a configuration-dependent J_rR (catalogue joint maps) the reduced acceleration of the step is
     (J_rR qdot_R^con - qdot_r^prev)/h + Jdot_rR qdot_R (Eq. 2.89, the term forces.assemble puts in the RHS):
     ``jdot_qdot`` (nv,) is added by passing qdot_r^prev - h jdot_qdot as the previous velocity (without it
     a spherical_exp joint's reaction misses M Sdot gdot, an O(1) error in its normal forces)."""
     topo = fm.topo
-    nx = nu + nf
     E0 = static_external_world(mech, kin, ws, site_forces)
-    E = np.zeros((topo.njoints, 6, nx))
     J = len(fm.fj_names)
-    W0, Wx = np.zeros((J, 6)), np.zeros((J, 6, nx))
-    for name, sl in cons.site_rows.items():  # prescribed sites (§5.3), rare: numpy
-        s = mech.site_index[name]
-        x = kin.X[kin.row[s]]
-        j = mech.site_jid[s]
-        f0, dFs = -lam0[sl] / h, -LamX[sl] / h
-        P = cons.site_axes.get(name)
-        if P is not None:  # rows along the site's k prescribed directions: their world force P^T f
-            f0, dFs = P.T @ f0, P.T @ dFs
-        E0[j] += np.concatenate([f0, _cross(x, f0)])
-        E[j] += np.concatenate([dFs, _cross(x[:, None], dFs, axis=0)], axis=0)
+    nloops = len(mech.loop_ab) if cons.loop_rows.stop else 0
+    sel_r, sel_c, sel_v = (fm.sel_r, fm.sel_c, fm.sel_v) if nloops else (_NO_INT, _NO_INT, _NO_F)
+    f_ja, f_jb = fm.loop_ja[:nloops], fm.loop_jb[:nloops]
+    f_xa, f_xb = kin.X[fm.loop_xa[:nloops]], kin.X[fm.loop_xb[:nloops]]
+    if cons.site_rows:  # prescribed sites (§5.3), rare: their rows' point forces -P^T lambda / h on one body
+        rows, cols, vals, jb, xb = [sel_r], [sel_c], [sel_v], [f_jb], [f_xb]
+        k = nloops
+        for name, sl in cons.site_rows.items():
+            s = mech.site_index[name]
+            P = cons.site_axes.get(name)
+            P = np.eye(3) if P is None else P
+            r = np.arange(sl.start, sl.stop)
+            rr, aa = np.meshgrid(r, np.arange(3), indexing="ij")
+            rows.append(rr.ravel())
+            cols.append(3 * k + aa.ravel())
+            vals.append(-P.reshape(-1))
+            jb.append([mech.site_jid[s]])
+            xb.append(kin.X[kin.row[s]][None])
+            k += 1
+        sel_r, sel_c = np.concatenate(rows).astype(np.int64), np.concatenate(cols).astype(np.int64)
+        sel_v = np.concatenate(vals).astype(float)
+        f_jb = np.concatenate([np.asarray(a, dtype=np.int64) for a in jb])
+        f_xb = np.concatenate(xb)
+        f_ja = np.concatenate([f_ja, np.full(k - nloops, -1, dtype=np.int64)])
+        f_xa = np.concatenate([f_xa, np.zeros((k - nloops, 3))])
     if cs is None:
         c_jid, c_X, c_n, c_t = _NO_INT, _NO_3, _NO_3, _NO_23
     else:
         c_jid, c_X, c_n, c_t = cs.jid, cs.X, cs.n, cs.t
-    nloops = len(mech.loop_ab) if cons.loop_rows.stop else 0
     v_prev = v_prev_r if jdot_qdot is None else v_prev_r - h * jdot_qdot
-    map_kernel(nu, h, v0, PX, v_prev, *coupling_csr(fm, work), lam0, LamX, fm.sel_r, fm.sel_c, fm.sel_v,
-                nloops, kin.X, fm.loop_xa, fm.loop_xb, fm.loop_index, fm.n_tree, c_jid, c_X, c_n, c_t, fm.pin_ja,
-                fm.pin_jb, fm.pin_moment, fm.loop_ja, fm.loop_jb, topo.parents, topo.idx_v, topo.nv_j, ws.St, ws.I,
-                ws.ov, Z, fm.gravity, ws.R, ws.p, fm.fj_jid, E0, E, W0, Wx)
-    return W0, Wx
+    wm = make_wrench_map(nu, h, np.ascontiguousarray(PX), *coupling_csr(fm, work), np.ascontiguousarray(LamX), sel_r,
+                         sel_c, sel_v, fm.loop_index, fm.n_tree, c_jid, c_X, c_n, c_t, fm.pin_ja, fm.pin_jb,
+                         fm.pin_moment, f_ja, f_jb, np.ascontiguousarray(f_xa), np.ascontiguousarray(f_xb),
+                         topo.parents, topo.idx_v, topo.nv_j, ws.St, ws.I, ws.R, ws.p, fm.fj_jid)
+    W0 = np.zeros((J, 6))
+    constant_wrenches(wm, ws.ov, Z, fm.gravity, v0, v_prev, lam0, E0, W0)
+    return W0, wm
 
 
 _NO_INT = np.zeros(0, dtype=np.int64)
+_NO_F = np.zeros(0)
 _NO_3 = np.zeros((0, 3))
 _NO_23 = np.zeros((0, 2, 3))
 
 
-@njit(cache=True, nogil=True)
-def map_kernel(nu, h, v0, PX, v_prev, T_ptr, T_idx, T_val, lam0, LamX, sel_r, sel_c, sel_v, nloops, X, rows_a,
-                rows_b, loop_index, n_tree, c_jid, c_X, c_n, c_t, pin_ja, pin_jb, pin_m, lp_ja, lp_jb, parents, idx_v,
-                nv_j, St, I, ov, Z, g, R, p, jids, E0, E, W0, Wx):
-    """linear_wrenches in one compiled call: reduced accelerations acc0 = (T qdot_0 - qdot^prev)/h and
-    Ax = T PX / h (T = coupling matrix of Eq. 9 in CSR form), loop forces F = Sel^T (lambda_0 + LamX x) / h
-    (Sel as triplets), then _external_kernel and _reaction_kernel."""
-    nv, nx = len(v_prev), PX.shape[1]
-    inv_h = 1.0 / h
-    acc0 = np.empty(nv)
-    Ax = np.zeros((nv, nx))
-    for i in range(nv):
-        s = 0.0
-        for q in range(T_ptr[i], T_ptr[i + 1]):
-            c, t = T_idx[q], T_val[q]
-            s += t * v0[c]
-            for col in range(nx):
-                Ax[i, col] += t * PX[c, col]
-        acc0[i] = (s - v_prev[i]) * inv_h
-        for col in range(nx):
-            Ax[i, col] *= inv_h
-    F0 = np.zeros((nloops, 3))
-    dF = np.zeros((nloops, 3, nx))
-    if nloops:
-        for q in range(len(sel_r)):
-            r, c, sv = sel_r[q], sel_c[q], sel_v[q]
-            lp, a = c // 3, c % 3
-            F0[lp, a] += sv * lam0[r]
-            for col in range(nx):
-                dF[lp, a, col] += sv * LamX[r, col]
-        for lp in range(nloops):
-            for a in range(3):
-                F0[lp, a] *= inv_h
-                for col in range(nx):
-                    dF[lp, a, col] *= inv_h
-        for q in range(len(loop_index)):
-            li = loop_index[q]
-            for a in range(3):
-                W0[n_tree + q, a] = F0[li, a]
-                for col in range(nx):
-                    Wx[n_tree + q, a, col] = dF[li, a, col]
-    xa = np.empty((nloops, 3))
-    xb = np.empty((nloops, 3))
-    for lp in range(nloops):
-        for a in range(3):
-            xa[lp, a] = X[rows_a[lp], a]
-            xb[lp, a] = X[rows_b[lp], a]
-    pin_mh = pin_m * inv_h
-    _external_kernel(nu, h, c_jid, c_X, c_n, c_t, pin_ja, pin_jb, nx - len(pin_ja), pin_mh, lp_ja[:nloops],
-                     lp_jb[:nloops], xa, xb, F0, dF, E0, E)
-    _reaction_kernel(parents, idx_v, nv_j, St, I, ov, Z, g, acc0, Ax, E0, E, R, p, jids, W0, Wx)
+def joint_alphas_at(fm, h, W0, wm, x):
+    """alpha of the frictional joints at x (((J) kmax,)): Eq. (16) applied to W0 + the linear part at x."""
+    W = W0.reshape(-1) + _apply(wm, x)
+    return (h * np.einsum("jkl,jl->jk", fm.L, W.reshape(-1, 6))).reshape(-1)
 
 
-def affine_alphas(fm, h, W0, Wx):
-    """(a0 ((J+Lf) kmax,), Mx ((J+Lf) kmax, nx)): alpha_joints = a0 + Mx x (Eq. 16 applied to W0 + Wx x)."""
-    a0 = h * np.einsum("jkl,jl->jk", fm.L, W0)
-    Mx = h * np.matmul(fm.L, Wx)
-    return a0.reshape(-1), Mx.reshape(-1, Wx.shape[2])
+def _apply(wm, x):
+    out = np.zeros(6 * len(wm.jids) + 6 * len(wm.loop_index) if wm.parents.shape[0] else wm.dense.shape[0])
+    apply_wrenches(wm, np.ascontiguousarray(x, dtype=float), out)
+    return out
 
 
 def linear_alphas(mech, fm, work: FrictionWork, kin, q, v_prev_r, h, v0, PX, lam0, LamX, cs, nu, nf, cons,
                   site_forces=None):
-    """alpha_joints = a0 + Mx x from the condensed velocity qdot_0 + PX x (hyper-reduced) and
-    lambda_0 + LamX x: body_frames + linear_wrenches + affine_alphas in one call (tests, reference)."""
+    """x -> the joint multipliers alpha at x from the condensed velocity qdot_0 + PX x (hyper-reduced) and
+    lambda_0 + LamX x: body_frames + wrench_map + Eq. (16) (tests, reference)."""
     ws, Z = body_frames(fm, work, q, v_prev_r)
-    W0, Wx = linear_wrenches(mech, fm, work, kin, ws, Z, h, v0, np.ascontiguousarray(PX), v_prev_r, lam0, LamX, cs,
-                             nu, nf, cons, site_forces)
-    return affine_alphas(fm, h, W0, Wx)
+    W0, wm = wrench_map(mech, fm, work, kin, ws, Z, h, v0, PX, v_prev_r, lam0, LamX, cs, nu, nf, cons, site_forces)
+    return lambda x: joint_alphas_at(fm, h, W0, wm, x)

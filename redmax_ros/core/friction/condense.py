@@ -25,9 +25,112 @@ from redmax_ros.core.linalg import cholesky
 
 
 @njit(cache=True, nogil=True)
+def ancestor_chains(A):
+    """(lam, work): lam[k] the largest j < k with A[k, j] != 0 (-1: none), and about the multiply-adds of
+    tree_inverse, or work = -1 when A has no branch-induced sparsity, i.e. when some nonzero A[k, j], j < k,
+    is not on k's chain lam(k), lam(lam(k)), ... (Featherstone, Rigid Body Dynamics Algorithms §6.5: the
+    reduced mass matrix of a tree in depth-first DOF order has it; eliminating the leaves first, A = L^T L,
+    then makes no fill)."""
+    n = A.shape[0]
+    lam = np.full(n, -1, dtype=np.int64)
+    work = 0
+    for k in range(n):
+        for j in range(k - 1, -1, -1):
+            if A[k, j] != 0.0:
+                lam[k] = j
+                break
+        c = lam[k]
+        depth = 0
+        for j in range(c, -1, -1):
+            if A[k, j] != 0.0:
+                while c > j:
+                    c = lam[c]
+                if c != j:
+                    return lam, -1
+        while c >= 0:  # the rest of the chain
+            c = lam[c]
+        c = lam[k]
+        while c >= 0:
+            depth += 1
+            c = lam[c]
+        work += (depth + 1) * (depth + 1) + (depth + 1) * k
+    return lam, work
+
+
+@njit(cache=True, nogil=True)
+def tree_inverse(A, lam):
+    """A^-1 of a symmetric positive definite A with branch-induced sparsity (ancestor_chains): the LTL
+    factorisation A = L^T L (Featherstone, RBDA Table 6.3: the rows from the last up, each update along the
+    ancestor chains only, no fill), L^-1 on the same pattern, A^-1 = L^-1 L^-T summed over the common
+    ancestors; O(n d^2 + n^2 d) for chains of depth d instead of O(n^3). ok = False when A is not positive
+    definite."""
+    n = A.shape[0]
+    L = np.zeros((n, n))
+    for k in range(n):
+        L[k, k] = A[k, k]
+        c = lam[k]
+        while c >= 0:
+            L[k, c] = A[k, c]
+            c = lam[c]
+    for k in range(n - 1, -1, -1):
+        if not L[k, k] > 0.0:
+            return L, False
+        d = np.sqrt(L[k, k])
+        L[k, k] = d
+        i = lam[k]
+        while i >= 0:
+            L[k, i] /= d
+            i = lam[i]
+        i = lam[k]
+        while i >= 0:
+            f = L[k, i]
+            j = i
+            while j >= 0:
+                L[i, j] -= f * L[k, j]
+                j = lam[j]
+            i = lam[i]
+    Li = np.zeros((n, n))
+    for i in range(n):
+        Li[i, i] = 1.0 / L[i, i]
+        k = lam[i]
+        while k >= 0:  # (L^-1 L)_ik = 0: over the chain members m > k of row i
+            s = 0.0
+            m = i
+            while m > k:
+                s += Li[i, m] * L[m, k]
+                m = lam[m]
+            Li[i, k] = -s / L[k, k]
+            k = lam[k]
+    Ainv = np.empty((n, n))
+    for i in range(n):
+        for j in range(i + 1):
+            s = 0.0
+            k = j
+            while k >= 0:  # common ancestors of i and j: j's chain (Li[i, k] is zero off i's chain)
+                s += Li[i, k] * Li[j, k]
+                k = lam[k]
+            Ainv[i, j] = s
+            Ainv[j, i] = s
+    return Ainv, True
+
+
+@njit(cache=True, nogil=True)
 def spd_inverse(A):
+    """Inverse of a symmetric positive definite matrix; ok = False when A is not positive definite. With
+    branch-induced sparsity cheap enough to use (a tree's mass matrix: ancestor_chains' work below n^3/6)
+    through tree_inverse, else through the dense Cholesky factor (A = L L^T, A^-1 = L^-T L^-1; the
+    factorisation is linalg.cholesky)."""
+    n = A.shape[0]
+    lam, work = ancestor_chains(A)
+    if 0 <= work and 6 * work < n * n * n:
+        return tree_inverse(A, lam)
+    return dense_spd_inverse(A)
+
+
+@njit(cache=True, nogil=True)
+def dense_spd_inverse(A):
     """Inverse of a symmetric positive definite matrix through its Cholesky factor (A = L L^T,
-    A^-1 = L^-T L^-1; the factorisation is kkt._cholesky); ok = False when A is not positive definite."""
+    A^-1 = L^-T L^-1; the factorisation is linalg.cholesky); ok = False when A is not positive definite."""
     n = A.shape[0]
     L = np.zeros((n, n))
     if not cholesky(A, L):

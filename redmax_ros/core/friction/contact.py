@@ -81,7 +81,7 @@ class FrictionModel:
     loop_rowslices: list  # rows of each frictional loop in the loop block of G
     loop_sites: np.ndarray  # (Lf,2) site indices (a, b)
     bound_mu: np.ndarray | None = None  # (J+Lf,) when every row is a whole joint (no spherical): bound = mu |alpha|_1
-    # constant index maps of the compiled per-step set-up (bisp.linear_wrenches, detect, warm start)
+    # constant index maps of the compiled per-step set-up (bisp.wrench_map, detect, warm start)
     topo: object = None  # recursive.Topology of the model
     planar: np.ndarray | None = None  # FALLBACK joints when all are planar (bisp.body_frames fast path)
     gravity: np.ndarray | None = None  # (3,)

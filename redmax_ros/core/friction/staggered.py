@@ -12,8 +12,9 @@ eliminated, which the paper suggests for the small external systems.)
         min 1/2 alpha^T (U P U^T) alpha + alpha^T (U qdot(0, beta) - lo)      (PGS or ProxSuite)
   * BISP (Alg. 3 lines 8-14): joint reaction forces of the constrained velocity (Eq. 15/17), their
     leaf-to-root distribution (§5.2.2) and the local least squares of Eq. (16) -> joint alphas;
-    the wrenches are affine in x = [alpha; beta] (bisp.linear_wrenches, once per step), so each
-    iteration evaluates alpha_j = h L_j (W0 + Wx x)_j; loop pins from lambda (§5.3).
+    the wrenches are affine in x = [alpha; beta], W0 + Wx x: the constant part once per step
+    (bisp.wrench_map), the linear part at each iterate by one Newton-Euler pass (bisp.apply_wrenches),
+    then alpha_j = h L_j (W0 + Wx x)_j; loop pins from lambda (§5.3).
   * CONVERGENCE (Alg. 2 line 12): ||f_alpha - f_alpha^0||_{M^-1} <= eps, measured per contact as the
     velocity change the change of its normal impulse (ground) or of its friction bound (joints) makes,
     max_k W_kk |delta_k| <= tol [m/s] (the diagonal of the Delassus operator stands in for M^-1), and the
@@ -28,7 +29,7 @@ warm-start the next step [Kaufman et al. 2008]. The loop exits after a CONTACT s
 velocity always satisfies the bilateral and unilateral rows (feasible) even when the iteration cap is
 reached; that case is reported (FrictionReport.converged = False), never silent.
 Per step: bisp.body_frames (kinematics), contact.staggered_rows (detection, rows RX = [U; -T]),
-condense.condense, bisp.linear_wrenches, warm_start, staggered_kernel (with PGS and whole-joint bounds;
+condense.condense, bisp.wrench_map, warm_start, staggered_kernel (with PGS and whole-joint bounds;
 _python_loop otherwise), finish: all compiled (numba), a few calls per step. Under a step budget
 (solvers/budget.py) the loop checks the step's deadline between iterations (_python_loop) or between
 pieces of the resumable compiled loop (_compiled_loop), with bitwise the result of an unbudgeted step.
@@ -43,6 +44,7 @@ import numpy as np
 import proxsuite
 
 from redmax_ros.core.friction import bisp
+from redmax_ros.core.friction.bisp import apply_wrenches, wrench_work
 from redmax_ros.core.friction.condense import condense
 from redmax_ros.core.friction.contact import staggered_rows
 from redmax_ros.core.errors import StepError
@@ -165,12 +167,13 @@ def _abs_sum(a):
 
 
 @numba.njit(cache=True)
-def loop_kernel(W_U, X_UT, X_TU, U_v0, lo_U, W_T, T_v0, mu_g, a0, Mx, bound_mu, kmax, joint, wU, wT, tol,
+def loop_kernel(W_U, X_UT, X_TU, U_v0, lo_U, W_T, T_v0, mu_g, a0, wm, bound_mu, kmax, joint, wU, wT, tol,
                  max_iter, depth, alpha, beta):
-    """The staggered loop with the joint multipliers given as alpha = a0 + Mx x (redmax_bench/sp_maximal.py),
-    in one call. Returns (alpha, beta, bound, al, iterations, converged, residual)."""
+    """The staggered loop with the joint multipliers given as alpha = a0 + apply_wrenches(wm, x) (a dense map,
+    bisp.dense_wrench_map: redmax_bench/sp_maximal.py), in one call. Returns (alpha, beta, bound, al,
+    iterations, converged, residual)."""
     sbuf, sint = loop_state(len(U_v0), len(T_v0), depth, len(a0))
-    out = staggered_kernel(W_U, X_UT, X_TU, U_v0, lo_U, W_T, T_v0, mu_g, a0, Mx, np.zeros((0, kmax, 6)), 1.0,
+    out = staggered_kernel(W_U, X_UT, X_TU, U_v0, lo_U, W_T, T_v0, mu_g, a0, wm, np.zeros((0, kmax, 6)), 1.0,
                            bound_mu, kmax, joint, wU, wT, tol, max_iter, depth, alpha, beta, sbuf, sint, np.inf)
     return out[0], out[1], out[2], out[3], out[4], out[5], out[6]
 
@@ -186,12 +189,13 @@ KERNEL_SLICE = 2e-3  # s: CPU time of each further call under a budget, between 
 
 
 @numba.njit(cache=True)
-def staggered_kernel(W_U, X_UT, X_TU, U_v0, lo_U, W_T, T_v0, mu_g, a0, Mx, Lop, h, bound_mu, kmax, joint, wU, wT,
+def staggered_kernel(W_U, X_UT, X_TU, U_v0, lo_U, W_T, T_v0, mu_g, a0, wm, Lop, h, bound_mu, kmax, joint, wU, wT,
                       tol, max_iter, depth, alpha, beta, sbuf, sint, work_cap):
     """The staggered loop of solve() (same steps, same tests, PGS inner solves, Anderson) compiled:
     used when the friction bounds are whole-joint sums (no spherical joints) and qp = pgs.
-    Joint multipliers (Eq. 16): with Lop (J, kmax, 6) given, a0 (6J,) and Mx (6J, nx) are the joint
-    wrenches W = a0 + Mx x (bisp.linear_wrenches) and alpha_j = h Lop_j W_j; with Lop empty, alpha = a0 + Mx x.
+    Joint multipliers (Eq. 16): with Lop (J, kmax, 6) given, the joint wrenches are W = a0 + apply_wrenches(wm, x)
+    (a0 (6J,) and wm of bisp.wrench_map: one Newton-Euler pass per iterate) and alpha_j = h Lop_j W_j; with Lop
+    empty, alpha = a0 + apply_wrenches(wm, x) (a dense map).
 
     Resumable, so that a step budget can be checked between its pieces (solvers/budget.py): the loop's
     state between iterations lives in ``sbuf``/``sint`` (loop_state(): a new loop) and ``alpha``/``beta``;
@@ -238,7 +242,9 @@ def staggered_kernel(W_U, X_UT, X_TU, U_v0, lo_U, W_T, T_v0, mu_g, a0, Mx, Lop, 
     c = np.zeros(nu)
     cf = np.zeros(nf)
     converged = False
-    per_it = 2.0 * nu * nf + len(a0) * nx + depth * (depth + 2) * nf + nx
+    per_it = 2.0 * nu * nf + wrench_work(wm) + depth * (depth + 2) * nf + nx
+    b_in, g, f, out = np.empty(nf), np.empty(nf), np.empty(nf), np.empty(nf)  # Anderson's vectors
+    Hbuf, Dfbuf = np.empty((depth, depth)), np.empty(depth)
     Lt = np.empty((nw, 6, kmax))  # Lop with the points last: alpha_j = h L_j W_j as six axpys over the points
     for j in range(nw):
         for kk in range(kmax):
@@ -271,8 +277,8 @@ def staggered_kernel(W_U, X_UT, X_TU, U_v0, lo_U, W_T, T_v0, mu_g, a0, Mx, Lop, 
         if joint:
             x[:nu] = alpha
             x[nu:] = beta
+            apply_wrenches(wm, x, wr)  # the joint wrenches' part linear in x (one Newton-Euler pass)
             if nw:  # Eq. (16) per joint: alpha_j = h L_j (W0 + Wx x)_j
-                np.dot(Mx, x, wr)
                 for j in range(nw):
                     o = 6 * j
                     f0, f1, f2 = a0[o] + wr[o], a0[o + 1] + wr[o + 1], a0[o + 2] + wr[o + 2]
@@ -283,7 +289,8 @@ def staggered_kernel(W_U, X_UT, X_TU, U_v0, lo_U, W_T, T_v0, mu_g, a0, Mx, Lop, 
                         aj[kk] = h * (L0[kk] * f0 + L1[kk] * f1 + L2[kk] * f2 + L3[kk] * t0 + L4[kk] * t1
                                       + L5[kk] * t2)
             else:
-                al[:] = a0 + Mx @ x
+                for i in range(nal):
+                    al[i] = a0[i] + wr[i]
             nj = len(bound_mu)
             for j in range(nj):
                 bound[ng + j] = bound_mu[j] * _abs_sum(al[j * kmax:(j + 1) * kmax])
@@ -305,31 +312,33 @@ def staggered_kernel(W_U, X_UT, X_TU, U_v0, lo_U, W_T, T_v0, mu_g, a0, Mx, Lop, 
                 for k in range(nu):
                     sacc += X_TU[i, k] * alpha[k]
                 cf[i] = -sacc
-            b_in = beta.copy()
+            b_in[:] = beta
             for i in range(nf):
                 beta[i] = min(max(beta[i], -bound[i]), bound[i])
             for i in range(nf):
                 nb[i] = -bound[i]
             work += _pgs(W_T, cf, nb, bound, beta, 0.1 * tol, 500) * float(nf * nf)
             if depth > 0:  # Anderson (see Anderson)
-                g = beta.copy()
-                f = g - b_in
+                for i in range(nf):
+                    g[i] = beta[i]
+                    f[i] = g[i] - b_in[i]
                 if have_prev:
                     if k_hist == depth:
                         for r in range(depth - 1):
                             dX[r] = dX[r + 1]
                             dF[r] = dF[r + 1]
                         k_hist -= 1
-                    dX[k_hist] = g - gprev
-                    dF[k_hist] = f - fprev
+                    for i in range(nf):
+                        dX[k_hist, i] = g[i] - gprev[i]
+                        dF[k_hist, i] = f[i] - fprev[i]
                     k_hist += 1
                 gprev[:] = g
                 fprev[:] = f
                 have_prev = True
                 if k_hist > 0:
                     D = dF[:k_hist]
-                    H = np.empty((k_hist, k_hist))
-                    Df = np.empty(k_hist)
+                    H = Hbuf[:k_hist, :k_hist]
+                    Df = Dfbuf[:k_hist]
                     for r in range(k_hist):
                         for q in range(r + 1):
                             sacc = dot(D[r], D[q])
@@ -342,7 +351,7 @@ def staggered_kernel(W_U, X_UT, X_TU, U_v0, lo_U, W_T, T_v0, mu_g, a0, Mx, Lop, 
                     for r in range(k_hist):
                         H[r, r] += 1e-12 * max(tr, 1e-300)
                     gam, ok = _small_solve(H, Df)
-                    out = g.copy()
+                    out[:] = g
                     for r in range(k_hist):
                         for i in range(nf):
                             out[i] -= gam[r] * dX[r, i]
@@ -389,7 +398,7 @@ def solve(mech, work, kin, system: LinearSystem, cons, q, v_prev_r, h, cache, si
     Python loop and in its ProxSuite solves, and between the pieces of the compiled loop (_compiled_loop;
     without the checks a diverging walker step ran its friction.max_iter iterations of two 500-sweep PGS
     solves for ~50 ms of CPU time). ``jdot_qdot``: Jdot_rR qdot_R of a configuration-dependent J_rR (catalogue
-    joint maps, Eq. 2.89; None without), part of the acceleration of the joint reactions (bisp.linear_wrenches)."""
+    joint maps, Eq. 2.89; None without), part of the acceleration of the joint reactions (bisp.wrench_map)."""
     fm = mech.friction
     st = fm.settings
     A, b = system.A, system.b
@@ -415,9 +424,9 @@ def solve(mech, work, kin, system: LinearSystem, cons, q, v_prev_r, h, cache, si
                               cs.sphere if nc else _NO_INDEX, cs.plane if nc else _NO_INDEX, len(fm.plane_n),
                               fm.joint_slot0, nf)
     joint_fric = fm.has_joint_friction
-    if joint_fric:  # Eq. (15)-(17) as an affine map of x = [alpha_U; beta] (bisp.linear_wrenches)
-        W0, Wx = bisp.linear_wrenches(mech, fm, work, kin, ws, Z, h, v0, PX, v_prev_r, lam0, LamX, cs, nu, nf, cons,
-                                      site_forces, jdot_qdot)
+    if joint_fric:  # Eq. (15)-(17) as a function of x = [alpha_U; beta] (bisp.wrench_map)
+        W0, wm = bisp.wrench_map(mech, fm, work, kin, ws, Z, h, v0, PX, v_prev_r, lam0, LamX, cs, nu, nf, cons,
+                                 site_forces, jdot_qdot)
         kmax = fm.L.shape[1]
     alpha = np.zeros(nu)
     it, converged, resid = 0, False, np.inf
@@ -425,16 +434,18 @@ def solve(mech, work, kin, system: LinearSystem, cons, q, v_prev_r, h, cache, si
     mu_g = cs.mu if nc else np.zeros(0)
     if use_kernel:  # compiled loop, same steps
         if not joint_fric:
-            kmax, w0, wx, Lop, bmu = 1, np.zeros(0), np.zeros((0, nu + nf)), np.zeros((0, 1, 6)), np.zeros(0)
+            kmax, w0, Lop, bmu = 1, np.zeros(0), np.zeros((0, 1, 6)), np.zeros(0)
+            wm = bisp.dense_wrench_map(np.zeros((0, nu + nf)))
         else:
-            w0, wx, Lop, bmu = W0.reshape(-1), Wx.reshape(-1, nu + nf), fm.L, fm.bound_mu
+            w0, Lop, bmu = W0.reshape(-1), fm.L, fm.bound_mu
         alpha, beta, bound, al, it, converged, resid = _compiled_loop(
-            deadline, W_U, X_UT, X_TU, U_v0, lo_U, W_T, T_v0, mu_g, w0, wx, Lop, h, bmu, kmax, joint_fric, wU, wT,
+            deadline, W_U, X_UT, X_TU, U_v0, lo_U, W_T, T_v0, mu_g, w0, wm, Lop, h, bmu, kmax, joint_fric, wU, wT,
             st.tol, st.max_iter, st.anderson, alpha, beta)
     else:
         alpha, beta, bound, al, it, converged, resid = _python_loop(
             fm, st, W_U, X_UT, U_v0, lo_U, W_T, T_v0, mu_g, nc,
-            bisp.affine_alphas(fm, h, W0, Wx) if joint_fric else None, wU, wT, alpha, beta, deadline)
+            (lambda x: bisp.joint_alphas_at(fm, h, W0, wm, x)) if joint_fric else None, wU, wT, alpha, beta,
+            deadline)
 
     if not joint_fric:
         kmax, al = 1, np.zeros(0)
@@ -530,7 +541,7 @@ def _compiled_loop(deadline, *args):
         cap = min(KERNEL_SLICE, deadline.remaining()) / per_work if per_work > 0 else KERNEL_FIRST_WORK
 
 
-def _python_loop(fm, st, W_U, X_UT, U_v0, lo_U, W_T, T_v0, mu_g, nc, affine, wU, wT, alpha, beta, deadline=None):
+def _python_loop(fm, st, W_U, X_UT, U_v0, lo_U, W_T, T_v0, mu_g, nc, alphas, wU, wT, alpha, beta, deadline=None):
     """The staggered loop in Python (ProxSuite inner solves, spherical-joint bounds); same steps as
     staggered_kernel, with the step's deadline checked between iterations. Returns (alpha, beta, bound,
     al, iterations, converged, residual)."""
@@ -557,9 +568,8 @@ def _python_loop(fm, st, W_U, X_UT, U_v0, lo_U, W_T, T_v0, mu_g, nc, affine, wU,
         # BISP (Eq. 15-17): joint alphas -> bounds of the joint friction rows
         if nc:
             bound[:ng] = np.repeat(mu_g * alpha[:nc], 2)
-        if affine is not None:
-            a0, Mx = affine
-            al = a0 + Mx @ np.concatenate([alpha, beta])
+        if alphas is not None:  # x -> the joint multipliers (bisp.joint_alphas_at)
+            al = alphas(np.concatenate([alpha, beta]))
             if fm.bound_mu is not None:  # 1-DOF joints and pins: mu_j sum_k |alpha_jk|
                 bound[ng:] = fm.bound_mu * np.abs(al).reshape(-1, kmax).sum(1)
             else:

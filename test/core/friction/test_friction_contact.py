@@ -199,8 +199,8 @@ def test_spherical_static_friction_threshold():
 
 
 def test_bisp_affine_map_matches_newton_euler_pass():
-    """bisp.linear_alphas (the joint multipliers as an affine map of the staggered unknowns) equals the
-    direct evaluation of Eq. (15)/(17) by one RNEA pass with all external forces (bisp.joint_alphas) at
+    """bisp.linear_alphas (the joint multipliers as a function of the staggered unknowns: the constant part
+    once, the linear part by one Newton-Euler pass at the iterate) equals the direct evaluation of Eq. (15)/(17) by one RNEA pass with all external forces (bisp.joint_alphas) at
     an arbitrary iterate x = [alpha; beta] of the walker in stance."""
     from redmax_ros.core.friction import bisp
     from redmax_ros.core.dynamics import constraints
@@ -233,7 +233,7 @@ def test_bisp_affine_map_matches_newton_euler_pass():
     nu, nf, nc = len(U), len(Tr), len(cs.keys)
     RX = np.vstack([U, -Tr])
     lam0, LamX = Sinv @ (Y.T @ b - cons.g), Sinv @ (Y.T @ RX.T)
-    a0, Mx = bisp.linear_alphas(m, fm, work, kin, st.q, v_r, h, v0, P @ RX.T, lam0, LamX, cs, nu, nf, cons)
+    alphas = bisp.linear_alphas(m, fm, work, kin, st.q, v_r, h, v0, P @ RX.T, lam0, LamX, cs, nu, nf, cons)
     ext = bisp.ExternalForces(m, data)
     fx_static = bisp.static_external(m, kin, ext, data).copy()
     rng = np.random.default_rng(1)
@@ -249,8 +249,11 @@ def test_bisp_affine_map_matches_newton_euler_pass():
     staggered._loop_external(m, fm, kin, ext, fx, lam[cons.loop_rows], beta[2 * nc + len(fm.rows_fixed):], h,
                              loop_force)
     direct = bisp.joint_alphas(m, fm, work, data, st.q, v_r, ws.to_reduced(v), h, fx, loop_force).reshape(-1)
-    affine = a0 + Mx @ x
-    assert np.abs(affine - direct).max() < 1e-9 * max(1.0, np.abs(direct).max())
+    mapped = alphas(x)
+    assert np.abs(mapped - direct).max() < 1e-9 * max(1.0, np.abs(direct).max())
+    # and affine: the map at x is the map at 0 plus its linear part (the two at 2x and at x)
+    lin = alphas(x) - alphas(0 * x)
+    assert np.abs(alphas(2 * x) - alphas(0 * x) - 2 * lin).max() < 1e-12 * max(1.0, np.abs(lin).max())
 
 
 def test_compiled_setup_matches_numpy_reference():

@@ -1,13 +1,16 @@
 """The compiled kernels of the staggered solve against their dense NumPy definitions on random data:
-condense.spd_inverse (A^-1 from the Cholesky factor, L^-1 by rows), condense.fixed_row_weights (over the
+condense.spd_inverse (A^-1 from the Cholesky factor, L^-1 by rows, or from the LTL factor of a tree's
+mass matrix), condense.fixed_row_weights (over the
 rows' nonzeros), condense.condense (sparse products by rows of the transposed factors, lambda map
 LamX = S^-1 G A^-1 RX^T) and the joint multipliers and bounds of staggered.staggered_kernel (Eq. 16 as axpys
 over the implicit points, four-way sums)."""
 import numpy as np
 import pytest
 
-from redmax_ros.core.friction.condense import FIXED_ROW, condense, fixed_row_weights, spd_inverse
-from redmax_ros.core.friction.staggered import loop_state, staggered_kernel
+from redmax_ros.core.friction.condense import (FIXED_ROW, ancestor_chains, condense, dense_spd_inverse, fixed_row_weights,
+                                              spd_inverse, tree_inverse)
+from redmax_ros.core.friction.bisp import dense_wrench_map
+from redmax_ros.core.friction.staggered import cone_excess, loop_state, staggered_kernel
 
 
 def _spd(rng, n):
@@ -29,6 +32,54 @@ def test_spd_inverse_is_the_inverse(n):
     assert ok
     assert np.abs(Ainv - np.linalg.inv(A)).max() <= 1e-12 * np.abs(np.linalg.inv(A)).max()
     assert not spd_inverse(-A)[1]
+
+
+def _tree_mass_matrix(rng, parents):
+    """A tree's joint-space inertia in depth-first DOF order: sum over bodies of J_i^T M_i J_i with body i
+    moved by its own DOF and its ancestors' (branch-induced sparsity), plus a diagonal (armature)."""
+    n = len(parents)
+    A = np.diag(rng.uniform(0.1, 1.0, n))
+    for i in range(n):
+        chain = [i]
+        while parents[chain[-1]] >= 0:
+            chain.append(parents[chain[-1]])
+        J = np.zeros((6, n))
+        J[:, chain] = rng.standard_normal((6, len(chain)))
+        B = rng.standard_normal((6, 6))
+        A += J.T @ (B @ B.T + np.eye(6)) @ J
+    return A
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_tree_inverse_of_a_tree_mass_matrix_is_the_inverse(seed):
+    """A walker-like tree (a 3-DOF root, legs of 1-3 DOFs on it): ancestor_chains finds the tree, the LTL
+    inverse (RBDA Table 6.3) equals the inverse to round-off, and spd_inverse takes it."""
+    rng = np.random.default_rng(seed)
+    parents, k = [-1, 0, 1], 3
+    for leg in range(14):
+        p = int(rng.integers(0, 3))
+        for _ in range(int(rng.integers(1, 4))):
+            parents.append(p)
+            p = k
+            k += 1
+    A = _tree_mass_matrix(rng, parents)
+    lam, work = ancestor_chains(A)
+    assert work >= 0 and 6 * work < len(A) ** 3
+    ref = np.linalg.inv(A)
+    for inv in (tree_inverse(A, lam), spd_inverse(A), dense_spd_inverse(A)):
+        assert inv[1] and np.abs(inv[0] - ref).max() <= 1e-12 * np.abs(ref).max()
+    assert not tree_inverse(-A, lam)[1] and not spd_inverse(-A)[1]
+
+
+def test_a_pattern_off_the_ancestor_chains_takes_the_dense_inverse():
+    """A nonzero that is not on its row's chain (a coupling between two branches) is no tree: work -1,
+    and spd_inverse still returns the inverse (the dense Cholesky path)."""
+    rng = np.random.default_rng(5)
+    A = _tree_mass_matrix(rng, [-1, 0, 1, 1, 3])  # DOF 4's chain is 3, 1, 0: 2 is not on it
+    A[4, 2] = A[2, 4] = 0.3
+    assert ancestor_chains(A)[1] == -1
+    Ainv, ok = spd_inverse(A)
+    assert ok and np.abs(Ainv - np.linalg.inv(A)).max() <= 1e-12 * np.abs(np.linalg.inv(A)).max()
 
 
 def test_fixed_row_weights_use_the_unconstrained_mobility_of_fixed_rows_only():
@@ -95,9 +146,12 @@ def test_joint_multipliers_and_bounds_of_the_loop_are_eq_16_at_its_last_iterate(
     wU, wT = np.diag(W_U).copy(), np.diag(W_T).copy()
     sbuf, sint = loop_state(nu, nf, 5, nj * kmax)
     alpha, beta, bound, al, it, conv, resid, paused = staggered_kernel(
-        W_U, X_UT, X_UT.T.copy(), U_v0, lo_U, W_T, T_v0, mu_g, a0, Mx, L, h, bound_mu, kmax, True, wU, wT, 1e-6, 30,
+        W_U, X_UT, X_UT.T.copy(), U_v0, lo_U, W_T, T_v0, mu_g, a0, dense_wrench_map(Mx), L, h, bound_mu, kmax, True, wU,
+        wT, 1e-6, 30,
         5, np.zeros(nu), np.zeros(nf), sbuf, sint, np.inf)
     assert not paused and it >= 2
+    # converged: the bounds stopped moving and the impulses lie in them, both to the tolerance in velocity
+    assert conv and resid <= 1e-6 and cone_excess(beta, bound, wT) <= 1e-6
     x = np.concatenate([alpha, beta])
     al_ref = h * np.einsum("jkl,jl->jk", L, (a0 + Mx @ x).reshape(nj, 6)).reshape(-1)
     assert np.abs(al - al_ref).max() <= 1e-12 * np.abs(al_ref).max()

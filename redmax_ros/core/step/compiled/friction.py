@@ -9,7 +9,7 @@ order, so both paths compute the same numbers from the same inputs:
     RX, lo_U = rows_kernel(...)                   # detection, rows [U; -T] (contact.py; Eq. 11-12, 1.90-1.91)
     qdot_0, PX, W_U, W_T, ... = condense(...)     # the bilateral rows condensed once (condense.py)
     beta = warm_start(cache)                      # friction impulses of the last step [Kaufman et al. 2008]
-    W0, Wx = map_kernel(...)                      # joint wrenches W0 + Wx x of Eq. (15)-(17) (bisp.py)
+    W0, wm = constant_wrenches(...)               # joint wrenches of Eq. (15)-(17): W0, the map of x (bisp.py)
     staggered_kernel(...)                         # the loop: contact, BISP (Eq. 16), friction, Anderson
     finish(...)                                   # qdot_R+, lambda, the new cache, the report's counts
 
@@ -24,7 +24,7 @@ from collections import namedtuple
 
 import numpy as np
 
-from redmax_ros.core.friction.bisp import map_kernel
+from redmax_ros.core.friction.bisp import constant_wrenches, make_wrench_map
 from redmax_ros.core.friction.condense import condense
 from redmax_ros.core.friction.contact import rows_kernel
 from redmax_ros.core.friction.staggered import finish, loop_state, staggered_kernel, warm_start
@@ -40,7 +40,7 @@ FRICTION_SPEC = (
     # coupling matrix T (Eq. 9) in CSR form, constant friction rows, loop-pin rows
     ("T_ptr", "i", 1), ("T_idx", "i", 1), ("T_val", "f", 1), ("rows_fixed", "f", 2), ("pin_moment", "f", 2),
     ("loop_sdiff", "f", 2),
-    # BISP map (bisp.map_kernel): loop selection triplets, frictional loops and joints, Eq. (16) operators
+    # BISP map (bisp.make_wrench_map): loop selection triplets, frictional loops and joints, Eq. (16) operators
     ("sel_r", "i", 1), ("sel_c", "i", 1), ("sel_v", "f", 1), ("loop_index", "i", 1), ("pin_ja", "i", 1),
     ("pin_jb", "i", 1), ("loop_ja", "i", 1), ("loop_jb", "i", 1), ("fj_jid", "i", 1), ("L", "f", 3),
     ("bound_mu", "f", 1), ("gravity", "f", 1),
@@ -169,20 +169,24 @@ def friction_solve(m, d, c, h, cache, has_cache, cache_new, jn, rep, work_cap):
     nw = c.L.shape[0]
     kmax = c.L.shape[1]
     W0 = np.zeros((nw, 6))
-    Wx = np.zeros((nw, 6, nx))
-    if joint:  # Eq. (15)-(17) as an affine map of x = [alpha_U; beta]
+    nloops = m.loop_a.shape[0]
+    xa = np.empty((nloops, 3))
+    xb = np.empty((nloops, 3))
+    for lp in range(nloops):
+        for a in range(3):
+            xa[lp, a] = d.X[m.loop_a[lp], a]
+            xb[lp, a] = d.X[m.loop_b[lp], a]
+    wm = make_wrench_map(nu, h, PX, c.T_ptr, c.T_idx, c.T_val, LamX, c.sel_r, c.sel_c, c.sel_v, c.loop_index,
+                         int(sc[SC_N_TREE]), jid, X, n, t, c.pin_ja, c.pin_jb, c.pin_moment, c.loop_ja[:nloops],
+                         c.loop_jb[:nloops], xa, xb, m.parents, m.idx_v, m.nv_j, d.St, d.I, d.R, d.p, c.fj_jid)
+    if joint:  # Eq. (15)-(17): the constant part W0 here, the part linear in x = [alpha_U; beta] in the loop
         E0 = d.ext.copy()  # constant world wrenches of the step (stage 2; no maximal springs here)
-        E = np.zeros((m.parents.shape[0], 6, nx))
-        nloops = m.loop_a.shape[0]
-        map_kernel(nu, h, v0, PX, d.v_r, c.T_ptr, c.T_idx, c.T_val, lam0, LamX, c.sel_r, c.sel_c, c.sel_v, nloops,
-                   d.X, m.loop_a, m.loop_b, c.loop_index, int(sc[SC_N_TREE]), jid, X, n, t, c.pin_ja, c.pin_jb,
-                   c.pin_moment, c.loop_ja, c.loop_jb, m.parents, m.idx_v, m.nv_j, d.St, d.I, d.ov, Z, c.gravity,
-                   d.R, d.p, c.fj_jid, E0, E, W0, Wx)
+        constant_wrenches(wm, d.ov, Z, c.gravity, v0, d.v_r, lam0, E0, W0)
     alpha = np.zeros(nu)
     nal = nw * kmax
     sbuf, sint = loop_state(nu, nf, int(sc[SC_DEPTH]), nal)
     alpha, beta, bound, al, it, converged, resid, paused = staggered_kernel(
-        W_U, X_UT, X_TU, U_v0, lo_U, W_T, T_v0, mu_g, W0.reshape(-1), Wx.reshape((nw * 6, nx)), c.L, h, c.bound_mu,
+        W_U, X_UT, X_TU, U_v0, lo_U, W_T, T_v0, mu_g, W0.reshape(-1), wm, c.L, h, c.bound_mu,
         kmax, joint, wU, wT, sc[SC_TOL], int(sc[SC_MAX_ITER]), int(sc[SC_DEPTH]), alpha, beta, sbuf, sint, work_cap)
     if paused:
         return PAUSED
