@@ -116,14 +116,25 @@ def chord_factor(G, held):
 
 @njit
 def chord_factor_into(G, held, KK, L):
-    """chord_factor without allocation: K K^T into KK, its factor into L ((m + k) square); returns ok."""
+    """chord_factor into given arrays: K K^T into KK, its factor into L ((m + k) square); returns ok. The
+    products G_r . G_c run over the nonzeros of row r (a loop row touches the DOFs of its two chains only),
+    in increasing column order: the same sums as over every column."""
     m, n, k = G.shape[0], G.shape[1], held.shape[0]
     KK[:, :] = 0.0
+    nz = np.empty(n, dtype=np.int64)
     for r in range(m):
+        Gr = G[r]
+        cnt = 0
+        for i in range(n):
+            if Gr[i] != 0.0:
+                nz[cnt] = i
+                cnt += 1
         for c in range(r + 1):
+            Gc = G[c]
             s = 0.0
-            for i in range(n):
-                s += G[r, i] * G[c, i]
+            for p in range(cnt):
+                i = nz[p]
+                s += Gr[i] * Gc[i]
             KK[r, c] = s
             KK[c, r] = s
         for j in range(k):
