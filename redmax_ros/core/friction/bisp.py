@@ -180,17 +180,6 @@ def _point_forces(lam, sel_r, sel_c, sel_v, inv_h, F):
             F[k, a] *= inv_h
 
 
-@njit(cache=True, nogil=True)
-def _add_force(E, j, x, f, s):
-    """E[j] += s [f; x x f] (world wrench about the origin of force f at point x)."""
-    E[j, 0] += s * f[0]
-    E[j, 1] += s * f[1]
-    E[j, 2] += s * f[2]
-    E[j, 3] += s * (x[1] * f[2] - x[2] * f[1])
-    E[j, 4] += s * (x[2] * f[0] - x[0] * f[2])
-    E[j, 5] += s * (x[0] * f[1] - x[1] * f[0])
-
-
 @njit_inline
 def _external(wm, x, F, E):
     """E (nj,6) += the external forces of the tree (§5.3, Eq. 17-18) as world wrenches per body:
@@ -206,7 +195,7 @@ def _external(wm, x, F, E):
             a, b0, b1 = x[c], x[nu + 2 * c], x[nu + 2 * c + 1]
             for k in range(3):
                 f[k] = wm.c_n[c, k] * a - wm.c_t[c, 0, k] * b0 - wm.c_t[c, 1, k] * b1
-            _add_force(E, wm.c_jid[c], wm.c_X[c], f, s)
+            rc.add_point_wrench(E, wm.c_jid[c], wm.c_X[c], f, s)
         for q in range(len(wm.pin_ja)):
             b = x[wm.pin_col0 + q]
             for a in range(3):
@@ -214,8 +203,8 @@ def _external(wm, x, F, E):
                 E[wm.pin_ja[q], 3 + a] -= wm.pin_mh[q, a] * b
     for k in range(F.shape[0]):
         if wm.f_ja[k] >= 0:
-            _add_force(E, wm.f_ja[k], wm.f_xa[k], F[k], -1.0)
-        _add_force(E, wm.f_jb[k], wm.f_xb[k], F[k], 1.0)
+            rc.add_point_wrench(E, wm.f_ja[k], wm.f_xa[k], F[k], -1.0)
+        rc.add_point_wrench(E, wm.f_jb[k], wm.f_xb[k], F[k], 1.0)
 
 
 @njit_inline

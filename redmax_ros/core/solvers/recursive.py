@@ -391,6 +391,17 @@ def jtw_kernel(parents, idx_v, nv_j, St, W, F, x):
 
 
 @njit
+def add_point_wrench(W, j, x, f, sign):
+    """W[j] += sign (f, x x f): a point force f at world point x as a wrench at the world origin."""
+    W[j, 0] += sign * f[0]
+    W[j, 1] += sign * f[1]
+    W[j, 2] += sign * f[2]
+    W[j, 3] += sign * (x[1] * f[2] - x[2] * f[1])
+    W[j, 4] += sign * (x[2] * f[0] - x[0] * f[2])
+    W[j, 5] += sign * (x[0] * f[1] - x[1] * f[0])
+
+
+@njit
 def add_motion_cross_force(v, f, out):
     """out += v x* f for a twist v = (linear, angular) and a wrench f = (force, torque), both at the
     world origin: (w x f, v x f + w x n) (Featherstone's cross product for forces)."""

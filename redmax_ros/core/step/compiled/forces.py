@@ -17,22 +17,11 @@ import numpy as np
 
 from redmax_ros.core.dynamics.springs import clamp_lever_blocks, geometric_blocks_kernel, spring_kernel, spring_shift
 from redmax_ros.core.dynamics.tree_forces import crba_runs_kernel, nle_wrench_kernel, spring_cross_lower_kernel
-from redmax_ros.core.jit import njit, njit_inline
+from redmax_ros.core.jit import njit_inline
 from redmax_ros.core.linalg import mirror_lower
 from redmax_ros.core.solvers.pcg import add_point_block, spring_blocks_kernel
-from redmax_ros.core.solvers.recursive import bias_kernel, jtw_kernel, jv_kernel
+from redmax_ros.core.solvers.recursive import add_point_wrench, bias_kernel, jtw_kernel, jv_kernel
 from redmax_ros.core.step.compiled.manifold import difference
-
-
-@njit
-def _add_point_wrench(W, j, x, f, sign):
-    """W[j] += sign (f, x x f): a point force f at world point x as a wrench at the world origin."""
-    W[j, 0] += sign * f[0]
-    W[j, 1] += sign * f[1]
-    W[j, 2] += sign * f[2]
-    W[j, 3] += sign * (x[1] * f[2] - x[2] * f[1])
-    W[j, 4] += sign * (x[2] * f[0] - x[0] * f[2])
-    W[j, 5] += sign * (x[0] * f[1] - x[1] * f[0])
 
 
 @njit_inline
@@ -90,8 +79,8 @@ def rhs(m, d, q, v, vm, ovm, tau, h, shifted):
     nle_wrench_kernel(d.I, d.ov, d.acc, m.gravity, d.W)
     d.ext[:, :] = 0.0
     for s in range(m.spring_a.shape[0]):
-        _add_point_wrench(d.ext, m.spring_ja[s], d.pa[s], d.spring_f[s], 1.0)
-        _add_point_wrench(d.ext, m.spring_jb[s], d.pb[s], d.spring_f[s], -1.0)
+        add_point_wrench(d.ext, m.spring_ja[s], d.pa[s], d.spring_f[s], 1.0)
+        add_point_wrench(d.ext, m.spring_jb[s], d.pb[s], d.spring_f[s], -1.0)
     if shifted and m.spring_a.shape[0]:
         hh = h * h
         for s in range(m.spring_a.shape[0]):
@@ -100,8 +89,8 @@ def rhs(m, d, q, v, vm, ovm, tau, h, shifted):
             mb = np.inf if jb == 0 else m.mass[jb]
             spring_shift(d.X, m.spring_a, m.spring_b, m.spring_k, m.spring_rest, m.spring_explicit, d.Xf, ma, mb, hh,
                          s, d.x3)
-            _add_point_wrench(d.ext, ja, d.pa[s], d.x3, 1.0)
-            _add_point_wrench(d.ext, jb, d.pb[s], d.x3, -1.0)
+            add_point_wrench(d.ext, ja, d.pa[s], d.x3, 1.0)
+            add_point_wrench(d.ext, jb, d.pb[s], d.x3, -1.0)
         d.blocks[:, :, :] = 0.0
         geometric_blocks_kernel(m.spring_ja, d.pa, m.spring_jb, d.pb, d.spring_f, m.spring_explicit, 1.0, d.I,
                                 d.blocks)
@@ -119,7 +108,7 @@ def rhs(m, d, q, v, vm, ovm, tau, h, shifted):
         for r in range(3):
             x[r] = d.R[j, r, 0] * m.wrench_com[w, 0] + d.R[j, r, 1] * m.wrench_com[w, 1] + d.R[j, r, 2] * m.wrench_com[w, 2] + d.p[j, r]
         fw = m.wrench_fw[w]
-        _add_point_wrench(d.ext, j, x, fw, 1.0)
+        add_point_wrench(d.ext, j, x, fw, 1.0)
         for r in range(3):
             d.ext[j, 3 + r] += fw[3 + r]
     for j in range(1, nj):
