@@ -198,10 +198,13 @@ def test_spherical_static_friction_threshold():
     assert _moves(joint, [1.02 * tau_s, 0.0, 0.0])
 
 
-def test_bisp_affine_map_matches_newton_euler_pass():
+@pytest.mark.parametrize("site", [None, "foot_f1"])
+def test_bisp_affine_map_matches_newton_euler_pass(site):
     """bisp.linear_alphas (the joint multipliers as a function of the staggered unknowns: the constant part
-    once, the linear part by one Newton-Euler pass at the iterate) equals the direct evaluation of Eq. (15)/(17) by one RNEA pass with all external forces (bisp.joint_alphas) at
-    an arbitrary iterate x = [alpha; beta] of the walker in stance."""
+    once, the linear part by one Newton-Euler pass at the iterate) equals the direct evaluation of Eq. (15)/(17)
+    by one RNEA pass with all external forces (bisp.joint_alphas) at an arbitrary iterate x = [alpha; beta] of
+    the walker in stance; with ``site`` also prescribed along world x, its multiplier's force -P^T lambda / h
+    (§5.3) is one of those external forces."""
     from redmax_ros.core.friction import bisp
     from redmax_ros.core.dynamics import constraints
     from redmax_ros.core.dynamics import forces
@@ -215,10 +218,13 @@ def test_bisp_affine_map_matches_newton_euler_pass():
     fm, ws = m.friction, sim.workspace
     work = ws.friction
     v_r = sim.joint_velocities()
-    kin = kinematics.compute(m, ws, st.q, v_r, [])
+    sites = {} if site is None else {site: np.zeros(3)}
+    axes = {} if site is None else {site: np.array([[1.0, 0.0, 0.0]])}
+    kin = kinematics.compute(m, ws, st.q, v_r, [m.site_index[n] for n in sites])
     system = forces.assemble(m, ws, kin, st.q, v_r, m.torque0.copy(), h)
-    cons = constraints.build(m, ws, constraints.loop_rows_of(m, kin.J), None, st.q, sim.commands.joint_velocities,
-                             {}, h)
+    J_sites = kin.J[[kin.row[m.site_index[n]] for n in sites]] if sites else None
+    cons = constraints.build(m, ws, constraints.loop_rows_of(m, kin.J), J_sites, st.q,
+                             sim.commands.joint_velocities, sites, h, axes)
     A, b = system.A, system.b
     Ainv = np.linalg.inv(A)
     Y = Ainv @ cons.G.T
@@ -245,6 +251,9 @@ def test_bisp_affine_map_matches_newton_euler_pass():
     fx = fx_static.copy()
     F = (alpha[:, None] * cs.n - np.einsum("ck,cki->ci", beta[:2 * nc].reshape(nc, 2), cs.t)) / h
     ext.add(fx, cs.jid, F, cs.X)
+    for name, sl in cons.site_rows.items():  # the prescribed site's force on its body
+        k = m.site_index[name]
+        ext.add(fx, [m.site_jid[k]], (-axes[name].T @ lam[sl] / h)[None], kin.X[kin.row[k]][None])
     loop_force = np.zeros((len(fm.loop_index), 3))
     staggered._loop_external(m, fm, kin, ext, fx, lam[cons.loop_rows], beta[2 * nc + len(fm.rows_fixed):], h,
                              loop_force)

@@ -9,7 +9,7 @@ order, so both paths compute the same numbers from the same inputs:
     RX, lo_U = rows_kernel(...)                   # detection, rows [U; -T] (contact.py; Eq. 11-12, 1.90-1.91)
     qdot_0, PX, W_U, W_T, ... = condense(...)     # the bilateral rows condensed once (condense.py)
     beta = warm_start(cache)                      # friction impulses of the last step [Kaufman et al. 2008]
-    W0, wm = constant_wrenches(...)               # joint wrenches of Eq. (15)-(17): W0, the map of x (bisp.py)
+    wm = make_wrench_map(...); constant_wrenches(wm, ...)  # joint wrenches of Eq. (15)-(17): the map of x, W0 (bisp.py)
     staggered_kernel(...)                         # the loop: contact, BISP (Eq. 16), friction, Anderson
     finish(...)                                   # qdot_R+, lambda, the new cache, the report's counts
 
@@ -158,7 +158,6 @@ def friction_solve(m, d, c, h, cache, has_cache, cache_new, jn, rep, work_cap):
         c.pin_moment, c.loop_sdiff, CU, lo_CU)
     nc = ks.shape[0]
     nf = RX.shape[0] - nu
-    nx = nu + nf
     status, v0, PX, W_U, X_UT, X_TU, W_T, U_v0, T_v0, wU, wT, lam0, LamX = condense(d.AR, d.bR, d.G, d.g, RX, nu)
     if status == 1:
         return NOT_PD
