@@ -154,7 +154,7 @@ FIXED_ROW = 1e-9  # W_kk <= FIXED_ROW * (T A^-1 T^T)_kk: the bilateral rows fix 
 
 
 @njit(cache=True, nogil=True)
-def fixed_row_weights(wT, T, Ainv):
+def fixed_row_weights(wT, T, Ainv, ptr=None, idx=None):
     """Convergence weights of friction rows whose slip the bilateral rows fix (in place).
 
     The staggered loop's convergence test (Alg. 2 line 12) weighs the change of a friction bound by the
@@ -164,32 +164,34 @@ def fixed_row_weights(wT, T, Ainv):
     drive (its required torque, Eq. 7), and a zero weight would declare the loop converged before the
     friction QP has run. Such rows (W_kk <= FIXED_ROW (T A^-1 T^T)_kk) are weighed by their
     unconstrained mobility (T A^-1 T^T)_kk instead; every other row keeps W_kk. The double sum runs over
-    the row's nonzeros, listed once per row (the same terms in the same order as over all pairs)."""
-    nz = np.empty(T.shape[1], dtype=np.int64)
+    the row's nonzeros in increasing column order (the same terms in the same order as over all pairs),
+    from T's row pattern ``ptr``, ``idx`` (pattern_of) when given."""
+    if ptr is None:
+        ptr, idx = pattern_of(T)
     for i in range(T.shape[0]):
-        k = 0
-        for a in range(T.shape[1]):
-            if T[i, a] != 0.0:
-                nz[k] = a
-                k += 1
         u = 0.0
-        for p in range(k):
-            a = nz[p]
+        for p in range(ptr[i], ptr[i + 1]):
+            a = idx[p]
             ta = T[i, a]
             Aa = Ainv[a]
-            for q in range(k):
-                c = nz[q]
+            for q in range(ptr[i], ptr[i + 1]):
+                c = idx[q]
                 u += ta * Aa[c] * T[i, c]
         if wT[i] <= FIXED_ROW * u:
             wT[i] = u
 
 
 @njit(cache=True, nogil=True)
-def _pattern(R):
-    """Row-wise nonzero pattern of a dense matrix (CSR pointers and column indices)."""
+def pattern_of(R):
+    """Row-wise nonzero pattern of a dense matrix (CSR pointers and column indices, increasing columns)."""
     rows, cols = R.shape
     ptr = np.zeros(rows + 1, dtype=np.int64)
-    idx = np.empty(rows * cols, dtype=np.int64)
+    nnz = 0
+    for i in range(rows):
+        for c in range(cols):
+            if R[i, c] != 0.0:
+                nnz += 1
+    idx = np.empty(nnz, dtype=np.int64)
     k = 0
     for i in range(rows):
         for c in range(cols):
@@ -214,43 +216,63 @@ def _sparse_left(R, ptr, idx, B):
 
 
 @njit(cache=True, nogil=True)
-def _sparse_right_t(B, R, ptr, idx):
+def _sparse_right_t(B, R, ptr, idx, lower=False):
     """B @ R^T over the nonzeros of R (B (k,n), R (r,n) with pattern ptr/idx) -> (k, r): row j of the
     transposed product accumulates R[j, c] times row c of B^T over the row's nonzeros (contiguous rows:
-    vectorised), each entry summed in the order of R's pattern."""
+    vectorised), each entry summed in the order of R's pattern. ``lower`` (k = r, a symmetric product such as
+    G A^-1 G^T): the entries i >= j only, mirrored into the upper triangle."""
     BT = np.ascontiguousarray(B.T)
     k = B.shape[0]
     outT = np.zeros((R.shape[0], k))
     for j in range(R.shape[0]):
-        oj = outT[j]
+        i0 = j if lower else 0
+        oj = outT[j, i0:]
         for q in range(ptr[j], ptr[j + 1]):
             c = idx[q]
             rc = R[j, c]
-            bc = BT[c]
-            for i in range(k):
+            bc = BT[c, i0:]
+            for i in range(oj.shape[0]):
                 oj[i] += bc[i] * rc
+    if lower:
+        for j in range(k):
+            for i in range(j):
+                outT[j, i] = outT[i, j]
+        return outT
     return np.ascontiguousarray(outT.T)
+
+
+@njit(cache=True, nogil=True)
+def _symmetrize(P):
+    """P := (P + P^T) / 2 in place (the diagonal is unchanged: (x + x) / 2 = x exactly)."""
+    n = P.shape[0]
+    for i in range(n):
+        for j in range(i):
+            s = 0.5 * (P[i, j] + P[j, i])
+            P[i, j] = s
+            P[j, i] = s
 
 
 @njit(cache=True, nogil=True)
 def condense(A, b, G, g, RX, nu):
     """Returns (status, qdot_0, PX, W_U, X_UT, X_TU, W_T, U qdot_0, T qdot_0, diag W_U, diag W_T,
     lambda_0, LamX) for RX = [U (nu rows); -T] (module docstring); X_UT = U P T^T.
-    status: 0 ok, 1 A not positive definite, 2 G A^-1 G^T not positive definite (redundant rows)."""
+    status: 0 ok, 1 A not positive definite, 2 G A^-1 G^T not positive definite (redundant rows).
+    S = G A^-1 G^T is formed in its lower triangle (all the Cholesky factorisation reads) and inverted
+    densely: it couples every pair of rows whose chains share a DOF, so it has no tree sparsity to use."""
     n, m, nx = len(b), G.shape[0], RX.shape[0]
     nf = nx - nu
     Ainv, ok = spd_inverse(A)
     status = 0 if ok else 1
     GA = np.zeros((m, n))  # G A^-1 = Y^T
-    Sinv = np.zeros((m, m))
+    SG = np.zeros((m, n))
     P = Ainv
     v0 = np.zeros(n)
     lam0 = np.zeros(m)
     LamX = np.zeros((m, nx))
     if ok and m:
-        gptr, gidx = _pattern(G)
+        gptr, gidx = pattern_of(G)
         GA = _sparse_left(G, gptr, gidx, Ainv)
-        Sinv, ok = spd_inverse(_sparse_right_t(GA, G, gptr, gidx))
+        Sinv, ok = dense_spd_inverse(_sparse_right_t(GA, G, gptr, gidx, True))
         if ok:
             SG = Sinv @ GA  # S^-1 Y^T
             P = Ainv - np.ascontiguousarray(GA.T) @ SG
@@ -260,12 +282,13 @@ def condense(A, b, G, g, RX, nu):
             status = 2
     elif ok:
         v0 = Ainv @ b
-    P = 0.5 * (P + P.T)
+        P = Ainv.copy()
+    _symmetrize(P)
     PX = np.zeros((n, nx))
     WX = np.zeros((nx, nx))
     Xv0 = np.zeros(nx)
+    rptr, ridx = pattern_of(RX)
     if nx and status == 0:
-        rptr, ridx = _pattern(RX)
         RXP = _sparse_left(RX, rptr, ridx, P)  # RX P = PX^T
         PX = np.ascontiguousarray(RXP.T)
         WX = _sparse_right_t(RXP, RX, rptr, ridx)
@@ -282,5 +305,5 @@ def condense(A, b, G, g, RX, nu):
     for i in range(nf):
         wT[i] = max(W_T[i, i], 0.0)
     if nf and status == 0:
-        fixed_row_weights(wT, RX[nu:], Ainv)
+        fixed_row_weights(wT, RX[nu:], Ainv, rptr[nu:] - rptr[nu], ridx[rptr[nu]:])
     return status, v0, PX, W_U, X_UT, X_TU, W_T, Xv0[:nu].copy(), -Xv0[nu:], wU, wT, lam0, LamX

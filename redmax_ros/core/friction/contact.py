@@ -81,6 +81,10 @@ class FrictionModel:
     loop_rowslices: list  # rows of each frictional loop in the loop block of G
     loop_sites: np.ndarray  # (Lf,2) site indices (a, b)
     bound_mu: np.ndarray | None = None  # (J+Lf,) when every row is a whole joint (no spherical): bound = mu |alpha|_1
+    # the distinct operators of L with the points last, and each joint's (distinct_operators): the compiled
+    # loop's Eq. (16) reads the few shapes of L (the walker: 8 for 38 joints) instead of one copy per joint
+    L_ops: np.ndarray | None = None  # (U, 6, kmax)
+    L_of: np.ndarray | None = None  # (J+Lf,) int: L[j] = L_ops[L_of[j]].T
     # constant index maps of the compiled per-step set-up (bisp.wrench_map, detect, warm start)
     topo: object = None  # recursive.Topology of the model
     planar: np.ndarray | None = None  # FALLBACK joints when all are planar (bisp.body_frames fast path)
@@ -288,7 +292,7 @@ def compile_friction(mech, fspec) -> FrictionModel | None:
         plane_mu=np.array([p.mu for p in fspec.planes]), plane_t=pt, plane_names=[p.name for p in fspec.planes],
         sph_jid=np.array(jid, dtype=int), sph_local=np.array(loc).reshape(-1, 3), sph_radius=np.array(rad),
         sph_mu=np.array(mu), sph_support=sph_support, sph_label=lab,
-        fj_names=names, fj_jid=np.array(jids, dtype=int), n_tree=n_tree, L=Lpad,
+        fj_names=names, fj_jid=np.array(jids, dtype=int), n_tree=n_tree, L=Lpad, **distinct_operators(Lpad),
         rows_fixed=np.array(rows).reshape(-1, mech.ndof), bound_B=B,
         rows_nv=np.array(rows_nv).reshape(-1, nv) if mapped else None,
         loop_index=np.array(lidx, dtype=int), loop_axis=np.array(laxis).reshape(-1, 3), loop_radius=np.array(lrad),
@@ -297,6 +301,21 @@ def compile_friction(mech, fspec) -> FrictionModel | None:
                   for r, (j, grp, _) in enumerate(groups)) else None),
         **_index_maps(mech, len(jid) * len(pn) * 2 + len(rows) + len(lidx), np.array(lsites, dtype=int).reshape(-1, 2),
                       np.array(laxis).reshape(-1, 3), np.array(lrad), sph_support))
+
+
+def distinct_operators(L) -> dict:
+    """{"L_ops": the distinct operators of L (J, kmax, 6) transposed to (U, 6, kmax), "L_of": (J,) the index of
+    each joint's}: joints of one shape (radius, length, friction points) share their operator of Eq. (16)
+    exactly (bytes equal), so the per-iterate products alpha_j = h L_j W_j read U operators, not J."""
+    ops, of, seen = [], np.zeros(len(L), dtype=np.int64), {}
+    for j, Lj in enumerate(L):
+        key = np.ascontiguousarray(Lj).tobytes()
+        if key not in seen:
+            seen[key] = len(ops)
+            ops.append(np.ascontiguousarray(Lj.T))
+        of[j] = seen[key]
+    kmax = L.shape[1] if L.ndim == 3 else 1
+    return {"L_ops": np.array(ops).reshape(len(ops), 6, kmax), "L_of": of}
 
 
 def _index_maps(mech, n_slots, lsites, laxis, lrad, sph_support):

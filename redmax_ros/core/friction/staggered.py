@@ -173,8 +173,9 @@ def loop_kernel(W_U, X_UT, X_TU, U_v0, lo_U, W_T, T_v0, mu_g, a0, wm, bound_mu, 
     bisp.dense_wrench_map: redmax_bench/sp_maximal.py), in one call. Returns (alpha, beta, bound, al,
     iterations, converged, residual)."""
     sbuf, sint = loop_state(len(U_v0), len(T_v0), depth, len(a0))
-    out = staggered_kernel(W_U, X_UT, X_TU, U_v0, lo_U, W_T, T_v0, mu_g, a0, wm, np.zeros((0, kmax, 6)), 1.0,
-                           bound_mu, kmax, joint, wU, wT, tol, max_iter, depth, alpha, beta, sbuf, sint, np.inf)
+    out = staggered_kernel(W_U, X_UT, X_TU, U_v0, lo_U, W_T, T_v0, mu_g, a0, wm, np.zeros((0, 6, kmax)),
+                           np.zeros(0, dtype=np.int64), 1.0, bound_mu, kmax, joint, wU, wT, tol, max_iter, depth,
+                           alpha, beta, sbuf, sint, np.inf)
     return out[0], out[1], out[2], out[3], out[4], out[5], out[6]
 
 
@@ -189,13 +190,13 @@ KERNEL_SLICE = 2e-3  # s: CPU time of each further call under a budget, between 
 
 
 @numba.njit(cache=True)
-def staggered_kernel(W_U, X_UT, X_TU, U_v0, lo_U, W_T, T_v0, mu_g, a0, wm, Lop, h, bound_mu, kmax, joint, wU, wT,
-                      tol, max_iter, depth, alpha, beta, sbuf, sint, work_cap):
+def staggered_kernel(W_U, X_UT, X_TU, U_v0, lo_U, W_T, T_v0, mu_g, a0, wm, L_ops, L_of, h, bound_mu, kmax, joint, wU,
+                     wT, tol, max_iter, depth, alpha, beta, sbuf, sint, work_cap):
     """The staggered loop of solve() (same steps, same tests, PGS inner solves, Anderson) compiled:
     used when the friction bounds are whole-joint sums (no spherical joints) and qp = pgs.
-    Joint multipliers (Eq. 16): with Lop (J, kmax, 6) given, the joint wrenches are W = a0 + apply_wrenches(wm, x)
-    (a0 (6J,) and wm of bisp.wrench_map: one Newton-Euler pass per iterate) and alpha_j = h Lop_j W_j; with Lop
-    empty, alpha = a0 + apply_wrenches(wm, x) (a dense map).
+    Joint multipliers (Eq. 16): with L_of (J,) given, the joint wrenches are W = a0 + apply_wrenches(wm, x)
+    (a0 (6J,) and wm of bisp.wrench_map: one Newton-Euler pass per iterate) and alpha_j = h L_j W_j, L_j^T =
+    L_ops[L_of[j]] (contact.distinct_operators); with L_of empty, alpha = a0 + apply_wrenches(wm, x) (a dense map).
 
     Resumable, so that a step budget can be checked between its pieces (solvers/budget.py): the loop's
     state between iterations lives in ``sbuf``/``sint`` (loop_state(): a new loop) and ``alpha``/``beta``;
@@ -206,7 +207,7 @@ def staggered_kernel(W_U, X_UT, X_TU, U_v0, lo_U, W_T, T_v0, mu_g, a0, wm, Lop, 
     Returns (alpha, beta, bound, al, iterations, converged, residual, paused); the work done so far is
     sbuf[-1]."""
     nu, nf, nc = len(U_v0), len(T_v0), len(mu_g)
-    nw = Lop.shape[0]
+    nw = L_of.shape[0]
     nal = len(a0) if nw == 0 else nw * kmax
     wr = np.zeros(len(a0))
     ng = 2 * nc
@@ -245,11 +246,6 @@ def staggered_kernel(W_U, X_UT, X_TU, U_v0, lo_U, W_T, T_v0, mu_g, a0, wm, Lop, 
     per_it = 2.0 * nu * nf + wrench_work(wm) + depth * (depth + 2) * nf + nx
     b_in, g, f, out = np.empty(nf), np.empty(nf), np.empty(nf), np.empty(nf)  # Anderson's vectors
     Hbuf, Dfbuf = np.empty((depth, depth)), np.empty(depth)
-    Lt = np.empty((nw, 6, kmax))  # Lop with the points last: alpha_j = h L_j W_j as six axpys over the points
-    for j in range(nw):
-        for kk in range(kmax):
-            for e in range(6):
-                Lt[j, e, kk] = Lop[j, kk, e]
     while True:
         if it > it0 and work - work0 > work_cap:  # pause: the state is in sbuf/sint, alpha, beta
             sint[0], sint[1], sint[2] = it, k_hist, 1 if have_prev else 0
@@ -284,7 +280,8 @@ def staggered_kernel(W_U, X_UT, X_TU, U_v0, lo_U, W_T, T_v0, mu_g, a0, wm, Lop, 
                     f0, f1, f2 = a0[o] + wr[o], a0[o + 1] + wr[o + 1], a0[o + 2] + wr[o + 2]
                     t0, t1, t2 = a0[o + 3] + wr[o + 3], a0[o + 4] + wr[o + 4], a0[o + 5] + wr[o + 5]
                     aj = al[j * kmax:(j + 1) * kmax]
-                    L0, L1, L2, L3, L4, L5 = Lt[j, 0], Lt[j, 1], Lt[j, 2], Lt[j, 3], Lt[j, 4], Lt[j, 5]
+                    Lt = L_ops[L_of[j]]  # points last: alpha_j = h L_j W_j as six axpys over the points
+                    L0, L1, L2, L3, L4, L5 = Lt[0], Lt[1], Lt[2], Lt[3], Lt[4], Lt[5]
                     for kk in range(kmax):
                         aj[kk] = h * (L0[kk] * f0 + L1[kk] * f1 + L2[kk] * f2 + L3[kk] * t0 + L4[kk] * t1
                                       + L5[kk] * t2)
@@ -434,13 +431,13 @@ def solve(mech, work, kin, system: LinearSystem, cons, q, v_prev_r, h, cache, si
     mu_g = cs.mu if nc else np.zeros(0)
     if use_kernel:  # compiled loop, same steps
         if not joint_fric:
-            kmax, w0, Lop, bmu = 1, np.zeros(0), np.zeros((0, 1, 6)), np.zeros(0)
+            kmax, w0, L_ops, L_of, bmu = 1, np.zeros(0), np.zeros((0, 6, 1)), np.zeros(0, dtype=np.int64), np.zeros(0)
             wm = bisp.dense_wrench_map(np.zeros((0, nu + nf)))
         else:
-            w0, Lop, bmu = W0.reshape(-1), fm.L, fm.bound_mu
+            w0, L_ops, L_of, bmu = W0.reshape(-1), fm.L_ops, fm.L_of, fm.bound_mu
         alpha, beta, bound, al, it, converged, resid = _compiled_loop(
-            deadline, W_U, X_UT, X_TU, U_v0, lo_U, W_T, T_v0, mu_g, w0, wm, Lop, h, bmu, kmax, joint_fric, wU, wT,
-            st.tol, st.max_iter, st.anderson, alpha, beta)
+            deadline, W_U, X_UT, X_TU, U_v0, lo_U, W_T, T_v0, mu_g, w0, wm, L_ops, L_of, h, bmu, kmax, joint_fric,
+            wU, wT, st.tol, st.max_iter, st.anderson, alpha, beta)
     else:
         alpha, beta, bound, al, it, converged, resid = _python_loop(
             fm, st, W_U, X_UT, U_v0, lo_U, W_T, T_v0, mu_g, nc,
@@ -525,8 +522,8 @@ def _compiled_loop(deadline, *args):
     between them (bitwise the same result): a first piece of KERNEL_FIRST_WORK (more than a normal step's
     loop needs), then pieces sized to KERNEL_SLICE of CPU time (or the time left) by the measured CPU time
     per unit of work. Returns (alpha, beta, bound, al, iterations, converged, residual)."""
-    W_U, T_v0, a0, Lop, kmax, depth = args[0], args[6], args[8], args[10], args[13], args[19]
-    nal = len(a0) if Lop.shape[0] == 0 else Lop.shape[0] * kmax
+    W_U, T_v0, a0, L_of, kmax, depth = args[0], args[6], args[8], args[11], args[14], args[20]
+    nal = len(a0) if L_of.shape[0] == 0 else L_of.shape[0] * kmax
     sbuf, sint = loop_state(len(W_U), len(T_v0), depth, nal)
     if deadline is None:
         return staggered_kernel(*args, sbuf, sint, math.inf)[:7]

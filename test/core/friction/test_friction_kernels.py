@@ -10,6 +10,7 @@ import pytest
 from redmax_ros.core.friction.condense import (FIXED_ROW, ancestor_chains, condense, dense_spd_inverse, fixed_row_weights,
                                               spd_inverse, tree_inverse)
 from redmax_ros.core.friction.bisp import dense_wrench_map
+from redmax_ros.core.friction.contact import distinct_operators
 from redmax_ros.core.friction.staggered import cone_excess, loop_state, staggered_kernel
 
 
@@ -143,11 +144,15 @@ def test_joint_multipliers_and_bounds_of_the_loop_are_eq_16_at_its_last_iterate(
     mu_g, bound_mu = np.full(nc, 0.8), np.full(nj, 0.3)
     a0, Mx = rng.standard_normal(6 * nj) * 50.0, rng.standard_normal((6 * nj, nx)) * 50.0
     L = rng.standard_normal((nj, kmax, 6))
+    L[3] = L[1]  # joints of one shape share their operator (contact.distinct_operators)
+    ops = distinct_operators(L)
+    assert ops["L_ops"].shape == (nj - 1, 6, kmax) and ops["L_of"][3] == ops["L_of"][1]
+    assert all(ops["L_ops"][ops["L_of"][j]].T.tobytes() == L[j].tobytes() for j in range(nj))
     wU, wT = np.diag(W_U).copy(), np.diag(W_T).copy()
     sbuf, sint = loop_state(nu, nf, 5, nj * kmax)
     alpha, beta, bound, al, it, conv, resid, paused = staggered_kernel(
-        W_U, X_UT, X_UT.T.copy(), U_v0, lo_U, W_T, T_v0, mu_g, a0, dense_wrench_map(Mx), L, h, bound_mu, kmax, True, wU,
-        wT, 1e-6, 30,
+        W_U, X_UT, X_UT.T.copy(), U_v0, lo_U, W_T, T_v0, mu_g, a0, dense_wrench_map(Mx), ops["L_ops"], ops["L_of"], h,
+        bound_mu, kmax, True, wU, wT, 1e-6, 30,
         5, np.zeros(nu), np.zeros(nf), sbuf, sint, np.inf)
     assert not paused and it >= 2
     # converged: the bounds stopped moving and the impulses lie in them, both to the tolerance in velocity

@@ -42,7 +42,7 @@ FRICTION_SPEC = (
     ("loop_sdiff", "f", 2),
     # BISP map (bisp.make_wrench_map): loop selection triplets, frictional loops and joints, Eq. (16) operators
     ("sel_r", "i", 1), ("sel_c", "i", 1), ("sel_v", "f", 1), ("loop_index", "i", 1), ("pin_ja", "i", 1),
-    ("pin_jb", "i", 1), ("loop_ja", "i", 1), ("loop_jb", "i", 1), ("fj_jid", "i", 1), ("L", "f", 3),
+    ("pin_jb", "i", 1), ("loop_ja", "i", 1), ("loop_jb", "i", 1), ("fj_jid", "i", 1), ("L_ops", "f", 3), ("L_of", "i", 1),
     ("bound_mu", "f", 1), ("gravity", "f", 1),
     # scalars: see SC_* below
     ("scalars", "f", 1),
@@ -67,9 +67,9 @@ def friction_views(f, i, t):
                           i1(i, t, 9), i1(i, t, 10), f1(f, t, 11), f2(f, t, 12), f2(f, t, 13),
                           f2(f, t, 14),
                           i1(i, t, 15), i1(i, t, 16), f1(f, t, 17), i1(i, t, 18), i1(i, t, 19),
-                          i1(i, t, 20), i1(i, t, 21), i1(i, t, 22), i1(i, t, 23), f3(f, t, 24),
-                          f1(f, t, 25), f1(f, t, 26),
-                          f1(f, t, 27))
+                          i1(i, t, 20), i1(i, t, 21), i1(i, t, 22), i1(i, t, 23), f3(f, t, 24), i1(i, t, 25),
+                          f1(f, t, 26), f1(f, t, 27),
+                          f1(f, t, 28))
 
 
 def friction_unsupported(mech) -> list:
@@ -104,7 +104,8 @@ def build_friction(mech):
         pin_moment=fm.pin_moment.reshape(-1, 3), loop_sdiff=fm.loop_sdiff.reshape(-1, mech.nv),
         sel_r=fm.sel_r, sel_c=fm.sel_c, sel_v=fm.sel_v, loop_index=fm.loop_index, pin_ja=fm.pin_ja,
         pin_jb=fm.pin_jb, loop_ja=fm.loop_ja, loop_jb=fm.loop_jb, fj_jid=fm.fj_jid,
-        L=fm.L if joint else np.zeros((0, 1, 6)), bound_mu=fm.bound_mu if joint else np.zeros(0),
+        L_ops=fm.L_ops if joint else np.zeros((0, 6, 1)), L_of=fm.L_of if joint else np.zeros(0, dtype=np.int64),
+        bound_mu=fm.bound_mu if joint else np.zeros(0),
         gravity=fm.gravity,
         scalars=np.array([st.tol, st.max_iter, st.anderson, st.margin, st.erp, fm.n_tree, fm.n_slots, fm.joint_slot0,
                           float(joint), float(contacts)], dtype=float),
@@ -165,8 +166,8 @@ def friction_solve(m, d, c, h, cache, has_cache, cache_new, jn, rep, work_cap):
         return RANK_DEFICIENT
     slots, beta = warm_start(cache, has_cache != 0, ks, ps, c.plane_n.shape[0], int(sc[SC_SLOT0]), nf)
     joint = sc[SC_JOINT] != 0.0
-    nw = c.L.shape[0]
-    kmax = c.L.shape[1]
+    nw = c.L_of.shape[0]
+    kmax = c.L_ops.shape[2]
     W0 = np.zeros((nw, 6))
     nloops = m.loop_a.shape[0]
     xa = np.empty((nloops, 3))
@@ -185,7 +186,7 @@ def friction_solve(m, d, c, h, cache, has_cache, cache_new, jn, rep, work_cap):
     nal = nw * kmax
     sbuf, sint = loop_state(nu, nf, int(sc[SC_DEPTH]), nal)
     alpha, beta, bound, al, it, converged, resid, paused = staggered_kernel(
-        W_U, X_UT, X_TU, U_v0, lo_U, W_T, T_v0, mu_g, W0.reshape(-1), wm, c.L, h, c.bound_mu,
+        W_U, X_UT, X_TU, U_v0, lo_U, W_T, T_v0, mu_g, W0.reshape(-1), wm, c.L_ops, c.L_of, h, c.bound_mu,
         kmax, joint, wU, wT, sc[SC_TOL], int(sc[SC_MAX_ITER]), int(sc[SC_DEPTH]), alpha, beta, sbuf, sint, work_cap)
     if paused:
         return PAUSED
