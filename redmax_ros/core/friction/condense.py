@@ -13,7 +13,9 @@ forces of §5.3 that enter the BISP joint reactions.
 Structure used: G and RX are sparse (a joint friction row r e_j has one or two nonzeros after the
 coupling matrix, ground and loop rows only the DOFs of their supporting chains), so every product
 with them runs over their nonzeros (O(nnz n) instead of O(rows n^2)); the dense work left is the
-Cholesky inverse of A, S^-1 and P (n = DOFs, m = bilateral rows).
+Cholesky inverse of A, S^-1 and P (n = DOFs, m = bilateral rows). The symmetric products S = G A^-1 G^T
+and WX = RX P RX^T are formed in their lower triangles and mirrored (the walker's 47 x 47 WX: half the
+multiply-adds; condense 28.3 -> 25.9 us standalone on its matrices).
 """
 from __future__ import annotations
 
@@ -216,13 +218,12 @@ def _sparse_left(R, ptr, idx, B):
 
 
 @njit(cache=True, nogil=True)
-def _sparse_right_t(B, R, ptr, idx, lower=False):
-    """B @ R^T over the nonzeros of R (B (k,n), R (r,n) with pattern ptr/idx) -> (k, r): row j of the
-    transposed product accumulates R[j, c] times row c of B^T over the row's nonzeros (contiguous rows:
-    vectorised), each entry summed in the order of R's pattern. ``lower`` (k = r, a symmetric product such as
-    G A^-1 G^T): the entries i >= j only, mirrored into the upper triangle."""
-    BT = np.ascontiguousarray(B.T)
-    k = B.shape[0]
+def _sparse_right_t(BT, R, ptr, idx, lower=False):
+    """B @ R^T over the nonzeros of R, given BT = B^T (n,k) contiguous, R (r,n) with pattern ptr/idx -> (k, r):
+    row j of the transposed product accumulates R[j, c] times row c of B^T over the row's nonzeros (contiguous
+    rows: vectorised), each entry summed in the order of R's pattern. ``lower`` (k = r, a symmetric product
+    such as G A^-1 G^T or RX P RX^T): the entries i >= j only, mirrored into the upper triangle."""
+    k = BT.shape[1]
     outT = np.zeros((R.shape[0], k))
     for j in range(R.shape[0]):
         i0 = j if lower else 0
@@ -258,7 +259,8 @@ def condense(A, b, G, g, RX, nu):
     lambda_0, LamX) for RX = [U (nu rows); -T] (module docstring); X_UT = U P T^T.
     status: 0 ok, 1 A not positive definite, 2 G A^-1 G^T not positive definite (redundant rows).
     S = G A^-1 G^T is formed in its lower triangle (all the Cholesky factorisation reads) and inverted
-    densely: it couples every pair of rows whose chains share a DOF, so it has no tree sparsity to use."""
+    densely: it couples every pair of rows whose chains share a DOF, so it has no tree sparsity to use.
+    WX is exactly symmetric (its lower triangle mirrored), so W_U, W_T are and X_TU = X_UT^T."""
     n, m, nx = len(b), G.shape[0], RX.shape[0]
     nf = nx - nu
     Ainv, ok = spd_inverse(A)
@@ -272,10 +274,11 @@ def condense(A, b, G, g, RX, nu):
     if ok and m:
         gptr, gidx = pattern_of(G)
         GA = _sparse_left(G, gptr, gidx, Ainv)
-        Sinv, ok = dense_spd_inverse(_sparse_right_t(GA, G, gptr, gidx, True))
+        GAT = np.ascontiguousarray(GA.T)
+        Sinv, ok = dense_spd_inverse(_sparse_right_t(GAT, G, gptr, gidx, True))
         if ok:
             SG = Sinv @ GA  # S^-1 Y^T
-            P = Ainv - np.ascontiguousarray(GA.T) @ SG
+            P = Ainv - GAT @ SG
             v0 = P @ b + (g @ SG)
             lam0 = Sinv @ (GA @ b - g)
         else:
@@ -291,10 +294,10 @@ def condense(A, b, G, g, RX, nu):
     if nx and status == 0:
         RXP = _sparse_left(RX, rptr, ridx, P)  # RX P = PX^T
         PX = np.ascontiguousarray(RXP.T)
-        WX = _sparse_right_t(RXP, RX, rptr, ridx)
+        WX = _sparse_right_t(PX, RX, rptr, ridx, True)  # symmetric, as P
         Xv0 = RX @ v0
         if m:
-            LamX = _sparse_right_t(SG, RX, rptr, ridx)  # S^-1 Y^T RX^T
+            LamX = _sparse_right_t(np.ascontiguousarray(SG.T), RX, rptr, ridx)  # S^-1 Y^T RX^T
     W_U = np.ascontiguousarray(WX[:nu, :nu])
     X_UT = np.ascontiguousarray(-WX[:nu, nu:])
     X_TU = np.ascontiguousarray(X_UT.T)
