@@ -22,6 +22,7 @@ from redmax_ros.core.jit import njit
 from redmax_ros.core.solvers import recursive as rc
 
 PIN_DATA_MAX_NV = 100  # above this the direct pipeline's pin.Data is not created (>~50 MB, grows as nv^3)
+ADDITIVE_KINDS = (rc.REVOLUTE, rc.PRISMATIC, rc.HELICAL, rc.TRANSLATION)  # joints on R^n: pin.integrate is q + v
 
 
 class Context:
@@ -60,6 +61,10 @@ class Context:
         self.planar_joints = np.array(planar, dtype=np.int64)
         self.placement_fallback = [(j, jm, jd) for j, jm, jd in zip(self.topo.fallback, self.topo.fallback_models,
                                                                       self.ws.jdata) if j not in planar and j not in uni]
+        # every joint a vector space (pin.integrate is q + v) placed by the kernels: the loop projection runs in
+        # one compiled call (stabilization.chord_project_kernel)
+        self.additive = (model.nq == model.nv and not self.placement_fallback and not planar
+                         and all(int(k) in ADDITIVE_KINDS or j in uni for j, k in enumerate(self.topo.kind) if j))
         nv = mech.nv
         self.site_jid = np.ascontiguousarray(mech.site_jid, dtype=np.int64).reshape(-1)
         self.site_local = np.ascontiguousarray(mech.site_local, dtype=float).reshape(-1, 3)
