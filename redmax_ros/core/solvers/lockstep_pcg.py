@@ -2,8 +2,8 @@
 
 :func:`block_pcg` runs k independent preconditioned CG solves A x_c = b_c (the l + 1 solves
 u = A^-1 b and Z = A^-1 H^T of Eq. (4)) together: all iterations of all right-hand sides in one compiled
-call on preallocated arrays (solvers/lockstep_kernel.py; one call per iteration under a step budget), with the
-LHS products of :class:`~redmax_ros.core.solvers.pcg.MatrixFreeSystem` and the Projected
+call on preallocated arrays (solvers/lockstep_kernel.py; under a step budget in slices sized to the time
+left), with the LHS products of :class:`~redmax_ros.core.solvers.pcg.MatrixFreeSystem` and the Projected
 Block Jacobi Preconditioner of Alg. 1, :mod:`~redmax_ros.core.solvers.preconditioner`).
 :func:`active_set` imposes the joint limits of Eq. (5) by a primal active set on the same dual system
 (limit rows enter as equalities at their bound, multipliers checked for sign), with Z columns computed
@@ -12,6 +12,8 @@ direct solver. Under a step budget both check the step's deadline (solvers/budge
 iterations and raise its StepError (no fallback) when the step's time is up.
 """
 from __future__ import annotations
+
+import time
 
 import numpy as np
 
@@ -53,7 +55,9 @@ def block_pcg(ops: Ops, B: np.ndarray, X0: np.ndarray | None, rtol: float, max_i
     """Independent preconditioned CG solves A x_c = b_c for the rows b_c of B (k, n), run in lockstep by the
     compiled kernels of solvers/lockstep_kernel.py. Each column stops when ||r_c|| <= rtol ||b_c||. Returns
     (X, iterations (k,), converged (k,), relative residuals (k,)). ``deadline``: the step's budget.Deadline,
-    checked before every iteration after the first (None: no budget, all iterations in one call)."""
+    checked after the first iteration and then between slices of the iterations that fit in the time left at
+    the pace so far (Deadline.iterations_left; None: no budget, all iterations in one call). The slicing does
+    not change the iterations: the result is bitwise that of one call."""
     if deadline is not None:
         deadline.begin()
     B = np.ascontiguousarray(B, dtype=float)
@@ -61,12 +65,14 @@ def block_pcg(ops: Ops, B: np.ndarray, X0: np.ndarray | None, rtol: float, max_i
     X = np.zeros((k, n)) if X0 is None else np.array(X0, dtype=float)
     R, Zr, Pd, AP, bn, tol, rn, rz, active, conv, its = ops.work(k, n)
     it = max_iter if deadline is None else min(1, max_iter)  # the iterations before the first check
+    t0 = time.perf_counter()
     left = lockstep_solve(*ops.args, B, X, X0 is not None, float(rtol), R, Zr, Pd, AP, bn, tol, rn, rz, active,
                           conv, its, it)
     while left and it < max_iter:
         deadline.check(PCG_NAME, it)
-        left = lockstep_iterate(*ops.args, X, R, Zr, Pd, AP, tol, rn, rz, active, conv, its, it, it + 1)
-        it += 1
+        to = it + deadline.iterations_left((time.perf_counter() - t0) / it, max_iter - it)
+        left = lockstep_iterate(*ops.args, X, R, Zr, Pd, AP, tol, rn, rz, active, conv, its, it, to)
+        it = to
     return X, its.copy(), conv.copy(), relative_residuals(bn, rn)
 
 
