@@ -8,6 +8,7 @@ import numpy as np
 import pinocchio as pin
 
 from redmax_ros.core.jit import njit
+from redmax_ros.core.solvers.recursive import site_pos_kernel
 
 
 def spring_forces(mech, X: np.ndarray, V: np.ndarray | None = None, arrays: SpringArrays | None = None):
@@ -98,6 +99,23 @@ def spring_kernel(X, a, b, k, c, L0, explicit, V, f, K, D, l):
                 uu = u[r] * u[q]
                 K[s, r, q] = k[s] * (uu + trans * ((1.0 if r == q else 0.0) - uu))
                 D[s, r, q] = c[s] * uu
+
+
+@njit
+def spring_state_kernel(R, p, jid, local, a, b, k, c, L0, explicit, V, h, X, f, K, D, l, pa, pb, C):
+    """What the data-free step needs of its springs at the placements (R, p) in one call: the positions X of
+    the sites (joint ``jid``, offset ``local``: mech.jac_sites, recursive.site_pos_kernel), :func:`spring_kernel`'s
+    f, K, D, l, the end points pa = X[a], pb = X[b] [m] and the springs' LHS matrices C = h D + h^2 K of Eq. (2)
+    (as solvers.pcg.MatrixFreeSystem.refresh forms them from K and D: the same products and sums)."""
+    site_pos_kernel(R, p, jid, local, X)
+    spring_kernel(X, a, b, k, c, L0, explicit, V, f, K, D, l)
+    hh = h * h
+    for s in range(a.shape[0]):
+        for r in range(3):
+            pa[s, r] = X[a[s], r]
+            pb[s, r] = X[b[s], r]
+            for q in range(3):
+                C[s, r, q] = h * D[s, r, q] + hh * K[s, r, q]
 
 
 SHIFT_SOFT = 0.1  # spring_shift: a compressed spring's negative transverse stiffness counts as soft below this

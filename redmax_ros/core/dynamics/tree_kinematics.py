@@ -17,11 +17,12 @@ from __future__ import annotations
 import numpy as np
 import pinocchio as pin
 
-from redmax_ros.core.dynamics.springs import spring_arrays
+from redmax_ros.core.dynamics.springs import spring_arrays, spring_state_kernel
 from redmax_ros.core.jit import njit
 from redmax_ros.core.solvers import recursive as rc
 
 PIN_DATA_MAX_NV = 100  # above this the direct pipeline's pin.Data is not created (>~50 MB, grows as nv^3)
+_NO_V = np.zeros((0, 3))  # Context.spring_state without explicit dampers
 ADDITIVE_KINDS = (rc.REVOLUTE, rc.PRISMATIC, rc.HELICAL, rc.TRANSLATION)  # joints on R^n: pin.integrate is q + v
 
 
@@ -185,6 +186,24 @@ class Context:
     def jac_positions(self) -> np.ndarray:
         """Positions of mech.jac_sites (rows as Kinematics.X of the direct pipeline)."""
         return rc.site_positions(self.ws, self.jac_jid, self.jac_local)
+
+    def spring_state(self, h: float, V: np.ndarray | None = None) -> tuple:
+        """(X, f, K, D, (pa, pb), C) of the maximal springs at the placements in ws, one compiled call
+        (springs.spring_state_kernel): X the positions of mech.jac_sites (as :meth:`jac_positions`), f, K, D
+        those of springs.spring_forces, (pa, pb) the end points [m], C = h D + h^2 K. ``V``: the site velocities of
+        explicit dampers (springs.spring_forces), None when no spring needs them."""
+        sa, P = self.spring_arrays, len(self.spring_ja)
+        if V is None:
+            if sa.needs_velocities:
+                raise ValueError("explicit spring dampers need the site velocities V")
+            V = _NO_V
+        X = np.empty((len(self.jac_jid), 3))
+        f, K, D, C = np.empty((P, 3)), np.empty((P, 3, 3)), np.empty((P, 3, 3)), np.empty((P, 3, 3))
+        pa, pb = np.empty((P, 3)), np.empty((P, 3))
+        spring_state_kernel(self.ws.R, self.ws.p, self.jac_jid, self.jac_local, sa.a, sa.b, sa.k, sa.d, sa.rest,
+                            sa.explicit, np.ascontiguousarray(V, dtype=float), float(h), X, f, K, D, np.empty(P),
+                            pa, pb, C)
+        return X, f, K, D, (pa, pb), C
 
     def point_jacobians(self, sites) -> tuple:
         """(X (K,3), J (K,3,nv)) world positions and dense point Jacobians of the sites, O(K d)."""

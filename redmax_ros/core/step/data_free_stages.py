@@ -32,7 +32,7 @@ from redmax_ros.core.dynamics import constraints
 from redmax_ros.core.dynamics import tree_forces as tf
 from redmax_ros.core.solvers.problem import Constraints
 from redmax_ros.core.solvers.problem import LinearSystem
-from redmax_ros.core.dynamics.springs import geometric_blocks_kernel, spring_forces, spring_shift_kernel
+from redmax_ros.core.dynamics.springs import geometric_blocks_kernel, spring_shift_kernel
 from redmax_ros.core.errors import StepError
 from redmax_ros.core.solvers.direct import solve_direct
 from redmax_ros.core.solvers.lockstep_pcg import DEFAULT_RTOL, Fallback, Ops, active_set, block_pcg, default_max_iter, spd_solve
@@ -86,16 +86,16 @@ def coupling_scale(mech, ws) -> float:
 
 
 def lhs_system(ws, rws, h: float, springs: PointSprings | None, blocks: np.ndarray | None,
-               ends: tuple | None = None) -> MatrixFreeSystem:
+               ends: tuple | None = None, C: np.ndarray | None = None) -> MatrixFreeSystem:
     """This step's LHS of Eq. (2) as an O(n + m) operator: the workspace's MatrixFreeSystem (made at its first
-    step, kept in ws.cache) renewed for the kinematics ``rws``, h, the springs (world end points ``ends``) and
-    the maximal blocks."""
+    step, kept in ws.cache) renewed for the kinematics ``rws``, h, the springs (world end points ``ends``, their
+    h D + h^2 K ``C``) and the maximal blocks."""
     ctx = ws.tree
     system = ws.cache.get(_SYSTEM_KEY)
     if system is None:
         system = ws.cache[_SYSTEM_KEY] = MatrixFreeSystem(ctx.topo, rws, h, ctx.reduced_diag(h), springs, blocks)
         return system
-    return system.renew(rws, h, ctx.reduced_diag(h), springs, blocks, ends)
+    return system.renew(rws, h, ctx.reduced_diag(h), springs, blocks, ends, C)
 
 
 def point_springs(ws, K: np.ndarray, D: np.ndarray) -> PointSprings:
@@ -232,14 +232,14 @@ def data_free_velocity(mech, ws, state, cmd, tau, h, solver="pcg", rtol=DEFAULT_
     v_r = ws.to_reduced(state.v)
     rws = ctx.fk(state.q, v_r)
     springs = rhs_springs = None
-    K = D = None
+    K = D = C = ends = None
     if len(mech.spring_ab):
-        X = ctx.jac_positions()  # at q*: where the spring forces act (their Jacobians)
         V = None
         if ctx.spring_arrays.needs_velocities:  # site velocities v_o + w x x of explicit dampers (implicit: false)
             ov = rws.ov[ctx.jac_jid]
-            V = ov[:, :3] + np.cross(ov[:, 3:], X)
-        fs, K, D, _ = spring_forces(mech, X, V, ctx.spring_arrays)
+            V = ov[:, :3] + np.cross(ov[:, 3:], ctx.jac_positions())
+        # at q*: where the spring forces act (X, their Jacobians' points), their forces, K, D, ends and C of the LHS
+        X, fs, K, D, ends, C = ctx.spring_state(h, V)
         springs = rhs_springs = (fs, X)
         if pt is not None:  # BDF2: f(q+) ~ f(q*) + K' (q* (-) q^) - K hat h qdot+ (springs.spring_shift), O(n + m)
             rows = mech.spring_rows
@@ -261,11 +261,8 @@ def data_free_velocity(mech, ws, state, cmd, tau, h, solver="pcg", rtol=DEFAULT_
             b += h * rc.jtw(ctx.topo, rws, np.einsum("jab,jb->ja", B, rc.jv(ctx.topo, rws, pt.back)))
     if not math.isfinite(float(b.sum())):
         raise StepError("non-finite right-hand side of Eq. (2) (state or forces out of range)")
-    ps = ends = None
-    if K is not None:
-        ps = point_springs(ws, K, D)
-        ends = (X[ctx.spring_arrays.a], X[ctx.spring_arrays.b])  # = the springs' site positions, same kernel
-    system = lhs_system(ws, rws, h, ps, tf.maximal_blocks(ctx, h, springs, ends), ends)
+    ps = None if K is None else point_springs(ws, K, D)
+    system = lhs_system(ws, rws, h, ps, tf.maximal_blocks(ctx, h, springs, ends), ends, C)
     # 3: constraint rows (reduced coordinates for PCG)
     cons = build_rows(mech, ws, cmd, q_base, h, hyper=solver != "pcg")
     if cons.m:

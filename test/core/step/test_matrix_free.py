@@ -11,6 +11,7 @@ import pytest
 import pinocchio as pin
 
 from redmax_ros.core import SceneError, Simulator, State, StepError, compile_scene, list_scenes, load_scene
+from redmax_ros.core.dynamics.springs import spring_forces
 from redmax_ros.core.dynamics.stabilization import assemble_loops
 from redmax_ros.core.dynamics.tree_kinematics import PIN_DATA_MAX_NV, Context
 from redmax_ros.core.solvers import recursive as rc
@@ -247,3 +248,25 @@ def test_runner_solver_option(tmp_path):
                  "--out", str(out)]) == 0
     rows = np.loadtxt(out, delimiter=",", skiprows=1)
     assert rows.shape[0] == 4 and np.all(np.isfinite(rows))
+
+
+@pytest.mark.parametrize("name,overrides", [("bridge", []), EXTRA[5]])
+def test_spring_state_equals_spring_forces_and_the_lhs_matrices(name, overrides):
+    """Context.spring_state (one compiled call) against what it replaces: jac_positions, springs.spring_forces,
+    the end points X[a], X[b] and C = h D + h^2 K as MatrixFreeSystem.refresh forms it, bytes equal (the second
+    scene has explicit dampers, which need the site velocities)."""
+    sim = Simulator.load(name, overrides, solver="pcg")
+    sim.step(3)
+    ctx, m, h = sim.backend.workspace.tree, sim.mech, sim.dt
+    rws = ctx.fk(sim.state.q, sim.state.v)
+    X = ctx.jac_positions()
+    V = None
+    if ctx.spring_arrays.needs_velocities:
+        ov = rws.ov[ctx.jac_jid]
+        V = ov[:, :3] + np.cross(ov[:, 3:], X)
+    f, K, D, _ = spring_forces(m, X, V, ctx.spring_arrays)
+    sa = ctx.spring_arrays
+    want = (X, f, K, D, X[sa.a], X[sa.b], np.ascontiguousarray(h * D + h * h * K))
+    X2, f2, K2, D2, (pa, pb), C = ctx.spring_state(h, V)
+    for a, b in zip(want, (X2, f2, K2, D2, pa, pb, C)):
+        assert a.shape == b.shape and a.tobytes() == b.tobytes()
