@@ -18,7 +18,8 @@ import time
 import numpy as np
 
 from redmax_ros.core.solvers.direct import check_rank
-from redmax_ros.core.solvers.lockstep_kernel import lockstep_iterate, lockstep_solve, relative_residuals, spd_solve_kernel
+from redmax_ros.core.solvers.lockstep_kernel import (dual_solve_kernel, lockstep_iterate, lockstep_solve,
+                                                     relative_residuals, spd_solve_kernel)
 from redmax_ros.core.solvers.pcg import MatrixFreeSystem
 from redmax_ros.core.solvers.preconditioner import ProjectedBlockJacobi
 
@@ -99,6 +100,22 @@ def spd_solve(S, rhs, labels):
         return y
     check_rank(S, labels)
     return y if status == 2 else np.linalg.lstsq(S, rhs, rcond=None)[0]
+
+
+def dual_solve(H, X, g, labels):
+    """(y, v) of Eq. (4) from the lockstep solutions X = [u; Z^T] (:func:`block_pcg` of [b; H]): y = (H Z)^-1
+    (H u - g), v = u - Z y, in one compiled call (lockstep_kernel.dual_solve_kernel); a singular or nearly
+    singular H Z is handled as in :func:`spd_solve` (redundant rows named, else least squares)."""
+    l, n = H.shape
+    S, rhs, y, v = np.empty((l, l)), np.empty(l), np.empty(l), np.empty(n)
+    status = dual_solve_kernel(H, X, g, S, np.empty((l, l)), rhs, y, v)
+    if status == 1:
+        return y, v
+    check_rank(S, labels)
+    if status == 0:
+        y = np.linalg.lstsq(S, rhs, rcond=None)[0]
+        v = X[0] - X[1:].T @ y
+    return y, v
 
 
 def active_set(ops, rows, H, gH, Z, u, v, y, labels, rtol, max_iter, stats, deadline=None):

@@ -35,7 +35,8 @@ from redmax_ros.core.solvers.problem import LinearSystem
 from redmax_ros.core.dynamics.springs import geometric_blocks_kernel, spring_shift_kernel
 from redmax_ros.core.errors import StepError
 from redmax_ros.core.solvers.direct import solve_direct
-from redmax_ros.core.solvers.lockstep_pcg import DEFAULT_RTOL, Fallback, Ops, active_set, block_pcg, default_max_iter, spd_solve
+from redmax_ros.core.solvers.lockstep_kernel import kkt_residual_kernel
+from redmax_ros.core.solvers.lockstep_pcg import DEFAULT_RTOL, Fallback, Ops, active_set, block_pcg, default_max_iter, dual_solve
 from redmax_ros.core.solvers import recursive as rc
 from redmax_ros.core.solvers.pcg import MatrixFreeSystem, PointSprings
 from redmax_ros.core.step.pipeline import VelocitySolve
@@ -159,8 +160,8 @@ def solve_pcg(mech, ws, system: MatrixFreeSystem, b, cons: Constraints, x0, rtol
         raise Fallback(f"preconditioner: {e}") from None
     ops = Ops(system, ctx.P, ws.cache.setdefault("lockstep scratch", {}))
     Gc = coupling_rows(mech, ws)
-    H = np.vstack([cons.G, Gc]) if len(Gc) else cons.G
-    gH = np.concatenate([cons.g, np.zeros(len(Gc))]) if len(Gc) else cons.g
+    H = np.ascontiguousarray(np.vstack([cons.G, Gc]) if len(Gc) else cons.G, dtype=float)
+    gH = np.ascontiguousarray(np.concatenate([cons.g, np.zeros(len(Gc))]) if len(Gc) else cons.g, dtype=float)
     l = len(H)
     key = tuple(cons.label_spans) + (len(Gc),)
     labels = ws.cache.get(("row labels", key))
@@ -192,8 +193,7 @@ def solve_pcg(mech, ws, system: MatrixFreeSystem, b, cons: Constraints, x0, rtol
     Z = X[1:].T  # (nv, l)
     if l:
         ctx.z_cache = (key, X[1:].copy())
-        y = spd_solve(H @ Z, H @ u - gH, labels)
-        v = u - Z @ y
+        y, v = dual_solve(H, X, gH, labels)
     else:
         y = np.zeros(0)
         v = u
@@ -206,6 +206,15 @@ def solve_pcg(mech, ws, system: MatrixFreeSystem, b, cons: Constraints, x0, rtol
 
 
 _NO_LIMITS = np.zeros(0)  # mu without limit rows
+_NO_DOFS = np.zeros(0, dtype=np.int64)  # limited DOFs of kkt_residual_kernel without limit rows
+
+
+def limited_dofs(mech, ws) -> np.ndarray:
+    """mech.limited as an int64 array (cached in ws)."""
+    d = ws.cache.get("limited dofs")
+    if d is None:
+        d = ws.cache["limited dofs"] = np.asarray(mech.limited, dtype=np.int64).reshape(-1)
+    return d
 
 
 @dataclasses.dataclass
@@ -272,22 +281,24 @@ def data_free_velocity(mech, ws, state, cmd, tau, h, solver="pcg", rtol=DEFAULT_
 
     # 4: solve
     label = solver
-    sol = None
+    sol = viol_vel = None
     if solver == "pcg":
         try:
             v_red, y, mu, iters, H = solve_pcg(mech, ws, system, b, cons, v_r, rtol, max_iter, stats)
             y_rows = y[:cons.m]
             v_hyp = ctx.to_hyper(v_red)
-            # true residual of the KKT stationarity equation (one more O(n + m) LHS product)
-            r = system.apply(v_red) - b
-            if len(H):
-                r += H.T @ y
-            if len(mu):
-                r[mech.limited] += mu
-            bb = b
+            # true residual of the KKT stationarity equation (one more O(n + m) LHS product) and the rows' velocity
+            # violation, one compiled call
+            r = np.empty(nv)
+            rr, bb, viol = kkt_residual_kernel(*system.lhs_args(), *system.lhs_scratch(), v_red, b, H, y,
+                                               limited_dofs(mech, ws) if len(mu) else _NO_DOFS, mu, cons.m,
+                                               np.ascontiguousarray(cons.g, dtype=float), r)
+            if ws.T is None:  # else the violation of the hyper-reduced velocity's T qdot_R below
+                viol_vel = viol
             if mech.T is not None:
                 r, bb = mech.T.T @ r, mech.T.T @ b
-            res = math.sqrt(float(r @ r) / max(float(bb @ bb), 1e-300))
+                rr, bb = float(r @ r), float(bb @ bb)
+            res = math.sqrt(rr / max(bb, 1e-300))
             sol = MFSolution(v_hyp, y_rows, mu, iters, "pcg", res)
         except Fallback as e:
             stats["fallback"] = str(e.args[0])
@@ -309,5 +320,6 @@ def data_free_velocity(mech, ws, state, cmd, tau, h, solver="pcg", rtol=DEFAULT_
         if mech.T is not None and cons.G.shape[1] == nv:
             G_loop = G_loop @ mech.T
     v_new = ws.to_reduced(sol.v)
-    viol_vel = float(np.abs(cons.G @ (v_new if cons.G.shape[1] == nv else sol.v) - cons.g).max()) if cons.m else 0.0
+    if viol_vel is None or not cons.m:
+        viol_vel = float(np.abs(cons.G @ (v_new if cons.G.shape[1] == nv else sol.v) - cons.g).max()) if cons.m else 0.0
     return VelocitySolve(sol, cons.joint_rows, cons.site_rows, G_loop, viol_vel, label, int(iters))
