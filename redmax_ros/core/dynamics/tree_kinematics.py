@@ -110,6 +110,12 @@ class Context:
         self.loop_site_jid = np.ascontiguousarray(self.site_jid[sites])
         self.loop_site_local = np.ascontiguousarray(self.site_local[sites]).reshape(-1, 3)
         self.loop_ends = [(pos[int(a)], pos[int(b)]) for a, b in mech.loop_ab]
+        # per loop row: its ends among those sites and its world direction (row of the loop's axes P)
+        self.loop_row_a = np.array([ka for (ka, _), P in zip(self.loop_ends, self.loop_axes) for _ in P], np.int64)
+        self.loop_row_b = np.array([kb for (_, kb), P in zip(self.loop_ends, self.loop_axes) for _ in P], np.int64)
+        self.loop_row_axis = np.array([r for P in self.loop_axes for r in P], dtype=float).reshape(-1, 3)
+        self._loop_X = np.empty((len(sites), 3))  # scratch of loop_jacobian_kernel
+        self._loop_J = np.empty((len(sites), 3, nv))
         # hyper-reduced coordinates: one representative reduced DOF per column of T (v_R from v_r)
         if mech.T is not None:
             T = mech.T
@@ -270,8 +276,11 @@ class Context:
         """G_r (rows, nv) of :meth:`loop_rows` alone."""
         if not self.n_loop_rows:
             return np.zeros((0, self.topo.nv))
-        _, J = self._loop_site_jacobians()
-        return np.concatenate([P @ (J[ka] - J[kb]) for (ka, kb), P in zip(self.loop_ends, self.loop_axes)])
+        t, ws = self.topo, self.ws
+        G = np.empty((self.n_loop_rows, t.nv))
+        loop_jacobian_kernel(t.parents, t.idx_v, t.nv_j, ws.St, ws.R, ws.p, self.loop_site_jid, self.loop_site_local,
+                             self.loop_row_a, self.loop_row_b, self.loop_row_axis, self._loop_X, self._loop_J, G)
+        return G
 
     def _loop_site_jacobians(self) -> tuple:
         """(X (K,3), J (K,3,nv)) of :meth:`point_jacobians` for the loops' sites (rows of self.loop_ends)."""
@@ -372,6 +381,22 @@ def point_jac_kernel(parents, idx_v, nv_j, St, joints, X, J):
                 J[k, 2, c] = St[c, 2] + w0 * x1 - w1 * x0
             j = parents[j]
 
+
+@njit
+def loop_jacobian_kernel(parents, idx_v, nv_j, St, R, p, jid, local, row_a, row_b, row_axis, X, J, G):
+    """The loop rows of Eq. (4)'s H in reduced coordinates, G[r] = P_r (J_a - J_b) (Wang et al. 2019 §3.1: the
+    relative velocity of a loop's two sites along its constrained directions P_r), in one call: the loop sites'
+    world positions X (recursive.site_pos_kernel) and point Jacobians J (:func:`point_jac_kernel`, J zeroed
+    first; scratch), then per row the direction times the Jacobians' difference (the sums of numpy's P @ (J_a -
+    J_b) over the three directions, to round-off)."""
+    rc.site_pos_kernel(R, p, jid, local, X)
+    J[:] = 0.0
+    point_jac_kernel(parents, idx_v, nv_j, St, jid, X, J)
+    for r in range(G.shape[0]):
+        a, b = row_a[r], row_b[r]
+        P0, P1, P2 = row_axis[r, 0], row_axis[r, 1], row_axis[r, 2]
+        for c in range(G.shape[1]):
+            G[r, c] = P0 * (J[a, 0, c] - J[b, 0, c]) + P1 * (J[a, 1, c] - J[b, 1, c]) + P2 * (J[a, 2, c] - J[b, 2, c])
 
 
 def body_poses(ctx: Context, q) -> dict:

@@ -13,7 +13,7 @@ import pinocchio as pin
 from redmax_ros.core import SceneError, Simulator, State, StepError, compile_scene, list_scenes, load_scene
 from redmax_ros.core.dynamics.springs import spring_forces
 from redmax_ros.core.dynamics.stabilization import assemble_loops
-from redmax_ros.core.dynamics.tree_kinematics import PIN_DATA_MAX_NV, Context
+from redmax_ros.core.dynamics.tree_kinematics import PIN_DATA_MAX_NV, Context, point_jac_kernel
 from redmax_ros.core.solvers import recursive as rc
 from redmax_ros.core.step.backends import AUTO_DIRECT_NV, DataFreeBackend, DirectBackend
 
@@ -202,6 +202,32 @@ def test_data_free_loop_assembly_matches_pinocchio():
         q[:m.nv] += 1e-3 * rng.normal(size=m.nv) if m.nq == m.nv else 0.0
         a, b = assemble_loops(Context(m), q.copy()), _assemble_loops_pinocchio(m, q.copy())
         assert np.abs(a - b).max() < 1e-9, name
+
+
+@pytest.mark.parametrize("name, overrides", [("fourbar", []), ("umbrella", ["params.ribs=2"]),
+                                             ("bridge", ["params.variant=rigid"])])
+def test_loop_jacobian_kernel_matches_site_jacobians(name, overrides):
+    """Context.loop_jacobian (tree_kinematics.loop_jacobian_kernel, one call) against the rows it replaced,
+    P (J_a - J_b) per loop from the loop sites' point Jacobians, to round-off; and G qdot is the loops' phi_dot
+    (finite difference of Context.loop_rows' phi along qdot)."""
+    m = compile_scene(load_scene(name, overrides))
+    ctx = Context(m)
+    rng = np.random.default_rng(1)
+    q = m.q0.copy()
+    if m.nq == m.nv:
+        q += 1e-2 * rng.normal(size=m.nv)
+    ctx.fk(q)
+    G = ctx.loop_jacobian()
+    t = ctx.topo
+    X = rc.site_positions(ctx.ws, ctx.loop_site_jid, ctx.loop_site_local)
+    J = np.zeros((len(X), 3, m.nv))
+    point_jac_kernel(t.parents, t.idx_v, t.nv_j, ctx.ws.St, ctx.loop_site_jid, X, J)
+    G_ref = np.concatenate([P @ (J[ka] - J[kb]) for (ka, kb), P in zip(ctx.loop_ends, ctx.loop_axes)])
+    assert G.shape == G_ref.shape and np.abs(G - G_ref).max() <= 1e-14 * max(1.0, np.abs(G_ref).max())
+    if m.nq == m.nv:
+        v, eps = rng.normal(size=m.nv), 1e-6
+        phi = [ctx.fk(q + s * eps * v) is not None and ctx.loop_rows()[1] for s in (1.0, -1.0)]
+        assert np.abs((phi[0] - phi[1]) / (2 * eps) - G @ v).max() <= 1e-6 * max(1.0, np.abs(G @ v).max())
 
 
 def test_large_scene_compiles_and_runs_without_pin_data():
