@@ -230,6 +230,48 @@ def test_loop_jacobian_kernel_matches_site_jacobians(name, overrides):
         assert np.abs((phi[0] - phi[1]) / (2 * eps) - G @ v).max() <= 1e-6 * max(1.0, np.abs(G @ v).max())
 
 
+def test_rhs_kernel_matches_its_parts_and_pinocchio():
+    """tree_forces.rhs (one rhs_kernel call) against the calls it replaced (bias_wrench_kernel, einsum I ov,
+    spring_wrench_kernel, rhs_sum_kernel) to round-off on a chain with springs, body damping and a wrench; and
+    without springs b = M v + h (tau - nle(q, v)) from Pinocchio (crba, rnea at zero acceleration)."""
+    from redmax_ros.core.dynamics import tree_forces as tf
+    for overrides in (EXTRA[3][1], ["params.n=5"]):
+        m = compile_scene(load_scene("chain", overrides))
+        ctx = Context(m)
+        rng = np.random.default_rng(2)
+        q, v, tau, h = m.q0 + 0.3 * rng.normal(size=m.nq), rng.normal(size=m.nv), rng.normal(size=m.nv), 1e-3
+        ws = ctx.fk(q, v)
+        springs = None
+        if len(m.spring_ab):
+            X, fs = ctx.spring_state(h)[:2]
+            springs = (fs, X)
+        b = tf.rhs(ctx, q, v, tau, h, None, springs)
+        t = ctx.topo
+        W = np.empty((t.njoints, 6))
+        tf.bias_wrench_kernel(t.parents, t.idx_v, t.nv_j, ws.St, ws.ov, ws.v, ws.R, ws.p, ws.c_local, ws.I,
+                              ctx.gravity, h, np.empty((t.njoints, 6)), W)
+        W += np.einsum("jab,jb->ja", ws.I, ws.ov)
+        ext = np.zeros((t.njoints, 6))
+        if springs is not None:
+            sa = ctx.spring_arrays
+            rc.spring_wrench_kernel(ctx.spring_ja, sa.a, ctx.spring_jb, sa.b, X, fs, ext)
+        for j, com, fw in zip(ctx.wrench_jid, ctx.wrench_com, ctx.wrench_fw):
+            x = ws.R[j] @ com + ws.p[j]
+            ext[j] += np.concatenate([fw[:3], np.cross(x, fw[:3]) + fw[3:]])
+        f_r = tau - m.stiffness * pin.difference(m.model, m.q_rest, q) if m.has_stiffness else tau
+        b_ref = np.empty(m.nv)
+        tf.rhs_sum_kernel(t.parents, t.idx_v, t.nv_j, ws.St, W, ext, h, ctx.armature, v, f_r, np.empty_like(ws.tmp6),
+                          b_ref)
+        assert np.abs(b - b_ref).max() <= 1e-13 * np.abs(b_ref).max()
+        if springs is None and not len(ctx.wrench_jid):
+            data = m.model.createData()
+            M = pin.crba(m.model, data, q)
+            M = np.triu(M) + np.triu(M, 1).T + np.diag(m.armature if m.has_armature else np.zeros(m.nv))
+            nle = pin.rnea(m.model, data, q, v, np.zeros(m.nv))
+            b_pin = M @ v + h * (f_r - nle)
+            assert np.abs(b - b_pin).max() <= 1e-12 * np.abs(b_pin).max()
+
+
 def test_large_scene_compiles_and_runs_without_pin_data():
     """nv > PIN_DATA_MAX_NV: compile_scene (loop assembly, spring rest lengths) and the Simulator
     (poses, spring segments, stepping) never create a pin.Data."""
