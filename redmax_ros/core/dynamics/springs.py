@@ -307,28 +307,38 @@ def joint_displacement(mech, q: np.ndarray) -> np.ndarray:
     return pin.difference(mech.model, mech.q_rest, q)
 
 
-def spring_energy(mech, X, q, arrays: SpringArrays | None = None) -> float:
-    """E_spring [J]: maximal springs (ends at X, rows of mech.jac_sites) + joint springs at q.
-    Shared by the direct and matrix-free paths. ``arrays``: :func:`spring_arrays` of mech, when the caller
-    keeps them (the end differences in one compiled call)."""
+def spring_energy(mech, X, q) -> float:
+    """E_spring [J]: maximal springs (ends at X, rows of mech.jac_sites) + joint springs at q, on pin.Data's
+    site positions (the Context's path: :func:`point_spring_energy_kernel` + :func:`joint_spring_energy`)."""
     es = 0.0
     if len(mech.spring_ab):
-        if arrays is None:
-            d = X[mech.spring_rows[:, 0]] - X[mech.spring_rows[:, 1]]
-        else:
-            d = np.empty((len(arrays.a), 3))
-            end_difference_kernel(np.ascontiguousarray(X, dtype=float), arrays.a, arrays.b, d)
+        d = X[mech.spring_rows[:, 0]] - X[mech.spring_rows[:, 1]]
         l = np.sqrt(np.einsum("pi,pi->p", d, d))
         es += 0.5 * float(mech.spring_k @ (l - mech.spring_rest) ** 2)
-    if mech.has_stiffness:
-        dq = joint_displacement(mech, q)
-        es += 0.5 * float(mech.stiffness @ (dq * dq))
-    return es
+    return es + joint_spring_energy(mech, q)
+
+
+def joint_spring_energy(mech, q: np.ndarray) -> float:
+    """1/2 sum_i k_i (q (-) q_rest)_i^2 [J] of the joint springs at q (0 without)."""
+    if not mech.has_stiffness:
+        return 0.0
+    dq = joint_displacement(mech, q)
+    return 0.5 * float(mech.stiffness @ (dq * dq))
 
 
 @njit
-def end_difference_kernel(X, a, b, d):
-    """d[s] = X[a[s]] - X[b[s]] (the spring ends' difference, rows of X)."""
-    for s in range(a.shape[0]):
-        for r in range(3):
-            d[s, r] = X[a[s], r] - X[b[s], r]
+def point_spring_energy_kernel(R, p, ja, oa, jb, ob, k, rest):
+    """1/2 sum_s k_s (|x_a - x_b| - rest_s)^2 [J] of the maximal springs from the world placements (R, p) of
+    their bodies: end points x = R[j] o + p[j] (o the site's offset in its joint's frame, joint 0 the world) as
+    recursive.site_pos_kernel, no site array gathered."""
+    e = 0.0
+    for s in range(ja.shape[0]):
+        i, j = ja[s], jb[s]
+        dd = 0.0
+        for a in range(3):
+            xa = p[i, a] + R[i, a, 0] * oa[s, 0] + R[i, a, 1] * oa[s, 1] + R[i, a, 2] * oa[s, 2]
+            xb = p[j, a] + R[j, a, 0] * ob[s, 0] + R[j, a, 1] * ob[s, 1] + R[j, a, 2] * ob[s, 2]
+            dd += (xa - xb) * (xa - xb)
+        x = np.sqrt(dd) - rest[s]
+        e += k[s] * (x * x)
+    return 0.5 * e

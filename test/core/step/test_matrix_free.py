@@ -272,6 +272,24 @@ def test_rhs_kernel_matches_its_parts_and_pinocchio():
             assert np.abs(b - b_pin).max() <= 1e-12 * np.abs(b_pin).max()
 
 
+@pytest.mark.parametrize("name, overrides", [("chain", ["params.n=6", "params.springs=3", "params.spring_rest=0.15",
+                                                        "joints.j1.q0=0.4"]),
+                                             ("bridge", ["params.variant=flexy"]), ("hand", [])])
+def test_tree_spring_energy_equals_pin_data_spring_energy(name, overrides):
+    """energy.tree_energies' E_spring (springs.point_spring_energy_kernel from the placements + joint springs)
+    against energy.energies on pin.Data (springs.spring_energy on pin's site positions), to round-off."""
+    from redmax_ros.core.dynamics.energy import energies, tree_energies
+    from redmax_ros.core.step.workspace import Workspace
+    m = compile_scene(load_scene(name, overrides))
+    rng = np.random.default_rng(4)
+    q = pin.integrate(m.model, m.q0, 0.1 * rng.normal(size=m.nv))
+    v = rng.normal(size=m.nv)
+    e_tree = tree_energies(Context(m), q, v)
+    e_pin = energies(m, Workspace(m, pin_data=True), q, v)
+    assert e_tree[2] == pytest.approx(e_pin[2], rel=1e-12, abs=1e-15)
+    assert len(m.spring_ab) or m.has_stiffness  # the scene has springs to compare
+
+
 def test_large_scene_compiles_and_runs_without_pin_data():
     """nv > PIN_DATA_MAX_NV: compile_scene (loop assembly, spring rest lengths) and the Simulator
     (poses, spring segments, stepping) never create a pin.Data."""
