@@ -55,7 +55,8 @@ PCG_NAME = "lockstep PCG (Eq. 4)"
 def block_pcg(ops: Ops, B: np.ndarray, X0: np.ndarray | None, rtol: float, max_iter: int, deadline=None):
     """Independent preconditioned CG solves A x_c = b_c for the rows b_c of B (k, n), run in lockstep by the
     compiled kernels of solvers/lockstep_kernel.py. Each column stops when ||r_c|| <= rtol ||b_c||. Returns
-    (X, iterations (k,), converged (k,), relative residuals (k,)). ``deadline``: the step's budget.Deadline,
+    (X, iterations (k,), converged (k,), relative residuals (k,)). ``X0``: the warm starts (k, n), a contiguous
+    float array that becomes X (the solutions are written into it), or None (zero starts). ``deadline``: the step's budget.Deadline,
     checked after the first iteration and then between slices of the iterations that fit in the time left at
     the pace so far (Deadline.iterations_left; None: no budget, all iterations in one call). The slicing does
     not change the iterations: the result is bitwise that of one call."""
@@ -63,7 +64,7 @@ def block_pcg(ops: Ops, B: np.ndarray, X0: np.ndarray | None, rtol: float, max_i
         deadline.begin()
     B = np.ascontiguousarray(B, dtype=float)
     k, n = B.shape
-    X = np.zeros((k, n)) if X0 is None else np.array(X0, dtype=float)
+    X = np.zeros((k, n)) if X0 is None else X0
     R, Zr, Pd, AP, bn, tol, rn, rz, active, conv, its = ops.work(k, n)
     it = max_iter if deadline is None else min(1, max_iter)  # the iterations before the first check
     t0 = time.perf_counter()
