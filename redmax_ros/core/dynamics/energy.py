@@ -42,7 +42,7 @@ def tree_energies(ctx: Context, q, v_r, extras=None) -> tuple:
     ek, ep = body_energies(ws.R, ws.p, ws.ov, topo.mass, topo.com, topo.inertia_com, ctx.gravity)
     if mech.has_armature:
         ek += 0.5 * float(mech.armature @ (v_r * v_r))
-    es = joint_spring_energy(mech, q)
+    es = joint_spring_energy(mech, q, ctx.additive)
     if len(mech.spring_ab):  # the maximal springs' from the placements in ws, one compiled call
         sa = ctx.spring_arrays
         es = point_spring_energy_kernel(ws.R, ws.p, ctx.spring_ja, ctx.spring_oa, ctx.spring_jb, ctx.spring_ob,

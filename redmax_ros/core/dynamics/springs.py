@@ -302,8 +302,11 @@ def spring_terms(mech, X: np.ndarray, J: np.ndarray, v: np.ndarray | None = None
 
 
 
-def joint_displacement(mech, q: np.ndarray) -> np.ndarray:
-    """q - q_rest on the configuration manifold (pin.difference), per velocity DOF."""
+def joint_displacement(mech, q: np.ndarray, additive: bool = False) -> np.ndarray:
+    """q - q_rest on the configuration manifold (pin.difference), per velocity DOF. ``additive``: every joint is
+    a vector space (tree_kinematics.Context.additive), where that difference is the plain q - q_rest."""
+    if additive:
+        return q - mech.q_rest
     return pin.difference(mech.model, mech.q_rest, q)
 
 
@@ -318,11 +321,12 @@ def spring_energy(mech, X, q) -> float:
     return es + joint_spring_energy(mech, q)
 
 
-def joint_spring_energy(mech, q: np.ndarray) -> float:
-    """1/2 sum_i k_i (q (-) q_rest)_i^2 [J] of the joint springs at q (0 without)."""
+def joint_spring_energy(mech, q: np.ndarray, additive: bool = False) -> float:
+    """1/2 sum_i k_i (q (-) q_rest)_i^2 [J] of the joint springs at q (0 without); ``additive`` as for
+    :func:`joint_displacement`."""
     if not mech.has_stiffness:
         return 0.0
-    dq = joint_displacement(mech, q)
+    dq = joint_displacement(mech, q, additive)
     return 0.5 * float(mech.stiffness @ (dq * dq))
 
 

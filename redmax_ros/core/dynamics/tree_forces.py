@@ -358,7 +358,7 @@ def rhs(ctx: Context, q, v_r, tau, h, site_forces=None, springs=None) -> np.ndar
         rc.accumulate_site_forces(ext, ctx.site_jid[idx], ctx.site_positions(idx), F)
     if mech.has_stiffness:
         f_r = np.array(tau, dtype=float)
-        f_r -= mech.stiffness * joint_displacement(mech, q)
+        f_r -= mech.stiffness * joint_displacement(mech, q, ctx.additive)
     else:
         f_r = np.asarray(tau, dtype=float)
     if springs is not None and len(mech.spring_ab):
