@@ -56,17 +56,23 @@ def block_pcg(ops: Ops, B: np.ndarray, X0: np.ndarray | None, rtol: float, max_i
     """Independent preconditioned CG solves A x_c = b_c for the rows b_c of B (k, n), run in lockstep by the
     compiled kernels of solvers/lockstep_kernel.py. Each column stops when ||r_c|| <= rtol ||b_c||. Returns
     (X, iterations (k,), converged (k,), relative residuals (k,)). ``X0``: the warm starts (k, n), a contiguous
-    float array that becomes X (the solutions are written into it), or None (zero starts). ``deadline``: the step's budget.Deadline,
-    checked after the first iteration and then between slices of the iterations that fit in the time left at
-    the pace so far (Deadline.iterations_left; None: no budget, all iterations in one call). The slicing does
-    not change the iterations: the result is bitwise that of one call."""
+    float array that becomes X (the solutions are written into it), or None (zero starts). ``deadline``: the
+    step's budget.Deadline, checked between slices of the iterations that fit in the time left
+    (Deadline.iterations_left; None: no budget, all iterations in one call): the first slice at the pace of the
+    previous call on ``ops``'s scratch (wall time per column and iteration, start included, times k columns;
+    one iteration when there is none), the later ones at the pace of this call so far. The slicing does not
+    change the iterations: the result is bitwise that of one call."""
     if deadline is not None:
         deadline.begin()
     B = np.ascontiguousarray(B, dtype=float)
     k, n = B.shape
     X = np.zeros((k, n)) if X0 is None else X0
     R, Zr, Pd, AP, bn, tol, rn, rz, active, conv, its = ops.work(k, n)
-    it = max_iter if deadline is None else min(1, max_iter)  # the iterations before the first check
+    pace = ops.scratch.get(_PACE)
+    if deadline is None:
+        it = max_iter
+    else:  # the iterations before the first check
+        it = min(1, max_iter) if pace is None else deadline.iterations_left(pace * k, max_iter)
     t0 = time.perf_counter()
     left = lockstep_solve(*ops.args, B, X, X0 is not None, float(rtol), R, Zr, Pd, AP, bn, tol, rn, rz, active,
                           conv, its, it)
@@ -75,7 +81,13 @@ def block_pcg(ops: Ops, B: np.ndarray, X0: np.ndarray | None, rtol: float, max_i
         to = it + deadline.iterations_left((time.perf_counter() - t0) / it, max_iter - it)
         left = lockstep_iterate(*ops.args, X, R, Zr, Pd, AP, tol, rn, rz, active, conv, its, it, to)
         it = to
-    return X, its.copy(), conv.copy(), relative_residuals(bn, rn)
+    its = its.copy()
+    if deadline is not None:
+        ops.scratch[_PACE] = (time.perf_counter() - t0) / max(1, int(its.sum()))
+    return X, its, conv.copy(), relative_residuals(bn, rn)
+
+
+_PACE = "pace"  # Ops.scratch: wall time [s] per column and iteration of the last budgeted block_pcg
 
 
 def default_max_iter(nv: int) -> int:

@@ -312,6 +312,23 @@ def test_lockstep_pcg_in_slices_is_bitwise_the_solve_in_one_call(monkeypatch):
                    for a, b in zip(from_budget[name], ref)), name
 
 
+def test_lockstep_pcg_first_slice_at_the_previous_pace(monkeypatch):
+    """After the first budgeted PCG call in a workspace, the first slice of the next one is sized at the pace
+    recorded by the last (wall time per column and iteration): under the default budget the umbrella's steps then
+    run their lockstep iterations in the one call that starts them (no lockstep_iterate call)."""
+    from redmax_ros.core.solvers import lockstep_pcg
+    sim = Simulator.load("umbrella", ["params.ribs=2"], solver="pcg", budget=StepBudget())
+    sim.step(2)
+    calls = []
+    real = lockstep_pcg.lockstep_iterate
+    monkeypatch.setattr(lockstep_pcg, "lockstep_iterate", lambda *a: calls.append(1) or real(*a))
+    most = []
+    for _ in range(5):
+        assert sim.step().diagnostics.solver == "pcg"
+        most.append(max(sim.backend.workspace.tree.last_stats["solves"]))
+    assert not calls and max(most) > 1  # a solve of more than one iteration, all in the first call
+
+
 def test_deadline_iterations_left():
     """The iterations of a given pace that fit before the deadline's limit, between 1 and the cap; the cap
     without a time budget."""
