@@ -34,6 +34,7 @@ from redmax_ros.core.solvers.problem import Constraints
 from redmax_ros.core.solvers.problem import LinearSystem
 from redmax_ros.core.dynamics.springs import geometric_blocks_kernel, spring_shift_kernel
 from redmax_ros.core.errors import StepError
+from redmax_ros.core.linalg import all_finite
 from redmax_ros.core.solvers.direct import solve_direct
 from redmax_ros.core.solvers.lockstep_kernel import kkt_residual_kernel
 from redmax_ros.core.solvers.lockstep_pcg import DEFAULT_RTOL, Fallback, Ops, active_set, block_pcg, default_max_iter, dual_solve
@@ -183,8 +184,8 @@ def solve_pcg(mech, ws, system: MatrixFreeSystem, b, cons: Constraints, x0, rtol
     else:
         B = b[None]
     X, its, conv, rel = block_pcg(ops, B, X0, rtol, max_iter, ws.deadline)
-    stats["solves"] = list(its)
-    total = int(its.sum())
+    stats["solves"] = its.tolist()
+    total = sum(stats["solves"])
     if not conv.all():
         bad = int(np.flatnonzero(~conv)[0])
         raise Fallback(f"PCG did not reach rtol {rtol:g} in {max_iter} iterations "
@@ -268,14 +269,14 @@ def data_free_velocity(mech, ws, state, cmd, tau, h, solver="pcg", rtol=DEFAULT_
                                     np.ascontiguousarray(X[rows[:, 1]]), np.ascontiguousarray(fs),
                                     ex, 1.0, rws.I, B)
             b += h * rc.jtw(ctx.topo, rws, np.einsum("jab,jb->ja", B, rc.jv(ctx.topo, rws, pt.back)))
-    if not math.isfinite(float(b.sum())):
+    if not all_finite(b):
         raise StepError("non-finite right-hand side of Eq. (2) (state or forces out of range)")
     ps = None if K is None else point_springs(ws, K, D)
     system = lhs_system(ws, rws, h, ps, tf.maximal_blocks(ctx, h, springs, ends), ends, C)
     # 3: constraint rows (reduced coordinates for PCG)
     cons = build_rows(mech, ws, cmd, q_base, h, hyper=solver != "pcg")
     if cons.m:
-        if not math.isfinite(cons.g.sum()):
+        if not all_finite(cons.g):
             check_inputs(state, tau, cmd)
         check_rows(cons, 1.0 if solver != "pcg" else coupling_scale(mech, ws))  # before any solve
 
