@@ -302,11 +302,8 @@ def spring_terms(mech, X: np.ndarray, J: np.ndarray, v: np.ndarray | None = None
 
 
 
-def joint_displacement(mech, q: np.ndarray, additive: bool = False) -> np.ndarray:
-    """q - q_rest on the configuration manifold (pin.difference), per velocity DOF. ``additive``: every joint is
-    a vector space (tree_kinematics.Context.additive), where that difference is the plain q - q_rest."""
-    if additive:
-        return q - mech.q_rest
+def joint_displacement(mech, q: np.ndarray) -> np.ndarray:
+    """q - q_rest on the configuration manifold (pin.difference), per velocity DOF."""
     return pin.difference(mech.model, mech.q_rest, q)
 
 
@@ -322,12 +319,24 @@ def spring_energy(mech, X, q) -> float:
 
 
 def joint_spring_energy(mech, q: np.ndarray, additive: bool = False) -> float:
-    """1/2 sum_i k_i (q (-) q_rest)_i^2 [J] of the joint springs at q (0 without); ``additive`` as for
-    :func:`joint_displacement`."""
+    """1/2 sum_i k_i (q (-) q_rest)_i^2 [J] of the joint springs at q (0 without); ``additive``: every joint a
+    vector space (tree_kinematics.Context.additive), where q (-) q_rest is q - q_rest (one compiled call)."""
     if not mech.has_stiffness:
         return 0.0
-    dq = joint_displacement(mech, q, additive)
+    if additive:
+        return joint_energy_kernel(mech.stiffness, q, mech.q_rest)
+    dq = joint_displacement(mech, q)
     return 0.5 * float(mech.stiffness @ (dq * dq))
+
+
+@njit
+def joint_energy_kernel(k, q, q_rest):
+    """1/2 sum_i k_i (q_i - q_rest_i)^2 [J]: the joint springs' energy where every joint is a vector space."""
+    e = 0.0
+    for i in range(k.shape[0]):
+        d = q[i] - q_rest[i]
+        e += k[i] * (d * d)
+    return 0.5 * e
 
 
 @njit

@@ -232,14 +232,16 @@ def test_loop_jacobian_kernel_matches_site_jacobians(name, overrides):
 
 def test_rhs_kernel_matches_its_parts_and_pinocchio():
     """tree_forces.rhs (one rhs_kernel call) against the calls it replaced (bias_wrench_kernel, einsum I ov,
-    spring_wrench_kernel, rhs_sum_kernel) to round-off on a chain with springs, body damping and a wrench; and
-    without springs b = M v + h (tau - nle(q, v)) from Pinocchio (crba, rnea at zero acceleration)."""
+    spring_wrench_kernel, rhs_sum_kernel) to round-off on a chain with springs, body damping and a wrench, the
+    rigid bridge and the hand (joint springs); and without springs b = M v + h (tau - nle(q, v)) from Pinocchio
+    (crba, rnea at zero acceleration)."""
     from redmax_ros.core.dynamics import tree_forces as tf
-    for overrides in (EXTRA[3][1], ["params.n=5"]):
-        m = compile_scene(load_scene("chain", overrides))
+    for scene, overrides in (EXTRA[3], ("chain", ["params.n=5"]), ("bridge", ["params.variant=rigid"]), ("hand", [])):
+        m = compile_scene(load_scene(scene, overrides))
         ctx = Context(m)
         rng = np.random.default_rng(2)
-        q, v, tau, h = m.q0 + 0.3 * rng.normal(size=m.nq), rng.normal(size=m.nv), rng.normal(size=m.nv), 1e-3
+        q = pin.integrate(m.model, m.q0, 0.3 * rng.normal(size=m.nv))
+        v, tau, h = rng.normal(size=m.nv), rng.normal(size=m.nv), 1e-3
         ws = ctx.fk(q, v)
         springs = None
         if len(m.spring_ab):
