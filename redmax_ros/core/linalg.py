@@ -186,3 +186,12 @@ def add_lower_symmetric(M, A):
             for i in range(i0, min(i0 + _TILE, n)):
                 for j in range(j0, min(j0 + _TILE, i)):
                     A[j, i] += M[i, j]
+
+
+@njit
+def all_finite(x):
+    """True when every entry of the vector x is finite (no NaN or infinity): one pass, no temporary."""
+    for i in range(x.shape[0]):
+        if not np.isfinite(x[i]):
+            return False
+    return True

@@ -2,8 +2,8 @@
 direction springs). One entry point, :func:`energies`, for every pipeline; the kinematics under it are
 the workspace's: Pinocchio's (computeKineticEnergy/computePotentialEnergy on pin.Data, one C++ call
 each) where the workspace has a pin.Data, else the recursive Context (tree_kinematics.py), whose
-compiled per-body sums are :func:`tree_energies`. The spring energies are springs.spring_energy for
-both."""
+compiled per-body sums are :func:`tree_energies`. The spring energies are springs.spring_energy on pin.Data
+and springs.point_spring_energy_kernel plus joint_spring_energy on the Context."""
 from __future__ import annotations
 
 import numpy as np
@@ -11,7 +11,7 @@ import numpy as np
 import pinocchio as pin
 
 from redmax_ros.core.dynamics.kinematics import site_positions
-from redmax_ros.core.dynamics.springs import spring_energy
+from redmax_ros.core.dynamics.springs import joint_spring_energy, point_spring_energy_kernel, spring_energy
 from redmax_ros.core.dynamics.tree_kinematics import Context
 from redmax_ros.core.jit import njit
 
@@ -42,7 +42,11 @@ def tree_energies(ctx: Context, q, v_r, extras=None) -> tuple:
     ek, ep = body_energies(ws.R, ws.p, ws.ov, topo.mass, topo.com, topo.inertia_com, ctx.gravity)
     if mech.has_armature:
         ek += 0.5 * float(mech.armature @ (v_r * v_r))
-    es = spring_energy(mech, ctx.jac_positions() if len(mech.spring_ab) else None, q, ctx.spring_arrays)
+    es = joint_spring_energy(mech, q, ctx.additive)
+    if len(mech.spring_ab):  # the maximal springs' from the placements in ws, one compiled call
+        sa = ctx.spring_arrays
+        es = point_spring_energy_kernel(ws.R, ws.p, ctx.spring_ja, ctx.spring_oa, ctx.spring_jb, ctx.spring_ob,
+                                        sa.k, sa.rest) + es
     if extras is not None:  # direction springs (catalogue_hooks.py)
         es += extras.energy(ctx.site_positions())
     return float(ek), float(ep), es

@@ -8,6 +8,7 @@ import numpy as np
 import pinocchio as pin
 
 from redmax_ros.core.jit import njit
+from redmax_ros.core.solvers.recursive import site_pos_kernel
 
 
 def spring_forces(mech, X: np.ndarray, V: np.ndarray | None = None, arrays: SpringArrays | None = None):
@@ -98,6 +99,23 @@ def spring_kernel(X, a, b, k, c, L0, explicit, V, f, K, D, l):
                 uu = u[r] * u[q]
                 K[s, r, q] = k[s] * (uu + trans * ((1.0 if r == q else 0.0) - uu))
                 D[s, r, q] = c[s] * uu
+
+
+@njit
+def spring_state_kernel(R, p, jid, local, a, b, k, c, L0, explicit, V, h, X, f, K, D, l, pa, pb, C):
+    """What the data-free step needs of its springs at the placements (R, p) in one call: the positions X of
+    the sites (joint ``jid``, offset ``local``: mech.jac_sites, recursive.site_pos_kernel), :func:`spring_kernel`'s
+    f, K, D, l, the end points pa = X[a], pb = X[b] [m] and the springs' LHS matrices C = h D + h^2 K of Eq. (2)
+    (as solvers.pcg.MatrixFreeSystem.refresh forms them from K and D: the same products and sums)."""
+    site_pos_kernel(R, p, jid, local, X)
+    spring_kernel(X, a, b, k, c, L0, explicit, V, f, K, D, l)
+    hh = h * h
+    for s in range(a.shape[0]):
+        for r in range(3):
+            pa[s, r] = X[a[s], r]
+            pb[s, r] = X[b[s], r]
+            for q in range(3):
+                C[s, r, q] = h * D[s, r, q] + hh * K[s, r, q]
 
 
 SHIFT_SOFT = 0.1  # spring_shift: a compressed spring's negative transverse stiffness counts as soft below this
@@ -289,28 +307,51 @@ def joint_displacement(mech, q: np.ndarray) -> np.ndarray:
     return pin.difference(mech.model, mech.q_rest, q)
 
 
-def spring_energy(mech, X, q, arrays: SpringArrays | None = None) -> float:
-    """E_spring [J]: maximal springs (ends at X, rows of mech.jac_sites) + joint springs at q.
-    Shared by the direct and matrix-free paths. ``arrays``: :func:`spring_arrays` of mech, when the caller
-    keeps them (the end differences in one compiled call)."""
+def spring_energy(mech, X, q) -> float:
+    """E_spring [J]: maximal springs (ends at X, rows of mech.jac_sites) + joint springs at q, on pin.Data's
+    site positions (the Context's path: :func:`point_spring_energy_kernel` + :func:`joint_spring_energy`)."""
     es = 0.0
     if len(mech.spring_ab):
-        if arrays is None:
-            d = X[mech.spring_rows[:, 0]] - X[mech.spring_rows[:, 1]]
-        else:
-            d = np.empty((len(arrays.a), 3))
-            end_difference_kernel(np.ascontiguousarray(X, dtype=float), arrays.a, arrays.b, d)
+        d = X[mech.spring_rows[:, 0]] - X[mech.spring_rows[:, 1]]
         l = np.sqrt(np.einsum("pi,pi->p", d, d))
         es += 0.5 * float(mech.spring_k @ (l - mech.spring_rest) ** 2)
-    if mech.has_stiffness:
-        dq = joint_displacement(mech, q)
-        es += 0.5 * float(mech.stiffness @ (dq * dq))
-    return es
+    return es + joint_spring_energy(mech, q)
+
+
+def joint_spring_energy(mech, q: np.ndarray, additive: bool = False) -> float:
+    """1/2 sum_i k_i (q (-) q_rest)_i^2 [J] of the joint springs at q (0 without); ``additive``: every joint a
+    vector space (tree_kinematics.Context.additive), where q (-) q_rest is q - q_rest (one compiled call)."""
+    if not mech.has_stiffness:
+        return 0.0
+    if additive:
+        return joint_energy_kernel(mech.stiffness, q, mech.q_rest)
+    dq = joint_displacement(mech, q)
+    return 0.5 * float(mech.stiffness @ (dq * dq))
 
 
 @njit
-def end_difference_kernel(X, a, b, d):
-    """d[s] = X[a[s]] - X[b[s]] (the spring ends' difference, rows of X)."""
-    for s in range(a.shape[0]):
-        for r in range(3):
-            d[s, r] = X[a[s], r] - X[b[s], r]
+def joint_energy_kernel(k, q, q_rest):
+    """1/2 sum_i k_i (q_i - q_rest_i)^2 [J]: the joint springs' energy where every joint is a vector space."""
+    e = 0.0
+    for i in range(k.shape[0]):
+        d = q[i] - q_rest[i]
+        e += k[i] * (d * d)
+    return 0.5 * e
+
+
+@njit
+def point_spring_energy_kernel(R, p, ja, oa, jb, ob, k, rest):
+    """1/2 sum_s k_s (|x_a - x_b| - rest_s)^2 [J] of the maximal springs from the world placements (R, p) of
+    their bodies: end points x = R[j] o + p[j] (o the site's offset in its joint's frame, joint 0 the world) as
+    recursive.site_pos_kernel, no site array gathered."""
+    e = 0.0
+    for s in range(ja.shape[0]):
+        i, j = ja[s], jb[s]
+        dd = 0.0
+        for a in range(3):
+            xa = p[i, a] + R[i, a, 0] * oa[s, 0] + R[i, a, 1] * oa[s, 1] + R[i, a, 2] * oa[s, 2]
+            xb = p[j, a] + R[j, a, 0] * ob[s, 0] + R[j, a, 1] * ob[s, 1] + R[j, a, 2] * ob[s, 2]
+            dd += (xa - xb) * (xa - xb)
+        x = np.sqrt(dd) - rest[s]
+        e += k[s] * (x * x)
+    return 0.5 * e

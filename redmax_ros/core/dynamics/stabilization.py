@@ -9,7 +9,8 @@ uses, because it needs no tuning and removes the drift to solver precision; see 
 
 One implementation for every pipeline, on the recursive kinematics Context (tree_kinematics.py):
 :func:`project_chord` (the step's: chord Newton reusing the step's loop rows, each iteration one
-compiled forward-kinematics + loop-residual call), :func:`project` (full Newton, its fallback and the
+compiled forward-kinematics + loop-residual call, all of them one call when the configuration is a vector
+space), :func:`project` (full Newton, its fallback and the
 initial assembly), :func:`assemble_loops` and :func:`check_loop_rank` (compile time),
 :func:`loop_violation` (diagnostics).
 """
@@ -18,7 +19,7 @@ from __future__ import annotations
 import numpy as np
 import pinocchio as pin
 
-from redmax_ros.core.dynamics.tree_kinematics import Context
+from redmax_ros.core.dynamics.tree_kinematics import Context, loop_phi_kernel, universal_kernel
 from redmax_ros.core.errors import SceneError
 from redmax_ros.core.jit import njit
 from redmax_ros.core.linalg import chol_solve, cholesky
@@ -81,10 +82,21 @@ def project_chord(ctx: Context, q, G, hold_dofs=(), tol=TOL, max_iter=8):
     mech = ctx.mech
     held = _held_array(ctx, hold_dofs)
     G = np.ascontiguousarray(G)
+    T = _NO_T if ctx.T is None else ctx.T
+    if ctx.additive:  # the iterations below in one compiled call
+        t, ws = ctx.topo, ctx.ws
+        ctx.invalidate()
+        q_out, err, status = chord_project_kernel(
+            t.parents, t.kind, t.idx_q, t.idx_v, t.nv_j, t.axis, t.pitch, t.place_R, t.place_p, ctx.uni_joints,
+            ctx.uni_a1, ctx.uni_a2, ctx.zero_v, ws.jR, ws.jp, ws.Sl, ws.c_local, ws.R, ws.p, ws.St, ctx.jac_jid,
+            ctx.jac_local, ctx.loop_a, ctx.loop_b, mech.loop_select, G, held, T,
+            np.ascontiguousarray(q, dtype=float), tol, max_iter)
+        if status == CHORD_CONVERGED:
+            return q_out, err
+        return project(ctx, q if status == CHORD_SINGULAR else q_out, hold_dofs, tol)
     L, ok = chord_factor(G, held)
     if not ok:
         return project(ctx, q, hold_dofs, tol)
-    T = _NO_T if ctx.T is None else ctx.T
     for _ in range(max_iter):
         phi, err = ctx.loop_phi_at(q)
         if err < tol:
@@ -94,6 +106,38 @@ def project_chord(ctx: Context, q, G, hold_dofs=(), tol=TOL, max_iter=8):
 
 
 _NO_T = np.zeros((0, 0))
+CHORD_CONVERGED, CHORD_SINGULAR, CHORD_UNCONVERGED = range(3)  # chord_project_kernel's status
+
+
+@njit
+def chord_project_kernel(parents, kind, idx_q, idx_v, nv_j, axis, pitch, place_R, place_p, uni, uni_a1, uni_a2,
+                         zero_v, jR, jp, Sl, c_local, R, p, St, jid, local, a, b, S, G, held, T, q, tol, max_iter):
+    """The chord-Newton iterations of :func:`project_chord` in one call, for a model whose configuration is a
+    vector space (Context.additive: q (+) dq = q + dq, as pin.integrate): the factor of K K^T
+    (:func:`chord_factor_into`), then per iteration the universal joints' placements
+    (tree_kinematics.universal_kernel), forward kinematics and phi = S (x_a - x_b) of the loop sites
+    (tree_kinematics.loop_phi_kernel) and, while max|phi| >= tol [m], q <- q + dq (:func:`chord_step_into`, a new
+    array; q itself is not written). Returns (q, max|phi| at q, status): CHORD_CONVERGED, CHORD_SINGULAR (K K^T
+    not positive definite; q the input) or CHORD_UNCONVERGED (q after max_iter steps, phi there not evaluated).
+    Leaves placements of the last q evaluated in (jR, jp, Sl, R, p, St)."""
+    m, n, k = G.shape[0], G.shape[1], held.shape[0]
+    L = np.empty((m + k, m + k))
+    if not chord_factor_into(G, held, np.zeros((m + k, m + k)), L):
+        return q, 0.0, CHORD_SINGULAR
+    y, dq, step = np.empty(m + k), np.empty(n), np.empty(n if T.shape[0] == 0 else T.shape[0])
+    for _ in range(max_iter):
+        if uni.shape[0]:
+            universal_kernel(uni, idx_q, idx_v, uni_a1, uni_a2, q, zero_v, False, jR, jp, Sl, c_local)
+        phi, err = loop_phi_kernel(parents, kind, idx_q, idx_v, nv_j, axis, pitch, place_R, place_p, q, jR, jp, Sl,
+                                   R, p, St, jid, local, a, b, S)
+        if err < tol:
+            return q, err, CHORD_CONVERGED
+        chord_step_into(L, G, held, phi, T, y, dq, step)
+        q_next = np.empty(q.shape[0])
+        for i in range(q.shape[0]):
+            q_next[i] = q[i] + step[i]
+        q = q_next
+    return q, 0.0, CHORD_UNCONVERGED
 
 
 def _held_array(ctx, hold_dofs):

@@ -344,17 +344,7 @@ def rhs(ctx: Context, q, v_r, tau, h, site_forces=None, springs=None) -> np.ndar
     mech, topo, ws = ctx.mech, ctx.topo, ctx.ws
     if ws.v is None:
         raise ValueError("rhs needs a velocity: call update_kinematics(topo, ws, q, v)")
-    W = np.empty((topo.njoints, 6))
-    bias_wrench_kernel(topo.parents, topo.idx_v, topo.nv_j, ws.St, ws.ov, ws.v, ws.R, ws.p, ws.c_local, ws.I,
-                       ctx.gravity, h, np.empty((topo.njoints, 6)), W)
-    # W_total = I ov - h W_nle + h W_ext, then one J^T pass
-    W += np.einsum("jab,jb->ja", ws.I, ws.ov)
     ext = np.zeros((topo.njoints, 6))
-    if springs is not None and len(mech.spring_ab):
-        fs, X = springs
-        sa = ctx.spring_arrays
-        rc.spring_wrench_kernel(ctx.spring_ja, sa.a, ctx.spring_jb, sa.b, np.ascontiguousarray(X, dtype=float),
-                                np.ascontiguousarray(fs, dtype=float), ext)
     if len(ctx.wrench_jid):
         for j, com, fw in zip(ctx.wrench_jid, ctx.wrench_com, ctx.wrench_fw):
             if j == 0:
@@ -366,15 +356,55 @@ def rhs(ctx: Context, q, v_r, tau, h, site_forces=None, springs=None) -> np.ndar
         idx = np.array(list(site_forces), dtype=int)
         F = np.array([site_forces[i] for i in idx], dtype=float).reshape(-1, 3)
         rc.accumulate_site_forces(ext, ctx.site_jid[idx], ctx.site_positions(idx), F)
-    if mech.has_stiffness:
-        f_r = np.array(tau, dtype=float)
-        f_r -= mech.stiffness * joint_displacement(mech, q)
+    # joint springs: f_r = tau - K_r (q (-) q_rest), the difference (qa - qb) formed in rhs_kernel where it is q - q_rest
+    if not mech.has_stiffness:
+        k, qa, qb = _NO_STIFFNESS, _NO_STIFFNESS, _NO_STIFFNESS
+    elif ctx.additive:
+        k, qa, qb = mech.stiffness, q, mech.q_rest
     else:
-        f_r = np.asarray(tau, dtype=float)
+        k, qa, qb = mech.stiffness, joint_displacement(mech, q), ctx.zero_v
+    if springs is not None and len(mech.spring_ab):
+        fs, X = springs
+        sa = ctx.spring_arrays
+        sja, a, sjb, sb = ctx.spring_ja, sa.a, ctx.spring_jb, sa.b
+        X, fs = np.ascontiguousarray(X, dtype=float), np.ascontiguousarray(fs, dtype=float)
+    else:
+        sja = a = sjb = sb = _NO_INDICES
+        X = fs = _NO_POINTS
     b = np.empty(topo.nv)
-    rhs_sum_kernel(topo.parents, topo.idx_v, topo.nv_j, ws.St, W, ext, h, ctx.armature,
-                   np.ascontiguousarray(v_r, dtype=float), f_r, ws.tmp6, b)
+    rhs_kernel(topo.parents, topo.idx_v, topo.nv_j, ws.St, ws.ov, ws.v, ws.R, ws.p, ws.c_local, ws.I, ctx.gravity, h,
+               np.empty((topo.njoints, 6)), np.empty((topo.njoints, 6)), sja, a, sjb, sb, X, fs, ext, ctx.armature,
+               np.ascontiguousarray(v_r, dtype=float), np.asarray(tau, dtype=float), k, qa, qb, ws.tmp6, b)
     return b
+
+
+_NO_INDICES = np.zeros(0, dtype=np.int64)  # rhs_kernel's spring arrays without springs
+_NO_POINTS = np.zeros((0, 3))
+_NO_STIFFNESS = np.zeros(0)  # rhs_kernel's joint-spring arrays without joint springs
+
+
+@njit
+def rhs_kernel(parents, idx_v, nv_j, St, ov, v, R, p, c_local, I, g, h, acc, W, sja, sa, sjb, sb, X, fs, ext,
+               armature, v_r, tau, k, qa, qb, F, b):
+    """b of Eq. (2) in reduced coordinates (:func:`rhs`) in one call, for the kinematics (ov, v, R, p, c_local,
+    I) of the workspace: W = -h W_nle (:func:`bias_wrench_kernel`), W += I ov (the momentum M v_r as a wrench),
+    ext += the point springs' wrenches (f[s] on sites X[sa[s]] of bodies sja[s], -f[s] on X[sb[s]] of sjb[s];
+    recursive.spring_wrench_kernel; empty arrays without springs) on top of the caller's external wrenches,
+    then :func:`rhs_sum_kernel` (b = J^T (W + h ext) + armature v_r + h f_r) with the joint forces
+    f_r = tau - k (qa - qb) (joint springs k [N m/rad, N/m] at the displacement qa - qb; k empty: f_r = tau).
+    acc, W, F: scratch."""
+    bias_wrench_kernel(parents, idx_v, nv_j, St, ov, v, R, p, c_local, I, g, h, acc, W)
+    for j in range(W.shape[0]):
+        for a in range(6):
+            s = 0.0
+            for c in range(6):
+                s += I[j, a, c] * ov[j, c]
+            W[j, a] += s
+    rc.spring_wrench_kernel(sja, sa, sjb, sb, X, fs, ext)
+    f_r = tau.copy()
+    for i in range(k.shape[0]):
+        f_r[i] -= k[i] * (qa[i] - qb[i])
+    rhs_sum_kernel(parents, idx_v, nv_j, St, W, ext, h, armature, v_r, f_r, F, b)
 
 
 @njit

@@ -17,11 +17,13 @@ from __future__ import annotations
 import numpy as np
 import pinocchio as pin
 
-from redmax_ros.core.dynamics.springs import spring_arrays
+from redmax_ros.core.dynamics.springs import spring_arrays, spring_state_kernel
 from redmax_ros.core.jit import njit
 from redmax_ros.core.solvers import recursive as rc
 
 PIN_DATA_MAX_NV = 100  # above this the direct pipeline's pin.Data is not created (>~50 MB, grows as nv^3)
+_NO_V = np.zeros((0, 3))  # Context.spring_state without explicit dampers
+ADDITIVE_KINDS = (rc.REVOLUTE, rc.PRISMATIC, rc.HELICAL, rc.TRANSLATION)  # joints on R^n: pin.integrate is q + v
 
 
 class Context:
@@ -60,6 +62,10 @@ class Context:
         self.planar_joints = np.array(planar, dtype=np.int64)
         self.placement_fallback = [(j, jm, jd) for j, jm, jd in zip(self.topo.fallback, self.topo.fallback_models,
                                                                       self.ws.jdata) if j not in planar and j not in uni]
+        # every joint a vector space (pin.integrate is q + v) placed by the kernels: the loop projection runs in
+        # one compiled call (stabilization.chord_project_kernel)
+        self.additive = (model.nq == model.nv and not self.placement_fallback and not planar
+                         and all(int(k) in ADDITIVE_KINDS or j in uni for j, k in enumerate(self.topo.kind) if j))
         nv = mech.nv
         self.site_jid = np.ascontiguousarray(mech.site_jid, dtype=np.int64).reshape(-1)
         self.site_local = np.ascontiguousarray(mech.site_local, dtype=float).reshape(-1, 3)
@@ -104,6 +110,12 @@ class Context:
         self.loop_site_jid = np.ascontiguousarray(self.site_jid[sites])
         self.loop_site_local = np.ascontiguousarray(self.site_local[sites]).reshape(-1, 3)
         self.loop_ends = [(pos[int(a)], pos[int(b)]) for a, b in mech.loop_ab]
+        # per loop row: its ends among those sites and its world direction (row of the loop's axes P)
+        self.loop_row_a = np.array([ka for (ka, _), P in zip(self.loop_ends, self.loop_axes) for _ in P], np.int64)
+        self.loop_row_b = np.array([kb for (_, kb), P in zip(self.loop_ends, self.loop_axes) for _ in P], np.int64)
+        self.loop_row_axis = np.array([r for P in self.loop_axes for r in P], dtype=float).reshape(-1, 3)
+        self._loop_X = np.empty((len(sites), 3))  # scratch of loop_jacobian_kernel
+        self._loop_J = np.empty((len(sites), 3, nv))
         # hyper-reduced coordinates: one representative reduced DOF per column of T (v_R from v_r)
         if mech.T is not None:
             T = mech.T
@@ -181,6 +193,24 @@ class Context:
         """Positions of mech.jac_sites (rows as Kinematics.X of the direct pipeline)."""
         return rc.site_positions(self.ws, self.jac_jid, self.jac_local)
 
+    def spring_state(self, h: float, V: np.ndarray | None = None) -> tuple:
+        """(X, f, K, D, (pa, pb), C) of the maximal springs at the placements in ws, one compiled call
+        (springs.spring_state_kernel): X the positions of mech.jac_sites (as :meth:`jac_positions`), f, K, D
+        those of springs.spring_forces, (pa, pb) the end points [m], C = h D + h^2 K. ``V``: the site velocities of
+        explicit dampers (springs.spring_forces), None when no spring needs them."""
+        sa, P = self.spring_arrays, len(self.spring_ja)
+        if V is None:
+            if sa.needs_velocities:
+                raise ValueError("explicit spring dampers need the site velocities V")
+            V = _NO_V
+        X = np.empty((len(self.jac_jid), 3))
+        f, K, D, C = np.empty((P, 3)), np.empty((P, 3, 3)), np.empty((P, 3, 3)), np.empty((P, 3, 3))
+        pa, pb = np.empty((P, 3)), np.empty((P, 3))
+        spring_state_kernel(self.ws.R, self.ws.p, self.jac_jid, self.jac_local, sa.a, sa.b, sa.k, sa.d, sa.rest,
+                            sa.explicit, np.ascontiguousarray(V, dtype=float), float(h), X, f, K, D, np.empty(P),
+                            pa, pb, C)
+        return X, f, K, D, (pa, pb), C
+
     def point_jacobians(self, sites) -> tuple:
         """(X (K,3), J (K,3,nv)) world positions and dense point Jacobians of the sites, O(K d)."""
         sites = np.asarray(sites, dtype=int)
@@ -246,8 +276,11 @@ class Context:
         """G_r (rows, nv) of :meth:`loop_rows` alone."""
         if not self.n_loop_rows:
             return np.zeros((0, self.topo.nv))
-        _, J = self._loop_site_jacobians()
-        return np.concatenate([P @ (J[ka] - J[kb]) for (ka, kb), P in zip(self.loop_ends, self.loop_axes)])
+        t, ws = self.topo, self.ws
+        G = np.empty((self.n_loop_rows, t.nv))
+        loop_jacobian_kernel(t.parents, t.idx_v, t.nv_j, ws.St, ws.R, ws.p, self.loop_site_jid, self.loop_site_local,
+                             self.loop_row_a, self.loop_row_b, self.loop_row_axis, self._loop_X, self._loop_J, G)
+        return G
 
     def _loop_site_jacobians(self) -> tuple:
         """(X (K,3), J (K,3,nv)) of :meth:`point_jacobians` for the loops' sites (rows of self.loop_ends)."""
@@ -348,6 +381,22 @@ def point_jac_kernel(parents, idx_v, nv_j, St, joints, X, J):
                 J[k, 2, c] = St[c, 2] + w0 * x1 - w1 * x0
             j = parents[j]
 
+
+@njit
+def loop_jacobian_kernel(parents, idx_v, nv_j, St, R, p, jid, local, row_a, row_b, row_axis, X, J, G):
+    """The loop rows of Eq. (4)'s H in reduced coordinates, G[r] = P_r (J_a - J_b) (Wang et al. 2019 §3.1: the
+    relative velocity of a loop's two sites along its constrained directions P_r), in one call: the loop sites'
+    world positions X (recursive.site_pos_kernel) and point Jacobians J (:func:`point_jac_kernel`, J zeroed
+    first; scratch), then per row the direction times the Jacobians' difference (the sums of numpy's P @ (J_a -
+    J_b) over the three directions, to round-off)."""
+    rc.site_pos_kernel(R, p, jid, local, X)
+    J[:] = 0.0
+    point_jac_kernel(parents, idx_v, nv_j, St, jid, X, J)
+    for r in range(G.shape[0]):
+        a, b = row_a[r], row_b[r]
+        P0, P1, P2 = row_axis[r, 0], row_axis[r, 1], row_axis[r, 2]
+        for c in range(G.shape[1]):
+            G[r, c] = P0 * (J[a, 0, c] - J[b, 0, c]) + P1 * (J[a, 1, c] - J[b, 1, c]) + P2 * (J[a, 2, c] - J[b, 2, c])
 
 
 def body_poses(ctx: Context, q) -> dict:

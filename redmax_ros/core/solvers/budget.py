@@ -166,6 +166,16 @@ class Deadline:
         t = self.budget.cpu_time
         return t - self.used() if t else math.inf
 
+    def iterations_left(self, per_iteration: float, cap: int) -> int:
+        """How many more iterations of ``per_iteration`` seconds fit before :attr:`limit`, between 1 and ``cap``
+        (``cap`` without a time budget): a solver's next slice between two checks. ``per_iteration`` is the wall
+        time of its iterations so far, an upper bound on their CPU time, and the CPU time left is at least the
+        wall time to the limit, so a slice at that pace ends within the budget; no clock is read but
+        time.perf_counter."""
+        if self.limit == math.inf or not per_iteration > 0.0:
+            return cap
+        return max(1, min(cap, int((self.limit - time.perf_counter()) / per_iteration)))
+
     def check(self, what: str, iterations: int) -> None:
         """StepError when the step's iterative solvers have used up the time budget (``what``: the solver,
         ``iterations``: its iterations so far); else nothing."""

@@ -148,3 +148,56 @@ def spd_solve_kernel(S, rhs, L, y):
     y[:] = rhs
     chol_solve(L, y)
     return 2 if n and dmin <= 1e-6 * dmax else 1
+
+
+@njit
+def dual_solve_kernel(H, X, g, S, L, rhs, y, v):
+    """The small dense step of Eq. (4) after the lockstep solves, with u = X[0] and Z = X[1:]^T (the solutions
+    of A u = b and A Z = H^T): S = H Z symmetrised, rhs = H u - g, y = S^-1 rhs (:func:`spd_solve_kernel`) and
+    v = u - Z y. Returns spd_solve_kernel's status; v is set unless it is 0 (then y is not set either). Sums
+    by linalg.dot, so the result agrees with numpy's products to round-off."""
+    l, n = H.shape
+    for i in range(l):
+        for j in range(l):
+            S[i, j] = dot(H[i], X[1 + j])
+        rhs[i] = dot(H[i], X[0]) - g[i]
+    for i in range(l):
+        for j in range(i):
+            s = 0.5 * (S[i, j] + S[j, i])
+            S[i, j] = s
+            S[j, i] = s
+    status = spd_solve_kernel(S, rhs, L, y)
+    if status != 0:
+        for k in range(n):
+            v[k] = X[0, k]
+        for j in range(l):
+            yj = y[j]
+            Zj = X[1 + j]
+            for k in range(n):
+                v[k] -= yj * Zj[k]
+    return status
+
+
+@njit
+def kkt_residual_kernel(parents, idx_v, nv_j, St, I, blocks, use_blocks, ja, pa, jb, pb, C, diag, Y, W, F,
+                        v, b, H, y, limited, mu, m, g, r):
+    """The true residual of the KKT stationarity equation of Eq. (4)-(5) in reduced coordinates,
+    r = A v - b + H^T y (+ mu on the limited DOFs), by one :func:`lhs_kernel` product (``A``: the arrays of
+    MatrixFreeSystem.lhs_args, Y, W, F its scratch). Returns (r.r, b.b, max_i<m |H_i v - g_i|): the squared
+    norms of the relative residual and the velocity violation of the first m rows (the constraint rows, before
+    the couplings')."""
+    lhs_kernel(parents, idx_v, nv_j, St, I, blocks, use_blocks, ja, pa, jb, pb, C, diag, v, Y, W, F, r)
+    n = v.shape[0]
+    for k in range(n):
+        r[k] -= b[k]
+    for i in range(H.shape[0]):
+        yi = y[i]
+        Hi = H[i]
+        for k in range(n):
+            r[k] += yi * Hi[k]
+    for i in range(limited.shape[0]):
+        r[limited[i]] += mu[i]
+    viol = 0.0
+    for i in range(m):
+        viol = max(viol, abs(dot(H[i], v) - g[i]))
+    return dot(r, r), dot(b, b), viol

@@ -2,8 +2,8 @@
 
 :func:`block_pcg` runs k independent preconditioned CG solves A x_c = b_c (the l + 1 solves
 u = A^-1 b and Z = A^-1 H^T of Eq. (4)) together: all iterations of all right-hand sides in one compiled
-call on preallocated arrays (solvers/lockstep_kernel.py; one call per iteration under a step budget), with the
-LHS products of :class:`~redmax_ros.core.solvers.pcg.MatrixFreeSystem` and the Projected
+call on preallocated arrays (solvers/lockstep_kernel.py; under a step budget in slices sized to the time
+left), with the LHS products of :class:`~redmax_ros.core.solvers.pcg.MatrixFreeSystem` and the Projected
 Block Jacobi Preconditioner of Alg. 1, :mod:`~redmax_ros.core.solvers.preconditioner`).
 :func:`active_set` imposes the joint limits of Eq. (5) by a primal active set on the same dual system
 (limit rows enter as equalities at their bound, multipliers checked for sign), with Z columns computed
@@ -13,10 +13,13 @@ iterations and raise its StepError (no fallback) when the step's time is up.
 """
 from __future__ import annotations
 
+import time
+
 import numpy as np
 
 from redmax_ros.core.solvers.direct import check_rank
-from redmax_ros.core.solvers.lockstep_kernel import lockstep_iterate, lockstep_solve, relative_residuals, spd_solve_kernel
+from redmax_ros.core.solvers.lockstep_kernel import (dual_solve_kernel, lockstep_iterate, lockstep_solve,
+                                                     relative_residuals, spd_solve_kernel)
 from redmax_ros.core.solvers.pcg import MatrixFreeSystem
 from redmax_ros.core.solvers.preconditioner import ProjectedBlockJacobi
 
@@ -52,22 +55,39 @@ PCG_NAME = "lockstep PCG (Eq. 4)"
 def block_pcg(ops: Ops, B: np.ndarray, X0: np.ndarray | None, rtol: float, max_iter: int, deadline=None):
     """Independent preconditioned CG solves A x_c = b_c for the rows b_c of B (k, n), run in lockstep by the
     compiled kernels of solvers/lockstep_kernel.py. Each column stops when ||r_c|| <= rtol ||b_c||. Returns
-    (X, iterations (k,), converged (k,), relative residuals (k,)). ``deadline``: the step's budget.Deadline,
-    checked before every iteration after the first (None: no budget, all iterations in one call)."""
+    (X, iterations (k,), converged (k,), relative residuals (k,)). ``X0``: the warm starts (k, n), a contiguous
+    float array that becomes X (the solutions are written into it), or None (zero starts). ``deadline``: the
+    step's budget.Deadline, checked between slices of the iterations that fit in the time left
+    (Deadline.iterations_left; None: no budget, all iterations in one call): the first slice at the pace of the
+    previous call on ``ops``'s scratch (wall time per column and iteration, start included, times k columns;
+    one iteration when there is none), the later ones at the pace of this call so far. The slicing does not
+    change the iterations: the result is bitwise that of one call."""
     if deadline is not None:
         deadline.begin()
     B = np.ascontiguousarray(B, dtype=float)
     k, n = B.shape
-    X = np.zeros((k, n)) if X0 is None else np.array(X0, dtype=float)
+    X = np.zeros((k, n)) if X0 is None else X0
     R, Zr, Pd, AP, bn, tol, rn, rz, active, conv, its = ops.work(k, n)
-    it = max_iter if deadline is None else min(1, max_iter)  # the iterations before the first check
+    pace = ops.scratch.get(_PACE)
+    if deadline is None:
+        it = max_iter
+    else:  # the iterations before the first check
+        it = min(1, max_iter) if pace is None else deadline.iterations_left(pace * k, max_iter)
+    t0 = time.perf_counter()
     left = lockstep_solve(*ops.args, B, X, X0 is not None, float(rtol), R, Zr, Pd, AP, bn, tol, rn, rz, active,
                           conv, its, it)
     while left and it < max_iter:
         deadline.check(PCG_NAME, it)
-        left = lockstep_iterate(*ops.args, X, R, Zr, Pd, AP, tol, rn, rz, active, conv, its, it, it + 1)
-        it += 1
-    return X, its.copy(), conv.copy(), relative_residuals(bn, rn)
+        to = it + deadline.iterations_left((time.perf_counter() - t0) / it, max_iter - it)
+        left = lockstep_iterate(*ops.args, X, R, Zr, Pd, AP, tol, rn, rz, active, conv, its, it, to)
+        it = to
+    its = its.copy()
+    if deadline is not None:
+        ops.scratch[_PACE] = (time.perf_counter() - t0) / max(1, int(its.sum()))
+    return X, its, conv.copy(), relative_residuals(bn, rn)
+
+
+_PACE = "pace"  # Ops.scratch: wall time [s] per column and iteration of the last budgeted block_pcg
 
 
 def default_max_iter(nv: int) -> int:
@@ -93,6 +113,22 @@ def spd_solve(S, rhs, labels):
         return y
     check_rank(S, labels)
     return y if status == 2 else np.linalg.lstsq(S, rhs, rcond=None)[0]
+
+
+def dual_solve(H, X, g, labels):
+    """(y, v) of Eq. (4) from the lockstep solutions X = [u; Z^T] (:func:`block_pcg` of [b; H]): y = (H Z)^-1
+    (H u - g), v = u - Z y, in one compiled call (lockstep_kernel.dual_solve_kernel); a singular or nearly
+    singular H Z is handled as in :func:`spd_solve` (redundant rows named, else least squares)."""
+    l, n = H.shape
+    S, rhs, y, v = np.empty((l, l)), np.empty(l), np.empty(l), np.empty(n)
+    status = dual_solve_kernel(H, X, g, S, np.empty((l, l)), rhs, y, v)
+    if status == 1:
+        return y, v
+    check_rank(S, labels)
+    if status == 0:
+        y = np.linalg.lstsq(S, rhs, rcond=None)[0]
+        v = X[0] - X[1:].T @ y
+    return y, v
 
 
 def active_set(ops, rows, H, gH, Z, u, v, y, labels, rtol, max_iter, stats, deadline=None):

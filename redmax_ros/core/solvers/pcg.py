@@ -245,22 +245,29 @@ class MatrixFreeSystem:
         self._zero_diag = np.zeros(nv)
         self._no_springs = PointSprings(np.zeros(0), np.zeros((0, 3)), np.zeros(0), np.zeros((0, 3)),
                                         np.zeros((0, 3, 3)))
+        self.h = None
+        self._diag_of = None  # the reduced_diag array self._diag was made from (renew)
         self.renew(ws, h, reduced_diag, springs, body_blocks)
 
     def renew(self, ws: Workspace, h: float, reduced_diag: np.ndarray | None = None,
               springs: PointSprings | None = None, body_blocks: np.ndarray | None = None,
-              ends: tuple | None = None) -> "MatrixFreeSystem":
+              ends: tuple | None = None, C: np.ndarray | None = None) -> "MatrixFreeSystem":
         """The LHS of another step on the same tree (the constructor's arguments but the topology), keeping the
         scratch arrays: one system per step workspace serves every step of the data-free pipeline. ``ends``:
-        the springs' world end points (pa, pb) at ``ws`` when the caller has them (else :meth:`refresh`
-        computes them)."""
+        the springs' world end points (pa, pb) at ``ws`` and ``C`` their h D + h^2 K (:meth:`refresh`) when the
+        caller has them (else :meth:`refresh` computes them). The reduced diagonal is kept while the same
+        ``reduced_diag`` array (a per-h constant of the caller, not modified) comes with the same h."""
+        same_diag = reduced_diag is not None and reduced_diag is self._diag_of and self.h == float(h)
         self.ws, self.h = ws, float(h)
-        self.reduced_diag = (self._zero_diag if reduced_diag is None
-                             else np.asarray(reduced_diag, dtype=float).reshape(self.topo.nv).copy())
+        if not same_diag:
+            self._diag_of = reduced_diag
+            self.reduced_diag = (self._zero_diag if reduced_diag is None
+                                 else np.asarray(reduced_diag, dtype=float).reshape(self.topo.nv).copy())
+            self._diag = np.ascontiguousarray(self.diag)
         self.springs = springs if springs is not None else self._no_springs
         self.body_blocks = (None if body_blocks is None
                             else np.ascontiguousarray(body_blocks, dtype=float).reshape(self.topo.njoints, 6, 6))
-        self.refresh(ends)
+        self.refresh(ends, C)
         return self
 
     @property
@@ -268,9 +275,9 @@ class MatrixFreeSystem:
         """Reduced diagonal: armature + h D_r + h^2 K_r."""
         return self.reduced_diag + (self.topo.armature if self.include_armature else 0.0)
 
-    def refresh(self, ends: tuple | None = None) -> None:
+    def refresh(self, ends: tuple | None = None, C: np.ndarray | None = None) -> None:
         """Recompute the springs' world points (or take ``ends`` = (pa, pb), (m, 3) contiguous) and
-        C_s = h D_s + h^2 K_s from ``ws``."""
+        C_s = h D_s + h^2 K_s from ``ws`` (or take ``C``, (m, 3, 3) contiguous)."""
         sp = self.springs
         if sp.m:
             if ends is None:
@@ -278,11 +285,10 @@ class MatrixFreeSystem:
                 self.pb = site_positions(self.ws, sp.joint_b, sp.offset_b)
             else:
                 self.pa, self.pb = ends
-            self.C = np.ascontiguousarray(self.h * sp.damping + self.h * self.h * sp.stiffness)
+            self.C = np.ascontiguousarray(self.h * sp.damping + self.h * self.h * sp.stiffness) if C is None else C
         else:
             self.pa = self.pb = _NO_POINTS
             self.C = _NO_MATRICES
-        self._diag = np.ascontiguousarray(self.diag)
 
     def apply(self, x: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
         """A x, O(n + m)."""

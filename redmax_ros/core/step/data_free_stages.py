@@ -32,10 +32,12 @@ from redmax_ros.core.dynamics import constraints
 from redmax_ros.core.dynamics import tree_forces as tf
 from redmax_ros.core.solvers.problem import Constraints
 from redmax_ros.core.solvers.problem import LinearSystem
-from redmax_ros.core.dynamics.springs import geometric_blocks_kernel, spring_forces, spring_shift_kernel
+from redmax_ros.core.dynamics.springs import geometric_blocks_kernel, spring_shift_kernel
 from redmax_ros.core.errors import StepError
+from redmax_ros.core.linalg import all_finite
 from redmax_ros.core.solvers.direct import solve_direct
-from redmax_ros.core.solvers.lockstep_pcg import DEFAULT_RTOL, Fallback, Ops, active_set, block_pcg, default_max_iter, spd_solve
+from redmax_ros.core.solvers.lockstep_kernel import kkt_residual_kernel
+from redmax_ros.core.solvers.lockstep_pcg import DEFAULT_RTOL, Fallback, Ops, active_set, block_pcg, default_max_iter, dual_solve
 from redmax_ros.core.solvers import recursive as rc
 from redmax_ros.core.solvers.pcg import MatrixFreeSystem, PointSprings
 from redmax_ros.core.step.pipeline import VelocitySolve
@@ -86,16 +88,16 @@ def coupling_scale(mech, ws) -> float:
 
 
 def lhs_system(ws, rws, h: float, springs: PointSprings | None, blocks: np.ndarray | None,
-               ends: tuple | None = None) -> MatrixFreeSystem:
+               ends: tuple | None = None, C: np.ndarray | None = None) -> MatrixFreeSystem:
     """This step's LHS of Eq. (2) as an O(n + m) operator: the workspace's MatrixFreeSystem (made at its first
-    step, kept in ws.cache) renewed for the kinematics ``rws``, h, the springs (world end points ``ends``) and
-    the maximal blocks."""
+    step, kept in ws.cache) renewed for the kinematics ``rws``, h, the springs (world end points ``ends``, their
+    h D + h^2 K ``C``) and the maximal blocks."""
     ctx = ws.tree
     system = ws.cache.get(_SYSTEM_KEY)
     if system is None:
         system = ws.cache[_SYSTEM_KEY] = MatrixFreeSystem(ctx.topo, rws, h, ctx.reduced_diag(h), springs, blocks)
         return system
-    return system.renew(rws, h, ctx.reduced_diag(h), springs, blocks, ends)
+    return system.renew(rws, h, ctx.reduced_diag(h), springs, blocks, ends, C)
 
 
 def point_springs(ws, K: np.ndarray, D: np.ndarray) -> PointSprings:
@@ -159,8 +161,8 @@ def solve_pcg(mech, ws, system: MatrixFreeSystem, b, cons: Constraints, x0, rtol
         raise Fallback(f"preconditioner: {e}") from None
     ops = Ops(system, ctx.P, ws.cache.setdefault("lockstep scratch", {}))
     Gc = coupling_rows(mech, ws)
-    H = np.vstack([cons.G, Gc]) if len(Gc) else cons.G
-    gH = np.concatenate([cons.g, np.zeros(len(Gc))]) if len(Gc) else cons.g
+    H = np.ascontiguousarray(np.vstack([cons.G, Gc]) if len(Gc) else cons.G, dtype=float)
+    gH = np.ascontiguousarray(np.concatenate([cons.g, np.zeros(len(Gc))]) if len(Gc) else cons.g, dtype=float)
     l = len(H)
     key = tuple(cons.label_spans) + (len(Gc),)
     labels = ws.cache.get(("row labels", key))
@@ -182,8 +184,8 @@ def solve_pcg(mech, ws, system: MatrixFreeSystem, b, cons: Constraints, x0, rtol
     else:
         B = b[None]
     X, its, conv, rel = block_pcg(ops, B, X0, rtol, max_iter, ws.deadline)
-    stats["solves"] = list(its)
-    total = int(its.sum())
+    stats["solves"] = its.tolist()
+    total = sum(stats["solves"])
     if not conv.all():
         bad = int(np.flatnonzero(~conv)[0])
         raise Fallback(f"PCG did not reach rtol {rtol:g} in {max_iter} iterations "
@@ -192,8 +194,7 @@ def solve_pcg(mech, ws, system: MatrixFreeSystem, b, cons: Constraints, x0, rtol
     Z = X[1:].T  # (nv, l)
     if l:
         ctx.z_cache = (key, X[1:].copy())
-        y = spd_solve(H @ Z, H @ u - gH, labels)
-        v = u - Z @ y
+        y, v = dual_solve(H, X, gH, labels)
     else:
         y = np.zeros(0)
         v = u
@@ -206,6 +207,15 @@ def solve_pcg(mech, ws, system: MatrixFreeSystem, b, cons: Constraints, x0, rtol
 
 
 _NO_LIMITS = np.zeros(0)  # mu without limit rows
+_NO_DOFS = np.zeros(0, dtype=np.int64)  # limited DOFs of kkt_residual_kernel without limit rows
+
+
+def limited_dofs(mech, ws) -> np.ndarray:
+    """mech.limited as an int64 array (cached in ws)."""
+    d = ws.cache.get("limited dofs")
+    if d is None:
+        d = ws.cache["limited dofs"] = np.asarray(mech.limited, dtype=np.int64).reshape(-1)
+    return d
 
 
 @dataclasses.dataclass
@@ -232,14 +242,14 @@ def data_free_velocity(mech, ws, state, cmd, tau, h, solver="pcg", rtol=DEFAULT_
     v_r = ws.to_reduced(state.v)
     rws = ctx.fk(state.q, v_r)
     springs = rhs_springs = None
-    K = D = None
+    K = D = C = ends = None
     if len(mech.spring_ab):
-        X = ctx.jac_positions()  # at q*: where the spring forces act (their Jacobians)
         V = None
         if ctx.spring_arrays.needs_velocities:  # site velocities v_o + w x x of explicit dampers (implicit: false)
             ov = rws.ov[ctx.jac_jid]
-            V = ov[:, :3] + np.cross(ov[:, 3:], X)
-        fs, K, D, _ = spring_forces(mech, X, V, ctx.spring_arrays)
+            V = ov[:, :3] + np.cross(ov[:, 3:], ctx.jac_positions())
+        # at q*: where the spring forces act (X, their Jacobians' points), their forces, K, D, ends and C of the LHS
+        X, fs, K, D, ends, C = ctx.spring_state(h, V)
         springs = rhs_springs = (fs, X)
         if pt is not None:  # BDF2: f(q+) ~ f(q*) + K' (q* (-) q^) - K hat h qdot+ (springs.spring_shift), O(n + m)
             rows = mech.spring_rows
@@ -259,38 +269,37 @@ def data_free_velocity(mech, ws, state, cmd, tau, h, solver="pcg", rtol=DEFAULT_
                                     np.ascontiguousarray(X[rows[:, 1]]), np.ascontiguousarray(fs),
                                     ex, 1.0, rws.I, B)
             b += h * rc.jtw(ctx.topo, rws, np.einsum("jab,jb->ja", B, rc.jv(ctx.topo, rws, pt.back)))
-    if not math.isfinite(float(b.sum())):
+    if not all_finite(b):
         raise StepError("non-finite right-hand side of Eq. (2) (state or forces out of range)")
-    ps = ends = None
-    if K is not None:
-        ps = point_springs(ws, K, D)
-        ends = (X[ctx.spring_arrays.a], X[ctx.spring_arrays.b])  # = the springs' site positions, same kernel
-    system = lhs_system(ws, rws, h, ps, tf.maximal_blocks(ctx, h, springs, ends), ends)
+    ps = None if K is None else point_springs(ws, K, D)
+    system = lhs_system(ws, rws, h, ps, tf.maximal_blocks(ctx, h, springs, ends), ends, C)
     # 3: constraint rows (reduced coordinates for PCG)
     cons = build_rows(mech, ws, cmd, q_base, h, hyper=solver != "pcg")
     if cons.m:
-        if not math.isfinite(cons.g.sum()):
+        if not all_finite(cons.g):
             check_inputs(state, tau, cmd)
         check_rows(cons, 1.0 if solver != "pcg" else coupling_scale(mech, ws))  # before any solve
 
     # 4: solve
     label = solver
-    sol = None
+    sol = viol_vel = None
     if solver == "pcg":
         try:
             v_red, y, mu, iters, H = solve_pcg(mech, ws, system, b, cons, v_r, rtol, max_iter, stats)
             y_rows = y[:cons.m]
             v_hyp = ctx.to_hyper(v_red)
-            # true residual of the KKT stationarity equation (one more O(n + m) LHS product)
-            r = system.apply(v_red) - b
-            if len(H):
-                r += H.T @ y
-            if len(mu):
-                r[mech.limited] += mu
-            bb = b
+            # true residual of the KKT stationarity equation (one more O(n + m) LHS product) and the rows' velocity
+            # violation, one compiled call
+            r = np.empty(nv)
+            rr, bb, viol = kkt_residual_kernel(*system.lhs_args(), *system.lhs_scratch(), v_red, b, H, y,
+                                               limited_dofs(mech, ws) if len(mu) else _NO_DOFS, mu, cons.m,
+                                               np.ascontiguousarray(cons.g, dtype=float), r)
+            if ws.T is None:  # else the violation of the hyper-reduced velocity's T qdot_R below
+                viol_vel = viol
             if mech.T is not None:
                 r, bb = mech.T.T @ r, mech.T.T @ b
-            res = math.sqrt(float(r @ r) / max(float(bb @ bb), 1e-300))
+                rr, bb = float(r @ r), float(bb @ bb)
+            res = math.sqrt(rr / max(bb, 1e-300))
             sol = MFSolution(v_hyp, y_rows, mu, iters, "pcg", res)
         except Fallback as e:
             stats["fallback"] = str(e.args[0])
@@ -312,5 +321,6 @@ def data_free_velocity(mech, ws, state, cmd, tau, h, solver="pcg", rtol=DEFAULT_
         if mech.T is not None and cons.G.shape[1] == nv:
             G_loop = G_loop @ mech.T
     v_new = ws.to_reduced(sol.v)
-    viol_vel = float(np.abs(cons.G @ (v_new if cons.G.shape[1] == nv else sol.v) - cons.g).max()) if cons.m else 0.0
+    if viol_vel is None or not cons.m:
+        viol_vel = float(np.abs(cons.G @ (v_new if cons.G.shape[1] == nv else sol.v) - cons.g).max()) if cons.m else 0.0
     return VelocitySolve(sol, cons.joint_rows, cons.site_rows, G_loop, viol_vel, label, int(iters))

@@ -117,7 +117,8 @@ def update_configuration(mech, ws, q, vs: VelocitySolve, cmd, h) -> tuple:
     """Stage 5: q+ = q (+) h J_rR qdot_R+ on the manifold (BDF2: q = q^, h = hat h, step/scheme.py), loop post-stabilization (stabilization.py) and the
     catalogue's end-of-step hooks. Returns (q+, qdot_R+, qdot_r+, max loop violation [m])."""
     v_new = ws.to_reduced(vs.sol.v)
-    q_new = pin.integrate(mech.model, q, h * v_new)
+    # every joint a vector space (Context.additive): pin.integrate is this sum
+    q_new = q + h * v_new if ws.tree.additive else pin.integrate(mech.model, q, h * v_new)
     viol_pos = None
     if vs.G_loop is not None and not mech.loop_baumgarte:  # Baumgarte: the rows' RHS did it (constraints.build)
         q_new, viol_pos = stabilization.project_chord(ws.tree, q_new, vs.G_loop,

@@ -29,6 +29,7 @@ import numpy as np
 
 from redmax_ros.core.errors import StepError
 from redmax_ros.core.jit import njit
+from redmax_ros.core.linalg import all_finite
 
 MAX_SPEED = 1e6  # |qdot| above this (rad/s or m/s) is reported as divergence
 _UP_FRONT = "step diverged (rejected before solving)"
@@ -169,17 +170,9 @@ def applied_torques(mech, state, cmd, h) -> np.ndarray:
 
 
 @njit
-def _all_finite(x):
-    for i in range(x.shape[0]):
-        if not np.isfinite(x[i]):
-            return False
-    return True
-
-
-@njit
 def _finite_and_speed(q, v, tau):
     """(every entry of q, v and tau finite, max |v|): applied_torques' input test in one pass."""
-    finite = _all_finite(q) and _all_finite(v) and _all_finite(tau)
+    finite = all_finite(q) and all_finite(v) and all_finite(tau)
     vmax = 0.0
     for i in range(v.shape[0]):
         vmax = max(vmax, abs(v[i]))

@@ -8,7 +8,7 @@ import pinocchio as pin
 import pytest
 
 from redmax_ros.core import SceneError, State
-from redmax_ros.core.dynamics.stabilization import loop_violation
+from redmax_ros.core.dynamics.stabilization import loop_residual, loop_violation, project_chord
 
 
 def baumgarte(b):
@@ -80,3 +80,26 @@ def test_pcg_and_direct_paths_take_the_same_baumgarte_step(load_sim):
 def test_bad_stabilization_values_name_the_entry(load_sim, value, where):
     with pytest.raises(SceneError, match=where.replace(".", r"\.")):
         load_sim("fourbar", [f"stabilization={value}"])
+
+
+@pytest.mark.parametrize("scene,overrides,held", [("fourbar", [], ()), ("bridge", [], ()), ("bridge", [], (0,)),
+                                                  ("umbrella", ["params.ribs=2"], ())])
+def test_compiled_chord_projection_equals_the_python_iterations(load_sim, scene, overrides, held):
+    """stabilization.chord_project_kernel (vector-space configurations, Context.additive) against project_chord's
+    Python iterations (loop_phi_at, chord_step, pin.integrate) from a configuration off the loop manifold: the same
+    q and max|phi|, bit for bit, and the same placements left in the workspace."""
+    sim = load_sim(scene, overrides, solver="pcg")
+    sim.step(3)
+    ctx, m = sim.backend.workspace.tree, sim.mech
+    assert ctx.additive
+    q0 = sim.state.q
+    _, G = loop_residual(ctx, q0)
+    q = pin.integrate(m.model, q0, 1e-3 * np.sin(np.arange(m.nv)))  # loops opened by ~1e-3 rad a joint
+    out = {}
+    for additive in (True, False):
+        ctx.additive = additive
+        qp, err = project_chord(ctx, q, G, held)
+        out[additive] = (qp, err, ctx.ws.R.copy(), ctx.ws.St.copy())
+    assert 0.0 < out[True][1] < 1e-10 and not np.array_equal(out[True][0], q)
+    for a, b in zip(out[True], out[False]):
+        assert np.asarray(a).tobytes() == np.asarray(b).tobytes()

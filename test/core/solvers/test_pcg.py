@@ -230,3 +230,51 @@ def test_loop_closure_redundant_rows():
     ref = np.linalg.solve(K, np.concatenate([b, np.zeros(3)]))[:model.nv]
     assert np.linalg.norm(res.x - ref) <= 1e-6 * np.linalg.norm(ref)
     assert res.constraint_residual < 1e-8
+
+
+def test_dual_solve_matches_numpy_products():
+    """lockstep_pcg.dual_solve (one compiled call) against the numpy products it replaced in the PCG step:
+    y = (H Z)^-1 (H u - g) (symmetrised H Z), v = u - Z y; to round-off, and a redundant row is named."""
+    from redmax_ros.core.errors import StepError
+    from redmax_ros.core.solvers.lockstep_pcg import dual_solve
+    rng = np.random.default_rng(5)
+    n, l = 40, 7
+    A = spd(rng, n) + n * np.eye(n)
+    H = rng.normal(size=(l, n))
+    b, g = rng.normal(size=n), rng.normal(size=l)
+    X = np.vstack([np.linalg.solve(A, b), np.linalg.solve(A, H.T).T])
+    u, Z = X[0], X[1:].T
+    S = H @ Z
+    y_ref = np.linalg.solve(0.5 * (S + S.T), H @ u - g)
+    v_ref = u - Z @ y_ref
+    y, v = dual_solve(H, X, g, [f"row {i}" for i in range(l)])
+    assert np.max(np.abs(y - y_ref)) <= 1e-12 * np.max(np.abs(y_ref))
+    assert np.max(np.abs(v - v_ref)) <= 1e-13 * np.max(np.abs(u))
+    assert np.max(np.abs(H @ v - g)) <= 1e-12 * np.max(np.abs(g))  # the rows hold
+    Hr = np.vstack([H, H[2]])  # a repeated row: S singular, named
+    Xr = np.vstack([X, X[3]])
+    with pytest.raises(StepError, match="row 2|row 7"):
+        dual_solve(Hr, Xr, np.concatenate([g, g[2:3]]), [f"row {i}" for i in range(l + 1)])
+
+
+@pytest.mark.parametrize("name", ["chain", "tree"])
+def test_kkt_residual_kernel_matches_products(name):
+    """lockstep_kernel.kkt_residual_kernel against MatrixFreeSystem.apply and numpy: r = A v - b + H^T y
+    (+ mu on limited DOFs), r.r, b.b and max |H_i v - g_i| over the first m rows."""
+    from redmax_ros.core.solvers.lockstep_kernel import kkt_residual_kernel
+    model = MODELS[name]()
+    data, topo, ws, q, M, rng = setup(model, seed=7)
+    springs = random_springs(model, rng, 6, same_body=1)
+    sys = MatrixFreeSystem(topo, ws, H, rng.uniform(0.0, 1.0, size=model.nv), springs)
+    nv, l, m = model.nv, 4, 3
+    v, b, Hr, y, g = (rng.normal(size=nv), rng.normal(size=nv), rng.normal(size=(l, nv)), rng.normal(size=l),
+                      rng.normal(size=m))
+    limited, mu = np.array([0, nv - 1], dtype=np.int64), np.array([0.3, -0.2])
+    r_ref = sys.apply(v) - b + Hr.T @ y
+    r_ref[limited] += mu
+    r = np.empty(nv)
+    rr, bb, viol = kkt_residual_kernel(*sys.lhs_args(), *sys.lhs_scratch(), v, b, Hr, y, limited, mu, m, g, r)
+    scale = np.max(np.abs(sys.apply(v))) + np.max(np.abs(Hr.T @ y))
+    assert np.max(np.abs(r - r_ref)) <= 1e-13 * scale
+    assert rr == pytest.approx(r_ref @ r_ref, rel=1e-12) and bb == pytest.approx(b @ b, rel=1e-14)
+    assert viol == pytest.approx(np.abs(Hr[:m] @ v - g).max(), rel=1e-12)

@@ -11,8 +11,9 @@ import pytest
 import pinocchio as pin
 
 from redmax_ros.core import SceneError, Simulator, State, StepError, compile_scene, list_scenes, load_scene
+from redmax_ros.core.dynamics.springs import spring_forces
 from redmax_ros.core.dynamics.stabilization import assemble_loops
-from redmax_ros.core.dynamics.tree_kinematics import PIN_DATA_MAX_NV, Context
+from redmax_ros.core.dynamics.tree_kinematics import PIN_DATA_MAX_NV, Context, point_jac_kernel
 from redmax_ros.core.solvers import recursive as rc
 from redmax_ros.core.step.backends import AUTO_DIRECT_NV, DataFreeBackend, DirectBackend
 
@@ -203,6 +204,94 @@ def test_data_free_loop_assembly_matches_pinocchio():
         assert np.abs(a - b).max() < 1e-9, name
 
 
+@pytest.mark.parametrize("name, overrides", [("fourbar", []), ("umbrella", ["params.ribs=2"]),
+                                             ("bridge", ["params.variant=rigid"])])
+def test_loop_jacobian_kernel_matches_site_jacobians(name, overrides):
+    """Context.loop_jacobian (tree_kinematics.loop_jacobian_kernel, one call) against the rows it replaced,
+    P (J_a - J_b) per loop from the loop sites' point Jacobians, to round-off; and G qdot is the loops' phi_dot
+    (finite difference of Context.loop_rows' phi along qdot)."""
+    m = compile_scene(load_scene(name, overrides))
+    ctx = Context(m)
+    rng = np.random.default_rng(1)
+    q = m.q0.copy()
+    if m.nq == m.nv:
+        q += 1e-2 * rng.normal(size=m.nv)
+    ctx.fk(q)
+    G = ctx.loop_jacobian()
+    t = ctx.topo
+    X = rc.site_positions(ctx.ws, ctx.loop_site_jid, ctx.loop_site_local)
+    J = np.zeros((len(X), 3, m.nv))
+    point_jac_kernel(t.parents, t.idx_v, t.nv_j, ctx.ws.St, ctx.loop_site_jid, X, J)
+    G_ref = np.concatenate([P @ (J[ka] - J[kb]) for (ka, kb), P in zip(ctx.loop_ends, ctx.loop_axes)])
+    assert G.shape == G_ref.shape and np.abs(G - G_ref).max() <= 1e-14 * max(1.0, np.abs(G_ref).max())
+    if m.nq == m.nv:
+        v, eps = rng.normal(size=m.nv), 1e-6
+        phi = [ctx.fk(q + s * eps * v) is not None and ctx.loop_rows()[1] for s in (1.0, -1.0)]
+        assert np.abs((phi[0] - phi[1]) / (2 * eps) - G @ v).max() <= 1e-6 * max(1.0, np.abs(G @ v).max())
+
+
+def test_rhs_kernel_matches_its_parts_and_pinocchio():
+    """tree_forces.rhs (one rhs_kernel call) against the calls it replaced (bias_wrench_kernel, einsum I ov,
+    spring_wrench_kernel, rhs_sum_kernel) to round-off on a chain with springs, body damping and a wrench, the
+    rigid bridge and the hand (joint springs); and without springs b = M v + h (tau - nle(q, v)) from Pinocchio
+    (crba, rnea at zero acceleration)."""
+    from redmax_ros.core.dynamics import tree_forces as tf
+    for scene, overrides in (EXTRA[3], ("chain", ["params.n=5"]), ("bridge", ["params.variant=rigid"]), ("hand", [])):
+        m = compile_scene(load_scene(scene, overrides))
+        ctx = Context(m)
+        rng = np.random.default_rng(2)
+        q = pin.integrate(m.model, m.q0, 0.3 * rng.normal(size=m.nv))
+        v, tau, h = rng.normal(size=m.nv), rng.normal(size=m.nv), 1e-3
+        ws = ctx.fk(q, v)
+        springs = None
+        if len(m.spring_ab):
+            X, fs = ctx.spring_state(h)[:2]
+            springs = (fs, X)
+        b = tf.rhs(ctx, q, v, tau, h, None, springs)
+        t = ctx.topo
+        W = np.empty((t.njoints, 6))
+        tf.bias_wrench_kernel(t.parents, t.idx_v, t.nv_j, ws.St, ws.ov, ws.v, ws.R, ws.p, ws.c_local, ws.I,
+                              ctx.gravity, h, np.empty((t.njoints, 6)), W)
+        W += np.einsum("jab,jb->ja", ws.I, ws.ov)
+        ext = np.zeros((t.njoints, 6))
+        if springs is not None:
+            sa = ctx.spring_arrays
+            rc.spring_wrench_kernel(ctx.spring_ja, sa.a, ctx.spring_jb, sa.b, X, fs, ext)
+        for j, com, fw in zip(ctx.wrench_jid, ctx.wrench_com, ctx.wrench_fw):
+            x = ws.R[j] @ com + ws.p[j]
+            ext[j] += np.concatenate([fw[:3], np.cross(x, fw[:3]) + fw[3:]])
+        f_r = tau - m.stiffness * pin.difference(m.model, m.q_rest, q) if m.has_stiffness else tau
+        b_ref = np.empty(m.nv)
+        tf.rhs_sum_kernel(t.parents, t.idx_v, t.nv_j, ws.St, W, ext, h, ctx.armature, v, f_r, np.empty_like(ws.tmp6),
+                          b_ref)
+        assert np.abs(b - b_ref).max() <= 1e-13 * np.abs(b_ref).max()
+        if springs is None and not len(ctx.wrench_jid):
+            data = m.model.createData()
+            M = pin.crba(m.model, data, q)
+            M = np.triu(M) + np.triu(M, 1).T + np.diag(m.armature if m.has_armature else np.zeros(m.nv))
+            nle = pin.rnea(m.model, data, q, v, np.zeros(m.nv))
+            b_pin = M @ v + h * (f_r - nle)
+            assert np.abs(b - b_pin).max() <= 1e-12 * np.abs(b_pin).max()
+
+
+@pytest.mark.parametrize("name, overrides", [("chain", ["params.n=6", "params.springs=3", "params.spring_rest=0.15",
+                                                        "joints.j1.q0=0.4"]),
+                                             ("bridge", ["params.variant=flexy"]), ("hand", [])])
+def test_tree_spring_energy_equals_pin_data_spring_energy(name, overrides):
+    """energy.tree_energies' E_spring (springs.point_spring_energy_kernel from the placements + joint springs)
+    against energy.energies on pin.Data (springs.spring_energy on pin's site positions), to round-off."""
+    from redmax_ros.core.dynamics.energy import energies, tree_energies
+    from redmax_ros.core.step.workspace import Workspace
+    m = compile_scene(load_scene(name, overrides))
+    rng = np.random.default_rng(4)
+    q = pin.integrate(m.model, m.q0, 0.1 * rng.normal(size=m.nv))
+    v = rng.normal(size=m.nv)
+    e_tree = tree_energies(Context(m), q, v)
+    e_pin = energies(m, Workspace(m, pin_data=True), q, v)
+    assert e_tree[2] == pytest.approx(e_pin[2], rel=1e-12, abs=1e-15)
+    assert len(m.spring_ab) or m.has_stiffness  # the scene has springs to compare
+
+
 def test_large_scene_compiles_and_runs_without_pin_data():
     """nv > PIN_DATA_MAX_NV: compile_scene (loop assembly, spring rest lengths) and the Simulator
     (poses, spring segments, stepping) never create a pin.Data."""
@@ -247,3 +336,25 @@ def test_runner_solver_option(tmp_path):
                  "--out", str(out)]) == 0
     rows = np.loadtxt(out, delimiter=",", skiprows=1)
     assert rows.shape[0] == 4 and np.all(np.isfinite(rows))
+
+
+@pytest.mark.parametrize("name,overrides", [("bridge", []), EXTRA[5]])
+def test_spring_state_equals_spring_forces_and_the_lhs_matrices(name, overrides):
+    """Context.spring_state (one compiled call) against what it replaces: jac_positions, springs.spring_forces,
+    the end points X[a], X[b] and C = h D + h^2 K as MatrixFreeSystem.refresh forms it, bytes equal (the second
+    scene has explicit dampers, which need the site velocities)."""
+    sim = Simulator.load(name, overrides, solver="pcg")
+    sim.step(3)
+    ctx, m, h = sim.backend.workspace.tree, sim.mech, sim.dt
+    rws = ctx.fk(sim.state.q, sim.state.v)
+    X = ctx.jac_positions()
+    V = None
+    if ctx.spring_arrays.needs_velocities:
+        ov = rws.ov[ctx.jac_jid]
+        V = ov[:, :3] + np.cross(ov[:, 3:], X)
+    f, K, D, _ = spring_forces(m, X, V, ctx.spring_arrays)
+    sa = ctx.spring_arrays
+    want = (X, f, K, D, X[sa.a], X[sa.b], np.ascontiguousarray(h * D + h * h * K))
+    X2, f2, K2, D2, (pa, pb), C = ctx.spring_state(h, V)
+    for a, b in zip(want, (X2, f2, K2, D2, pa, pb, C)):
+        assert a.shape == b.shape and a.tobytes() == b.tobytes()

@@ -14,6 +14,7 @@ import pytest
 
 from redmax_ros.core import CommandError, Simulator, State, StepBudget, StepError
 from redmax_ros.core.friction import staggered
+from redmax_ros.core.solvers import budget as budget_mod
 from redmax_ros.core.step import pipeline
 
 RETURNS_WITHIN = 5.0  # s of wall time: a slow CI machine, far below the 2-124 s of an unbounded QP
@@ -291,6 +292,55 @@ def test_the_compiled_staggered_loop_in_pieces_is_bitwise_the_loop_in_one_call(m
             assert n_calls == 40
     assert all(same_result(a, b) and a.diagnostics.friction.iterations == b.diagnostics.friction.iterations
                for a, b in zip(*runs))
+
+
+def test_lockstep_pcg_in_slices_is_bitwise_the_solve_in_one_call(monkeypatch):
+    """Under a budget the lockstep PCG iterations after the first run in slices sized to the time left
+    (Deadline.iterations_left): slices of one iteration each, or of what fits in the default budget, give the
+    unbudgeted steps bit for bit."""
+    from_budget = {}
+    for name, budget, slice_of_one in (("one call", None, False), ("slices of 1", StepBudget(), True),
+                                       ("default slices", StepBudget(), False)):
+        with monkeypatch.context() as mp:
+            if slice_of_one:
+                mp.setattr(budget_mod.Deadline, "iterations_left", lambda self, per, cap: 1)
+            sim = Simulator.load("umbrella", ["params.ribs=2"], solver="pcg", budget=budget)
+            from_budget[name] = [sim.step() for _ in range(10)]
+    ref = from_budget["one call"]
+    for name in ("slices of 1", "default slices"):
+        assert all(same_result(a, b) and a.diagnostics.iterations == b.diagnostics.iterations
+                   for a, b in zip(from_budget[name], ref)), name
+
+
+def test_lockstep_pcg_first_slice_at_the_previous_pace(monkeypatch):
+    """After the first budgeted PCG call in a workspace, the first slice of the next one is sized at the pace
+    recorded by the last (wall time per column and iteration): under the default budget the umbrella's steps then
+    run their lockstep iterations in the one call that starts them (no lockstep_iterate call)."""
+    from redmax_ros.core.solvers import lockstep_pcg
+    sim = Simulator.load("umbrella", ["params.ribs=2"], solver="pcg", budget=StepBudget())
+    sim.step(2)
+    calls = []
+    real = lockstep_pcg.lockstep_iterate
+    monkeypatch.setattr(lockstep_pcg, "lockstep_iterate", lambda *a: calls.append(1) or real(*a))
+    most = []
+    for _ in range(5):
+        assert sim.step().diagnostics.solver == "pcg"
+        most.append(max(sim.backend.workspace.tree.last_stats["solves"]))
+    assert not calls and max(most) > 1  # a solve of more than one iteration, all in the first call
+
+
+def test_deadline_iterations_left():
+    """The iterations of a given pace that fit before the deadline's limit, between 1 and the cap; the cap
+    without a time budget."""
+    d = StepBudget(cpu_time=0.05).start()
+    assert d.iterations_left(1e-3, 1000) == 1000  # the clock has not started: no limit yet
+    d.begin()
+    assert 40 <= d.iterations_left(1e-3, 1000) <= 50
+    assert d.iterations_left(1e-3, 7) == 7 and d.iterations_left(1.0, 1000) == 1
+    assert d.iterations_left(0.0, 9) == 9
+    free = StepBudget(cpu_time=None).start()
+    free.begin()
+    assert free.iterations_left(1e-3, 1000) == 1000
 
 
 @pytest.mark.parametrize("scene,overrides,solver,setup", [
