@@ -21,7 +21,7 @@ import numpy as np
 import pinocchio as pin
 
 from redmax_ros.core.friction.bisp import dense_wrench_map
-from redmax_ros.core.friction.condense import fixed_row_weights
+from redmax_ros.core.friction.condense import fixed_row_weights, pattern_of
 from redmax_ros.core.friction.staggered import Anderson, box_qp, cone_excess, loop_kernel
 
 
@@ -176,7 +176,7 @@ class MaximalSP:
         PT = P_ @ Tr.T
         W = Tr @ PT
         wT = np.maximum(np.diag(W), 0)
-        fixed_row_weights(wT, Tr, Ainv)  # rows whose slip the prescriptions fix (condense.py)
+        fixed_row_weights(wT, Tr, Ainv, *pattern_of(Tr))  # rows whose slip the prescriptions fix (condense.py)
         nf = len(Tr)
         beta = np.zeros(nf) if self.beta is None else self.beta
         kmax = fm.L.shape[1]

@@ -156,7 +156,7 @@ FIXED_ROW = 1e-9  # W_kk <= FIXED_ROW * (T A^-1 T^T)_kk: the bilateral rows fix 
 
 
 @njit(cache=True, nogil=True)
-def fixed_row_weights(wT, T, Ainv, ptr=None, idx=None):
+def fixed_row_weights(wT, T, Ainv, ptr, idx):
     """Convergence weights of friction rows whose slip the bilateral rows fix (in place).
 
     The staggered loop's convergence test (Alg. 2 line 12) weighs the change of a friction bound by the
@@ -167,9 +167,7 @@ def fixed_row_weights(wT, T, Ainv, ptr=None, idx=None):
     friction QP has run. Such rows (W_kk <= FIXED_ROW (T A^-1 T^T)_kk) are weighed by their
     unconstrained mobility (T A^-1 T^T)_kk instead; every other row keeps W_kk. The double sum runs over
     the row's nonzeros in increasing column order (the same terms in the same order as over all pairs),
-    from T's row pattern ``ptr``, ``idx`` (pattern_of) when given."""
-    if ptr is None:
-        ptr, idx = pattern_of(T)
+    from T's row pattern ``ptr``, ``idx`` (pattern_of)."""
     for i in range(T.shape[0]):
         u = 0.0
         for p in range(ptr[i], ptr[i + 1]):

@@ -314,8 +314,7 @@ def distinct_operators(L) -> dict:
             seen[key] = len(ops)
             ops.append(np.ascontiguousarray(Lj.T))
         of[j] = seen[key]
-    kmax = L.shape[1] if L.ndim == 3 else 1
-    return {"L_ops": np.array(ops).reshape(len(ops), 6, kmax), "L_of": of}
+    return {"L_ops": np.array(ops).reshape(len(ops), 6, L.shape[1]), "L_of": of}
 
 
 def _index_maps(mech, n_slots, lsites, laxis, lrad, sph_support):

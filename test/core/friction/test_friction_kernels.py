@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from redmax_ros.core.friction.condense import (FIXED_ROW, ancestor_chains, condense, dense_spd_inverse, fixed_row_weights,
-                                              spd_inverse, tree_inverse)
+                                              pattern_of, spd_inverse, tree_inverse)
 from redmax_ros.core.friction.bisp import dense_wrench_map
 from redmax_ros.core.friction.contact import distinct_operators
 from redmax_ros.core.friction.staggered import cone_excess, loop_state, staggered_kernel
@@ -92,7 +92,7 @@ def test_fixed_row_weights_use_the_unconstrained_mobility_of_fixed_rows_only():
     u = np.einsum("ia,ac,ic->i", T, Ainv, T)
     wT = np.array([0.0, 1e-20, 0.5 * u[2], u[3], 1e-3 * u[4], FIXED_ROW * u[5] * 0.5])
     out = wT.copy()
-    fixed_row_weights(out, T, Ainv)
+    fixed_row_weights(out, T, Ainv, *pattern_of(T))
     fixed = np.array([True, True, False, False, False, True])
     assert np.allclose(out[fixed], u[fixed], rtol=1e-14, atol=0.0)
     assert np.array_equal(out[~fixed], wT[~fixed])
