@@ -116,16 +116,18 @@ def chord_project_kernel(parents, kind, idx_q, idx_v, nv_j, axis, pitch, place_R
     vector space (Context.additive: q (+) dq = q + dq, as pin.integrate): the factor of K K^T
     (:func:`chord_factor_into`), then per iteration the universal joints' placements
     (tree_kinematics.universal_kernel), forward kinematics and phi = S (x_a - x_b) of the loop sites
-    (tree_kinematics.loop_phi_kernel) and, while max|phi| >= tol [m], q <- q + dq (:func:`chord_step_into`, a new
-    array; q itself is not written). Returns (q, max|phi| at q, status): CHORD_CONVERGED, CHORD_SINGULAR (K K^T
-    not positive definite; q the input) or CHORD_UNCONVERGED (q after max_iter steps, phi there not evaluated).
+    (tree_kinematics.loop_phi_kernel) and, while max|phi| >= tol [m], q <- q + dq (:func:`chord_step_into`,
+    into one of two buffers allocated once; q itself is not written). Returns (q, max|phi| at q, status):
+    CHORD_CONVERGED, CHORD_SINGULAR (K K^T not positive definite; q the input) or CHORD_UNCONVERGED (q after
+    max_iter steps, phi there not evaluated).
     Leaves placements of the last q evaluated in (jR, jp, Sl, R, p, St)."""
     m, n, k = G.shape[0], G.shape[1], held.shape[0]
     L = np.empty((m + k, m + k))
     if not chord_factor_into(G, held, np.zeros((m + k, m + k)), L):
         return q, 0.0, CHORD_SINGULAR
     y, dq, step = np.empty(m + k), np.empty(n), np.empty(n if T.shape[0] == 0 else T.shape[0])
-    for _ in range(max_iter):
+    bufs = np.empty((2, q.shape[0]))  # the iterates, alternately (the input q is never written)
+    for it in range(max_iter):
         if uni.shape[0]:
             universal_kernel(uni, idx_q, idx_v, uni_a1, uni_a2, q, zero_v, False, jR, jp, Sl, c_local)
         phi, err = loop_phi_kernel(parents, kind, idx_q, idx_v, nv_j, axis, pitch, place_R, place_p, q, jR, jp, Sl,
@@ -133,7 +135,7 @@ def chord_project_kernel(parents, kind, idx_q, idx_v, nv_j, axis, pitch, place_R
         if err < tol:
             return q, err, CHORD_CONVERGED
         chord_step_into(L, G, held, phi, T, y, dq, step)
-        q_next = np.empty(q.shape[0])
+        q_next = bufs[it % 2]
         for i in range(q.shape[0]):
             q_next[i] = q[i] + step[i]
         q = q_next
@@ -200,8 +202,9 @@ def chord_step(L, G, held, phi, T):
 
 
 @njit
-def chord_step_into(L, G, held, phi, T, y, dq, out):
-    """chord_step without allocation: scratch y (m + k,), dq (n,); the correction into out (reduced)."""
+def chord_direction_into(L, G, held, phi, y, dq):
+    """The least-norm correction dq = -K^T (K K^T)^-1 [phi; 0] in hyper-reduced coordinates (held DOFs fixed),
+    into dq (n,); scratch y (m + k,)."""
     m, n, k = G.shape[0], G.shape[1], held.shape[0]
     y[:] = 0.0
     y[:m] = phi
@@ -212,6 +215,12 @@ def chord_step_into(L, G, held, phi, T, y, dq, out):
             dq[i] -= G[r, i] * y[r]
     for j in range(k):
         dq[held[j]] -= y[m + j]
+
+
+@njit
+def chord_step_into(L, G, held, phi, T, y, dq, out):
+    """chord_step without allocation: scratch y (m + k,), dq (n,); the correction into out (reduced)."""
+    chord_direction_into(L, G, held, phi, y, dq)
     if T.shape[0] == 0:
         out[:] = dq
         return

@@ -12,9 +12,11 @@ from redmax_ros.core.step.compiled.manifold import difference
 
 
 @njit_inline
-def energies(m, d, q, v):
-    """(E_kin, E_pot, E_spring) at (q, qdot_r); leaves the placements and twists of (q, v) in d."""
-    placements(m, d, q, False, v)
+def energies(m, d, q, v, placed):
+    """(E_kin, E_pot, E_spring) at (q, qdot_r); leaves the placements and twists of (q, v) in d. ``placed``: d
+    holds the placements at q already (update.update_configuration's last loop-residual evaluation)."""
+    if not placed:
+        placements(m, d, q, False, v)
     jv_kernel(m.parents, m.idx_v, m.nv_j, d.St, v, d.ov)
     ek, ep = body_energies(d.R, d.p, d.ov, m.mass, m.com, m.inertia_com, m.gravity)
     if m.scalars[2] != 0.0:

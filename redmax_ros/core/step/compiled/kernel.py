@@ -11,7 +11,7 @@ preallocated workspace):
     friction_solve(m, d, c, h, cache, ...) # 4'' instead of 4: contact and joint friction, Alg. 2-3 (friction.py)
     update_configuration(m, d, q^, hh)     # 5  manifold update, loop post-stabilization (update.py)
     required_forces(m, d, tau, hh)         # 6  Eq. 7 torques and site forces (update.py)
-    energies(m, d, q+, qdot_r+)            #    diagnostics (energy.py)
+    energies(m, d, q+, qdot_r+, placed)    #    diagnostics (energy.py)
 
 with hh = h for BDF1 (q^ = q* = q_k, v^ = v* = qdot_k: the paper's step) and hh = 2h/3 for BDF2. A BDF2 step
 that the order control rejects (scheme.accepted, step/scheme.accepts) is taken again from the same state as
@@ -153,11 +153,11 @@ def rigid_stages(m, d, q, vR, tau, h, gj, sv, qp, vp, hist, warm):
 @njit_inline
 def tail_stages(m, d, tau, hh):
     """Stages 5-6 and the energies after a solve (d.v_hyper, d.lam); returns OK or REFERENCE."""
-    converged, viol_pos = update_configuration(m, d, d.q_base, hh)  # 5
+    converged, viol_pos, placed = update_configuration(m, d, d.q_base, hh)  # 5
     if not converged or not _finite_sum(d.q_new):
         return _handoff(d.out, STAGE_PROJECTION)
     required_forces(m, d, tau, hh)  # 6
-    ek, ep, es = energies(m, d, d.q_new, d.v_new)
+    ek, ep, es = energies(m, d, d.q_new, d.v_new, placed)
     if not (ek + ep + es) - (ek + ep + es) == 0.0:
         return _handoff(d.out, STAGE_ENERGY)
     d.out[OUT_E_KIN] = ek

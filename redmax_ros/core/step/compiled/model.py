@@ -56,6 +56,8 @@ MODEL_SPEC = (
     ("T_col", "i", 1), ("T_ratio", "f", 1),
     # the DOFs supporting each joint's body as runs of consecutive indices (tree_forces.all_support_runs)
     ("support_ptr", "i", 1), ("support_runs", "i", 2),
+    # the loop of each loop row (row r of loop_select is zero outside columns 3 l .. 3 l + 2, l = loop_row_loop[r])
+    ("loop_row_loop", "i", 1),
 )
 
 Model = namedtuple("Model", [n for n, _, _ in MODEL_SPEC])
@@ -80,7 +82,7 @@ def model_views(f, i, t):
                  f1(f, t, 48),
                  i1(i, t, 49), i1(i, t, 50),
                  i1(i, t, 51), f1(f, t, 52),
-                 i1(i, t, 53), i2(i, t, 54))
+                 i1(i, t, 53), i2(i, t, 54), i1(i, t, 55))
 
 
 SUPPORTED_KINDS = {rc.REVOLUTE, rc.REVOLUTE_UNBOUNDED, rc.PRISMATIC, rc.HELICAL, rc.SPHERICAL, rc.FREEFLYER,
@@ -106,6 +108,20 @@ def unsupported(mech) -> list:
     if bad:
         out.append("joint types " + ", ".join(bad))
     return out
+
+
+def loop_row_loop(select) -> np.ndarray:
+    """The loop of every row of the loop selection S (rows, 3 L): each row is one loop's axis, nonzero in that
+    loop's three columns only (mechanism.py builds S block by block); a row of zeros is given loop 0."""
+    nz = np.asarray(select) != 0.0
+    if nz.size == 0:
+        return np.zeros(nz.shape[0], dtype=np.int64)
+    rows = nz.any(axis=1)
+    loops = np.where(rows, np.argmax(nz, axis=1) // 3, 0).astype(np.int64)
+    for r in np.flatnonzero(rows):
+        cols = np.flatnonzero(nz[r])
+        assert (cols // 3 == loops[r]).all(), "a loop row spans two loops"
+    return loops
 
 
 def build_model(mech):
@@ -163,5 +179,6 @@ def build_model(mech):
                           float(needs_velocities(mech)), float(mech.spring_geometric)]),
     )
     values["support_ptr"], values["support_runs"] = all_support_runs(topo.parents, topo.idx_v, topo.nv_j)
+    values["loop_row_loop"] = loop_row_loop(values["loop_select"])
     assert nv == mech.nv
     return pack(MODEL_SPEC, values)

@@ -24,17 +24,19 @@ def project_rows(T_col, T_ratio, Gr, out):
 
 
 @njit_inline
-def loop_phi(loop_a, loop_b, loop_select, X, dx, phi):
+def loop_phi(loop_a, loop_b, loop_select, row_loop, X, dx, phi):
     """phi = S (x_a - x_b) [m] of the loop closures at the site positions X (into phi; dx scratch (3L,));
-    returns max|phi|."""
+    returns max|phi|. Row r of S is nonzero in the three columns of its loop row_loop[r] only, so its sum runs
+    over those (the same nonzero terms in the same order as over every column)."""
     for l in range(loop_a.shape[0]):
         a, b = loop_a[l], loop_b[l]
         for r in range(3):
             dx[3 * l + r] = X[a, r] - X[b, r]
     err = 0.0
     for r in range(phi.shape[0]):
+        c0 = 3 * row_loop[r]
         s = 0.0
-        for c in range(dx.shape[0]):
+        for c in range(c0, c0 + 3):
             s += loop_select[r, c] * dx[c]
         phi[r] = s
         err = max(err, abs(s))
@@ -53,15 +55,15 @@ def rows(m, d, q, h, gj, sv):
         nv = d.Gr_loop.shape[1]
         d.Gr_loop[:, :] = 0.0
         for r in range(nl):
-            for l in range(L):
-                for c in range(3):
-                    s = m.loop_select[r, 3 * l + c]
-                    if s != 0.0:
-                        for i in range(nv):
-                            d.Gr_loop[r, i] += s * (d.Jpt[2 * l, c, i] - d.Jpt[2 * l + 1, c, i])
+            l = m.loop_row_loop[r]  # the row's loop: S is zero outside its three columns
+            for c in range(3):
+                s = m.loop_select[r, 3 * l + c]
+                if s != 0.0:
+                    for i in range(nv):
+                        d.Gr_loop[r, i] += s * (d.Jpt[2 * l, c, i] - d.Jpt[2 * l + 1, c, i])
         project_rows(m.T_col, m.T_ratio, d.Gr_loop, d.G[:nl])
         if m.scalars[0] != 0.0:  # Baumgarte: G qdot = -b phi(q_k)
-            loop_phi(m.loop_a, m.loop_b, m.loop_select, d.X, d.dx, d.phi)
+            loop_phi(m.loop_a, m.loop_b, m.loop_select, m.loop_row_loop, d.X, d.dx, d.phi)
             for r in range(nl):
                 d.g[r] = -m.scalars[0] * d.phi[r]
         else:

@@ -4,7 +4,7 @@ with the step's loop rows, prescribed joints held, until max|phi| < 1e-10 m) and
 effort = tau - *G_r^T lam / h on the prescribed joints, the world force every prescribed site requires)."""
 from __future__ import annotations
 
-from redmax_ros.core.dynamics.stabilization import TOL, chord_factor_into, chord_step_into
+from redmax_ros.core.dynamics.stabilization import TOL, chord_direction_into, chord_factor_into
 from redmax_ros.core.jit import njit_inline
 from redmax_ros.core.step.compiled.kinematics import placements_of
 from redmax_ros.core.step.compiled.manifold import integrate
@@ -25,36 +25,39 @@ def to_reduced(T_col, T_ratio, vR, out):
 
 @njit_inline
 def loop_error_at(m, d, q):
-    """max|phi| [m] of the loops at q (placements of q left in d)."""
+    """max|phi| [m] of the loops at q (the placements of q, as kinematics.placements without the bias, left in d)."""
     placements_of(m.uni_joints, m.uni_a1, m.uni_a2, m.planar_joints, m.parents, m.kind, m.idx_q, m.idx_v, m.nv_j,
                   m.axis, m.pitch, m.place_R, m.place_p, m.site_jid, m.site_local, q, False, d.v_new,
                   d.jR, d.jp, d.Sl, d.c_local, d.R, d.p, d.St, d.X)
-    return loop_phi(m.loop_a, m.loop_b, m.loop_select, d.X, d.dx, d.phi)
+    return loop_phi(m.loop_a, m.loop_b, m.loop_select, m.loop_row_loop, d.X, d.dx, d.phi)
 
 
 @njit_inline
 def update_configuration(m, d, q, h):
-    """q+ into d.q_new, qdot_r+ into d.v_new from d.v_hyper; returns (converged, max loop violation [m])."""
+    """q+ into d.q_new, qdot_r+ into d.v_new from d.v_hyper; returns (converged, max loop violation [m], placed):
+    ``placed``, d holds the placements at q+ (left by the last loop-residual evaluation), which the energies
+    then reuse instead of computing them again (bit for bit the same: the same call at the same q)."""
     to_reduced(m.T_col, m.T_ratio, d.v_hyper, d.v_new)
     for i in range(d.v_new.shape[0]):
         d.step_v[i] = h * d.v_new[i]
     integrate(m.kind, m.idx_q, m.idx_v, q, d.step_v, d.q_new)
     nl = m.loop_select.shape[0]
     if nl == 0:
-        return True, 0.0
+        return True, 0.0, False
     if m.scalars[0] != 0.0:  # Baumgarte: the rows' RHS did it; report max|phi| at q+
-        return True, loop_error_at(m, d, d.q_new)
+        return True, loop_error_at(m, d, d.q_new), True
     G = d.G[:nl]
     if not chord_factor_into(G, d.held, d.chord_KK, d.chord_L):
-        return False, 0.0
+        return False, 0.0, False
     for _ in range(CHORD_MAX_ITER):
         err = loop_error_at(m, d, d.q_new)
         if err < TOL:
-            return True, err
-        chord_step_into(d.chord_L, G, d.held, d.phi, m.T, d.chord_y, d.chord_dq, d.chord_out)
+            return True, err, True
+        chord_direction_into(d.chord_L, G, d.held, d.phi, d.chord_y, d.chord_dq)
+        to_reduced(m.T_col, m.T_ratio, d.chord_dq, d.chord_out)  # J_rR dq (stabilization.chord_step_into)
         d.q_tmp[:] = d.q_new
         integrate(m.kind, m.idx_q, m.idx_v, d.q_tmp, d.chord_out, d.q_new)
-    return False, 0.0
+    return False, 0.0, False
 
 
 @njit_inline
