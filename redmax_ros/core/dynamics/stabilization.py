@@ -221,6 +221,7 @@ def chord_direction_into(L, G, held, phi, y, dq):
 def chord_step_into(L, G, held, phi, T, y, dq, out):
     """chord_step without allocation: scratch y (m + k,), dq (n,); the correction into out (reduced)."""
     chord_direction_into(L, G, held, phi, y, dq)
+    n = G.shape[1]
     if T.shape[0] == 0:
         out[:] = dq
         return

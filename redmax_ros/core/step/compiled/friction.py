@@ -140,14 +140,15 @@ def unilateral_limit_rows(C, lo, hi):
 
 
 @njit_inline
-def friction_solve(m, d, c, h, cache, has_cache, cache_new, jn, rep, work_cap):
+def friction_solve(m, d, c, h, cache, has_cache, cache_new, jn, rep, work_cap, report):
     """qdot_R+ (d.v_hyper) and the bilateral multipliers (d.lam) of the frictional step, from the kinematics at
     (q_k, qdot_k) in d (stage 1), A_R, b_R (stage 2) and G, g, limits (stage 3). ``cache``: the last step's
     friction impulses (n_slots,; ``has_cache`` 0: a cold start); the new cache goes into ``cache_new``, the
     joints' normal loads sum_k |alpha_k| / h [N] into ``jn``, the report into ``rep`` (REP_*). ``work_cap``: the
     staggered loop's work budget (staggered.KERNEL_FIRST_WORK under a step budget, else inf). Returns SOLVED,
     NOT_PD (A_R not positive definite), RANK_DEFICIENT (G A^-1 G^T singular) or PAUSED (the loop reached
-    ``work_cap`` before it finished: the reference pipeline takes the step under its deadline)."""
+    ``work_cap`` before it finished: the reference pipeline takes the step under its deadline). ``report``: the
+    KKT residual (rep[REP_KKT], a diagnostic) is computed, else NaN (kernel.one_step)."""
     sc = c.scalars
     ndof = d.AR.shape[0]
     Z = np.empty((m.parents.shape[0], 6))
@@ -208,7 +209,7 @@ def friction_solve(m, d, c, h, cache, has_cache, cache_new, jn, rep, work_cap):
     rep[REP_STICKING] = sticking
     rep[REP_PAUSED] = 0.0
     # the relative KKT residual of the last contact stage's system A qdot = b + RX^T x - G^T lambda
-    rep[REP_KKT] = kkt_residual(d.AR, r, d.v_hyper, d.G, d.lam, m.limit_rows[:0], d.mu[:0])
+    rep[REP_KKT] = kkt_residual(d.AR, r, d.v_hyper, d.G, d.lam, m.limit_rows[:0], d.mu[:0]) if report else np.nan
     return SOLVED
 
 

@@ -29,6 +29,8 @@ naming the problem. Nothing the kernel wrote is then used, so the step's outcome
 """
 from __future__ import annotations
 
+import numpy as np
+
 from redmax_ros.core.jit import njit, njit_inline
 from redmax_ros.core.step.compiled.cache import drop_stale
 from redmax_ros.core.solvers.kkt import kkt_residual_into, kkt_solve_tree_into
@@ -74,13 +76,15 @@ def _handoff(out, stage):
 
 
 @njit_inline
-def one_step(m, d, q, vR, tau, h, gj, sv, qp, vp, hist, warm):
+def one_step(m, d, q, vR, tau, h, gj, sv, qp, vp, hist, warm, report):
     """One step on the Model and Data namedtuples: BDF2 (``hist``) kept if the order control accepts it, else
     BDF1 from the same state; returns OK or REFERENCE. ``warm``: d holds the placements and twists at (q, vR),
-    left by the previous step of the run (its energies); a BDF1 step uses them (kinematics.kinematics)."""
+    left by the previous step of the run (its energies); a BDF1 step uses them (kinematics.kinematics).
+    ``report``: the step's outputs are returned (the last step of a run, or a recorded one), so its KKT residual
+    (a diagnostic only) is computed; else d.out[OUT_RESIDUAL] is NaN."""
     order = hist
     while True:  # one call site: the stages are inlined once (a plain call copies the namedtuples)
-        status = stages(m, d, q, vR, tau, h, gj, sv, qp, vp, order, warm)
+        status = stages(m, d, q, vR, tau, h, gj, sv, qp, vp, order, warm, report)
         if order and status == OK and not accepted(m, d, q):
             order = 0
             warm = False  # the BDF2 attempt moved the placements to its q*
@@ -91,9 +95,9 @@ def one_step(m, d, q, vR, tau, h, gj, sv, qp, vp, hist, warm):
 
 
 @njit_inline
-def stages(m, d, q, vR, tau, h, gj, sv, qp, vp, hist, warm):
+def stages(m, d, q, vR, tau, h, gj, sv, qp, vp, hist, warm, report):
     """The stages of one step (BDF2 with ``hist``, else BDF1) on the Model and Data namedtuples; returns OK or
-    REFERENCE."""
+    REFERENCE. ``report``: see one_step."""
     status, hh = rigid_stages(m, d, q, vR, tau, h, gj, sv, qp, vp, hist, warm)  # 0-3
     if status != OK:
         return status
@@ -116,7 +120,10 @@ def stages(m, d, q, vR, tau, h, gj, sv, qp, vp, hist, warm):
     if not (d.v_hyper @ d.v_hyper <= MAX_SPEED * MAX_SPEED):
         return _handoff(d.out, STAGE_SPEED)
     d.out[OUT_VIOL_VEL] = viol
-    d.out[OUT_RESIDUAL] = kkt_residual_into(d.AR, d.bR, d.v_hyper, d.G, d.lam, m.limit_rows, d.mu, d.kkt_r)
+    if report:
+        d.out[OUT_RESIDUAL] = kkt_residual_into(d.AR, d.bR, d.v_hyper, d.G, d.lam, m.limit_rows, d.mu, d.kkt_r)
+    else:
+        d.out[OUT_RESIDUAL] = np.nan
     return tail_stages(m, d, tau, hh)  # 5-6
 
 
@@ -168,13 +175,13 @@ def tail_stages(m, d, tau, hh):
 
 
 @njit_inline
-def one_friction_step(m, d, c, q, vR, tau, h, gj, sv, cache, has_cache, cache_new, jn, rep, work_cap, warm):
+def one_friction_step(m, d, c, q, vR, tau, h, gj, sv, cache, has_cache, cache_new, jn, rep, work_cap, warm, report):
     """One BDF1 step with ground contact and joint friction: stages 0-3, the Staggered Projections / BISP solve
-    (friction.py) in place of stage 4, stages 5-6; returns OK or REFERENCE."""
+    (friction.py) in place of stage 4, stages 5-6; returns OK or REFERENCE. ``warm``, ``report``: see one_step."""
     status, hh = rigid_stages(m, d, q, vR, tau, h, gj, sv, q, vR, 0, warm)  # 0-3
     if status != OK:
         return status
-    fs = friction_solve(m, d, c, hh, cache, has_cache, cache_new, jn, rep, work_cap)  # 4''
+    fs = friction_solve(m, d, c, hh, cache, has_cache, cache_new, jn, rep, work_cap, report)  # 4''
     if fs == NOT_PD:
         return _handoff(d.out, STAGE_FACTOR)
     if fs == RANK_DEFICIENT:
@@ -223,7 +230,7 @@ def friction_step_n_kernel(mf, mi, mt, df, di, dt, ff, fi, ft, q, vR, tau, h, gj
     c = friction_views(ff, fi, ft)
     for k in range(n):  # after the first step, d holds the placements and twists at (q, vR) (one_step)
         if one_friction_step(m, d, c, q, vR, tau, h, gj, sv, cache, has_cache, cache_new, jn, rep, work_cap,
-                             k > 0) != OK:
+                             k > 0, k == n - 1 or k < rec.shape[0]) != OK:
             return k
         if k < rec.shape[0]:
             j = record_step(rec[k], d)
@@ -245,7 +252,7 @@ def step_n_kernel(mf, mi, mt, df, di, dt, q, vR, tau, h, gj, sv, n, qp, vp, hist
     m = model_views(mf, mi, mt)
     d = data_views(df, di, dt)
     for k in range(n):  # after the first step, d holds the placements and twists at (q, vR) (one_step)
-        if one_step(m, d, q, vR, tau, h, gj, sv, qp, vp, hist, k > 0) != OK:
+        if one_step(m, d, q, vR, tau, h, gj, sv, qp, vp, hist, k > 0, k == n - 1 or k < rec.shape[0]) != OK:
             return k
         if k < rec.shape[0]:
             record_step(rec[k], d)
