@@ -189,3 +189,25 @@ def test_unsupported_scenes_are_named(name, why):
     """Scenes outside the compiled path's set are refused with what they use (the reference steps them)."""
     with pytest.raises(SceneError, match=why):
         Simulator.load(name, solver="compiled")
+
+
+def test_loop_rows_know_their_loop():
+    """model.loop_row_loop: the loop of each row of the loop selection S (rows of axes, block by block), which the
+    loop residual and the loop rows sum over instead of every column; a row spanning two loops is refused."""
+    from redmax_ros.core.step.compiled.model import loop_row_loop
+    S = np.zeros((5, 9))
+    S[0, 0:3] = [1, 0, 0]
+    S[1, 0:3] = [0, 0.6, 0.8]
+    S[2, 3:6] = [0, 0, 1]
+    S[3, 6:9] = [1, 0, 0]
+    S[4, 6:9] = [0, 1, 0]
+    assert loop_row_loop(S).tolist() == [0, 0, 1, 2, 2]
+    assert loop_row_loop(np.zeros((0, 0))).shape == (0,)
+    S[2, 0] = 1.0
+    with pytest.raises(AssertionError):
+        loop_row_loop(S)
+    walker = Simulator.load("klann", solver="compiled")
+    Sw = walker.mech.loop_select
+    rows = loop_row_loop(Sw)
+    for r in range(Sw.shape[0]):  # every nonzero of a row lies in its loop's three columns
+        assert set(np.flatnonzero(Sw[r]) // 3) == {rows[r]}

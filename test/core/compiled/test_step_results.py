@@ -117,3 +117,16 @@ def test_a_rejected_step_keeps_the_state_and_reports_no_results():
         sim.step_results(10)
     assert e.value.steps_done == 0 and e.value.results == []
     assert sim.state is before
+
+
+@pytest.mark.parametrize("name,over", [WALKER, ("fourbar", []), ("mass_springs", ["integrator.scheme=bdf2"])])
+def test_an_unrecorded_run_returns_its_last_step_as_a_single_step_would(name, over):
+    """Simulator.step(n) records nothing inside the run (the kernels compute the KKT residual, a diagnostic, for
+    the returned step only): its result is the n-th of n single steps, bit for bit, residual included."""
+    one = Simulator.load(name, over, solver="compiled")
+    run = Simulator.load(name, over, solver="compiled")
+    for _ in range(40):
+        last = one.step()
+    got = run.step(40)
+    _same(last, got)
+    assert np.isfinite(got.diagnostics.residual) and got.diagnostics.residual < 1e-6
