@@ -33,8 +33,15 @@ def ancestor_chains(A):
     is not on k's chain lam(k), lam(lam(k)), ... (Featherstone, Rigid Body Dynamics Algorithms §6.5: the
     reduced mass matrix of a tree in depth-first DOF order has it; eliminating the leaves first, A = L^T L,
     then makes no fill)."""
+    lam = np.empty(A.shape[0], dtype=np.int64)
+    return lam, ancestor_chains_into(A, lam)
+
+
+@njit(cache=True, nogil=True)
+def ancestor_chains_into(A, lam):
+    """:func:`ancestor_chains` into lam (n,); returns work."""
     n = A.shape[0]
-    lam = np.full(n, -1, dtype=np.int64)
+    lam[:] = -1
     work = 0
     for k in range(n):
         for j in range(k - 1, -1, -1):
@@ -48,7 +55,7 @@ def ancestor_chains(A):
                 while c > j:
                     c = lam[c]
                 if c != j:
-                    return lam, -1
+                    return -1
         while c >= 0:  # the rest of the chain
             c = lam[c]
         c = lam[k]
@@ -56,7 +63,7 @@ def ancestor_chains(A):
             depth += 1
             c = lam[c]
         work += (depth + 1) * (depth + 1) + (depth + 1) * k
-    return lam, work
+    return work
 
 
 @njit(cache=True, nogil=True)
@@ -67,7 +74,15 @@ def tree_inverse(A, lam):
     ancestors; O(n d^2 + n^2 d) for chains of depth d instead of O(n^3). ok = False when A is not positive
     definite."""
     n = A.shape[0]
-    L = np.zeros((n, n))
+    Ainv = np.empty((n, n))
+    return Ainv, tree_inverse_into(A, lam, np.empty((n, n)), np.empty((n, n)), Ainv)
+
+
+@njit(cache=True, nogil=True)
+def tree_inverse_into(A, lam, L, Li, Ainv):
+    """:func:`tree_inverse` into Ainv, with L and Li (n, n) as scratch; returns ok."""
+    n = A.shape[0]
+    L[:, :] = 0.0
     for k in range(n):
         L[k, k] = A[k, k]
         c = lam[k]
@@ -76,7 +91,7 @@ def tree_inverse(A, lam):
             c = lam[c]
     for k in range(n - 1, -1, -1):
         if not L[k, k] > 0.0:
-            return L, False
+            return False
         d = np.sqrt(L[k, k])
         L[k, k] = d
         i = lam[k]
@@ -91,7 +106,7 @@ def tree_inverse(A, lam):
                 L[i, j] -= f * L[k, j]
                 j = lam[j]
             i = lam[i]
-    Li = np.zeros((n, n))
+    Li[:, :] = 0.0
     for i in range(n):
         Li[i, i] = 1.0 / L[i, i]
         k = lam[i]
@@ -103,7 +118,6 @@ def tree_inverse(A, lam):
                 m = lam[m]
             Li[i, k] = -s / L[k, k]
             k = lam[k]
-    Ainv = np.empty((n, n))
     for i in range(n):
         for j in range(i + 1):
             s = 0.0
@@ -113,7 +127,7 @@ def tree_inverse(A, lam):
                 k = lam[k]
             Ainv[i, j] = s
             Ainv[j, i] = s
-    return Ainv, True
+    return True
 
 
 @njit(cache=True, nogil=True)
@@ -123,10 +137,19 @@ def spd_inverse(A):
     through tree_inverse, else through the dense Cholesky factor (A = L L^T, A^-1 = L^-T L^-1; the
     factorisation is linalg.cholesky)."""
     n = A.shape[0]
-    lam, work = ancestor_chains(A)
+    Ainv = np.empty((n, n))
+    ok = spd_inverse_into(A, np.empty(n, dtype=np.int64), np.empty((n, n)), np.empty((n, n)), np.empty((n, n)), Ainv)
+    return Ainv, ok
+
+
+@njit(cache=True, nogil=True)
+def spd_inverse_into(A, lam, L, Li, LiT, Ainv):
+    """:func:`spd_inverse` into Ainv (n, n), with lam (n,) and L, Li, LiT (n, n) as scratch; returns ok."""
+    n = A.shape[0]
+    work = ancestor_chains_into(A, lam)
     if 0 <= work and 6 * work < n * n * n:
-        return tree_inverse(A, lam)
-    return dense_spd_inverse(A)
+        return tree_inverse_into(A, lam, L, Li, Ainv)
+    return dense_spd_inverse_into(A, L, Li, LiT, Ainv)
 
 
 @njit(cache=True, nogil=True)
@@ -134,10 +157,19 @@ def dense_spd_inverse(A):
     """Inverse of a symmetric positive definite matrix through its Cholesky factor (A = L L^T,
     A^-1 = L^-T L^-1; the factorisation is linalg.cholesky); ok = False when A is not positive definite."""
     n = A.shape[0]
-    L = np.zeros((n, n))
+    Ainv = np.empty((n, n))
+    ok = dense_spd_inverse_into(A, np.empty((n, n)), np.empty((n, n)), np.empty((n, n)), Ainv)
+    return Ainv, ok
+
+
+@njit(cache=True, nogil=True)
+def dense_spd_inverse_into(A, L, Li, LiT, Ainv):
+    """:func:`dense_spd_inverse` into Ainv (n, n), with L, Li, LiT (n, n) as scratch; returns ok."""
+    n = A.shape[0]
+    L[:, :] = 0.0
     if not cholesky(A, L):
-        return L, False
-    Li = np.zeros((n, n))  # L^-1 by rows: row i accumulates -L[i, k] row k for k < i (each entry's terms in
+        return False
+    Li[:, :] = 0.0  # L^-1 by rows: row i accumulates -L[i, k] row k for k < i (each entry's terms in
     for i in range(n):     # increasing k, as the column-by-column recurrence), contiguous rows: vectorised
         Li[i, i] = 1.0 / L[i, i]
         si = Li[i]
@@ -149,7 +181,11 @@ def dense_spd_inverse(A):
         d = L[i, i]
         for j in range(i):
             si[j] = si[j] / d
-    return np.ascontiguousarray(Li.T) @ Li, True
+    for i in range(n):
+        for j in range(n):
+            LiT[i, j] = Li[j, i]
+    np.dot(LiT, Li, Ainv)
+    return True
 
 
 FIXED_ROW = 1e-9  # W_kk <= FIXED_ROW * (T A^-1 T^T)_kk: the bilateral rows fix the row's slip
@@ -185,13 +221,23 @@ def fixed_row_weights(wT, T, Ainv, ptr, idx):
 def pattern_of(R):
     """Row-wise nonzero pattern of a dense matrix (CSR pointers and column indices, increasing columns)."""
     rows, cols = R.shape
-    ptr = np.zeros(rows + 1, dtype=np.int64)
+    ptr = np.empty(rows + 1, dtype=np.int64)
     nnz = 0
     for i in range(rows):
         for c in range(cols):
             if R[i, c] != 0.0:
                 nnz += 1
     idx = np.empty(nnz, dtype=np.int64)
+    pattern_into(R, ptr, idx)
+    return ptr, idx
+
+
+@njit(cache=True, nogil=True)
+def pattern_into(R, ptr, idx):
+    """:func:`pattern_of` into ptr (rows + 1,) and idx (at least nnz(R),); returns nnz (the pattern is
+    idx[:nnz])."""
+    rows, cols = R.shape
+    ptr[0] = 0
     k = 0
     for i in range(rows):
         for c in range(cols):
@@ -199,20 +245,27 @@ def pattern_of(R):
                 idx[k] = c
                 k += 1
         ptr[i + 1] = k
-    return ptr, idx
+    return k
 
 
 @njit(cache=True, nogil=True)
 def _sparse_left(R, ptr, idx, B):
     """R @ B over the nonzeros of R (R (r,n) with pattern ptr/idx, B (n,k))."""
-    out = np.zeros((R.shape[0], B.shape[1]))
+    out = np.empty((R.shape[0], B.shape[1]))
+    _sparse_left_into(R, ptr, idx, B, out)
+    return out
+
+
+@njit(cache=True, nogil=True)
+def _sparse_left_into(R, ptr, idx, B, out):
+    """:func:`_sparse_left` into out (r, k)."""
+    out[:, :] = 0.0
     for i in range(R.shape[0]):
         for q in range(ptr[i], ptr[i + 1]):
             c = idx[q]
             rc = R[i, c]
             for j in range(B.shape[1]):
                 out[i, j] += rc * B[c, j]
-    return out
 
 
 @njit(cache=True, nogil=True)
@@ -222,7 +275,19 @@ def _sparse_right_t(BT, R, ptr, idx, lower=False):
     rows: vectorised), each entry summed in the order of R's pattern. ``lower`` (k = r, a symmetric product
     such as G A^-1 G^T or RX P RX^T): the entries i >= j only, mirrored into the upper triangle."""
     k = BT.shape[1]
-    outT = np.zeros((R.shape[0], k))
+    outT = np.empty((R.shape[0], k))
+    _sparse_right_t_into(BT, R, ptr, idx, lower, outT)
+    if lower:
+        return outT
+    return np.ascontiguousarray(outT.T)
+
+
+@njit(cache=True, nogil=True)
+def _sparse_right_t_into(BT, R, ptr, idx, lower, outT):
+    """(B @ R^T)^T of :func:`_sparse_right_t` into outT (r, k) (with ``lower``, r = k: the symmetric product
+    itself, both triangles)."""
+    k = BT.shape[1]
+    outT[:, :] = 0.0
     for j in range(R.shape[0]):
         i0 = j if lower else 0
         oj = outT[j, i0:]
@@ -236,8 +301,6 @@ def _sparse_right_t(BT, R, ptr, idx, lower=False):
         for j in range(k):
             for i in range(j):
                 outT[j, i] = outT[i, j]
-        return outT
-    return np.ascontiguousarray(outT.T)
 
 
 @njit(cache=True, nogil=True)
@@ -252,59 +315,171 @@ def _symmetrize(P):
 
 
 @njit(cache=True, nogil=True)
+def arena_size(n, m, nx):
+    """(floats, ints) of the scratch :func:`condense_into` carves for n DOFs, m bilateral rows and nx staggered
+    rows (an upper bound: every take of condense_into counted)."""
+    floats = 6 * n * n + 5 * m * m + 4 * m * n + 2 * n * nx + 2 * nx * nx + 2 * m * nx + 3 * n + 3 * m + 3 * nx
+    ints = n + m * n + nx * n + m + 2 * nx + 3
+    return floats, ints
+
+
+@njit(cache=True, nogil=True)
+def _take(buf, off, r, c):
+    """An (r, c) view of the float arena ``buf`` from offset off[0] (advanced), or a new array if it is full."""
+    o = off[0]
+    k = r * c
+    if o + k <= buf.shape[0]:
+        off[0] = o + k
+        return buf[o:o + k].reshape((r, c))
+    return np.empty((r, c))
+
+
+@njit(cache=True, nogil=True)
+def _take1(buf, off, k):
+    """A (k,) view of the float arena from off[0] (advanced), or a new array if it is full."""
+    o = off[0]
+    if o + k <= buf.shape[0]:
+        off[0] = o + k
+        return buf[o:o + k]
+    return np.empty(k)
+
+
+@njit(cache=True, nogil=True)
+def _itake1(ibuf, off, k):
+    """A (k,) view of the int arena from off[1] (advanced), or a new array if it is full."""
+    o = off[1]
+    if o + k <= ibuf.shape[0]:
+        off[1] = o + k
+        return ibuf[o:o + k]
+    return np.empty(k, dtype=np.int64)
+
+
+@njit(cache=True, nogil=True)
 def condense(A, b, G, g, RX, nu):
+    """:func:`condense_into` on an arena of its own (arena_size): the reference pipeline's call."""
+    nf_, ni_ = arena_size(len(b), G.shape[0], RX.shape[0])
+    return condense_into(A, b, G, g, RX, nu, np.empty(nf_), np.empty(ni_, dtype=np.int64), np.zeros(2, dtype=np.int64))
+
+
+@njit(cache=True, nogil=True)
+def condense_into(A, b, G, g, RX, nu, buf, ibuf, off):
     """Returns (status, qdot_0, PX, W_U, X_UT, X_TU, W_T, U qdot_0, T qdot_0, diag W_U, diag W_T,
     lambda_0, LamX) for RX = [U (nu rows); -T] (module docstring); X_UT = U P T^T.
     status: 0 ok, 1 A not positive definite, 2 G A^-1 G^T not positive definite (redundant rows).
     S = G A^-1 G^T is formed in its lower triangle (all the Cholesky factorisation reads) and inverted
     densely: it couples every pair of rows whose chains share a DOF, so it has no tree sparsity to use.
-    WX is exactly symmetric (its lower triangle mirrored), so W_U, W_T are and X_TU = X_UT^T."""
+    WX is exactly symmetric (its lower triangle mirrored), so W_U, W_T are and X_TU = X_UT^T.
+    Every array, the returned ones too, is a view of the arena (``buf`` floats, ``ibuf`` ints, their offsets
+    ``off`` (2,), reset here; arena_size says how much it takes; a take past the end allocates instead): the
+    compiled step hands it the same arena every step, so the condensation allocates nothing, and the results
+    live until its next call."""
     n, m, nx = len(b), G.shape[0], RX.shape[0]
     nf = nx - nu
-    Ainv, ok = spd_inverse(A)
+    off[0] = 0
+    off[1] = 0
+    Ainv = _take(buf, off, n, n)
+    ok = spd_inverse_into(A, _itake1(ibuf, off, n), _take(buf, off, n, n), _take(buf, off, n, n),
+                          _take(buf, off, n, n), Ainv)
     status = 0 if ok else 1
-    GA = np.zeros((m, n))  # G A^-1 = Y^T
-    SG = np.zeros((m, n))
-    P = Ainv
-    v0 = np.zeros(n)
-    lam0 = np.zeros(m)
-    LamX = np.zeros((m, nx))
+    GA = _take(buf, off, m, n)  # G A^-1 = Y^T
+    SG = _take(buf, off, m, n)
+    P = _take(buf, off, n, n)
+    v0 = _take1(buf, off, n)
+    lam0 = _take1(buf, off, m)
+    GA[:, :] = 0.0
+    SG[:, :] = 0.0
+    v0[:] = 0.0
+    lam0[:] = 0.0
     if ok and m:
-        gptr, gidx = pattern_of(G)
-        GA = _sparse_left(G, gptr, gidx, Ainv)
-        GAT = np.ascontiguousarray(GA.T)
-        Sinv, ok = dense_spd_inverse(_sparse_right_t(GAT, G, gptr, gidx, True))
+        gptr = _itake1(ibuf, off, m + 1)
+        gidx = _itake1(ibuf, off, m * n)
+        pattern_into(G, gptr, gidx)
+        _sparse_left_into(G, gptr, gidx, Ainv, GA)
+        GAT = _take(buf, off, n, m)
+        for i in range(n):
+            for j in range(m):
+                GAT[i, j] = GA[j, i]
+        S = _take(buf, off, m, m)
+        _sparse_right_t_into(GAT, G, gptr, gidx, True, S)
+        Sinv = _take(buf, off, m, m)
+        ok = dense_spd_inverse_into(S, _take(buf, off, m, m), _take(buf, off, m, m), _take(buf, off, m, m), Sinv)
         if ok:
-            SG = Sinv @ GA  # S^-1 Y^T
-            P = Ainv - GAT @ SG
-            v0 = P @ b + (g @ SG)
-            lam0 = Sinv @ (GA @ b - g)
+            np.dot(Sinv, GA, SG)  # S^-1 Y^T
+            np.dot(GAT, SG, P)
+            for i in range(n):
+                for j in range(n):
+                    P[i, j] = Ainv[i, j] - P[i, j]
+            t1, t2 = _take1(buf, off, n), _take1(buf, off, n)
+            np.dot(P, b, t1)
+            np.dot(g, SG, t2)
+            for i in range(n):
+                v0[i] = t1[i] + t2[i]
+            t3 = _take1(buf, off, m)
+            np.dot(GA, b, t3)
+            for i in range(m):
+                t3[i] = t3[i] - g[i]
+            np.dot(Sinv, t3, lam0)
         else:
             status = 2
-    elif ok:
-        v0 = Ainv @ b
-        P = Ainv.copy()
+            P[:, :] = Ainv
+    else:
+        if ok:
+            np.dot(Ainv, b, v0)
+        P[:, :] = Ainv
     _symmetrize(P)
-    PX = np.zeros((n, nx))
-    WX = np.zeros((nx, nx))
-    Xv0 = np.zeros(nx)
-    rptr, ridx = pattern_of(RX)
+    PX = _take(buf, off, n, nx)
+    WX = _take(buf, off, nx, nx)
+    Xv0 = _take1(buf, off, nx)
+    LamX = _take(buf, off, m, nx)
+    PX[:, :] = 0.0
+    WX[:, :] = 0.0
+    Xv0[:] = 0.0
+    LamX[:, :] = 0.0
+    rptr = _itake1(ibuf, off, nx + 1)
+    ridx = _itake1(ibuf, off, nx * n)
+    pattern_into(RX, rptr, ridx)
     if nx and status == 0:
-        RXP = _sparse_left(RX, rptr, ridx, P)  # RX P = PX^T
-        PX = np.ascontiguousarray(RXP.T)
-        WX = _sparse_right_t(PX, RX, rptr, ridx, True)  # symmetric, as P
-        Xv0 = RX @ v0
+        RXP = _take(buf, off, nx, n)
+        _sparse_left_into(RX, rptr, ridx, P, RXP)  # RX P = PX^T
+        for i in range(n):
+            for j in range(nx):
+                PX[i, j] = RXP[j, i]
+        _sparse_right_t_into(PX, RX, rptr, ridx, True, WX)  # symmetric, as P
+        np.dot(RX, v0, Xv0)
         if m:
-            LamX = _sparse_right_t(np.ascontiguousarray(SG.T), RX, rptr, ridx)  # S^-1 Y^T RX^T
-    W_U = np.ascontiguousarray(WX[:nu, :nu])
-    X_UT = np.ascontiguousarray(-WX[:nu, nu:])
-    X_TU = np.ascontiguousarray(X_UT.T)
-    W_T = np.ascontiguousarray(WX[nu:, nu:])
-    wU, wT = np.zeros(nu), np.zeros(nf)
+            SGT = _take(buf, off, n, m)
+            for i in range(n):
+                for j in range(m):
+                    SGT[i, j] = SG[j, i]
+            LamXT = _take(buf, off, nx, m)
+            _sparse_right_t_into(SGT, RX, rptr, ridx, False, LamXT)  # S^-1 Y^T RX^T
+            for i in range(m):
+                for j in range(nx):
+                    LamX[i, j] = LamXT[j, i]
+    W_U = _take(buf, off, nu, nu)
+    X_UT = _take(buf, off, nu, nf)
+    X_TU = _take(buf, off, nf, nu)
+    W_T = _take(buf, off, nf, nf)
     for i in range(nu):
+        for j in range(nu):
+            W_U[i, j] = WX[i, j]
+        for j in range(nf):
+            X_UT[i, j] = -WX[i, nu + j]
+            X_TU[j, i] = X_UT[i, j]
+    for i in range(nf):
+        for j in range(nf):
+            W_T[i, j] = WX[nu + i, nu + j]
+    U_v0, T_v0 = _take1(buf, off, nu), _take1(buf, off, nf)
+    wU, wT = _take1(buf, off, nu), _take1(buf, off, nf)
+    for i in range(nu):
+        U_v0[i] = Xv0[i]
         wU[i] = max(W_U[i, i], 0.0)
     for i in range(nf):
+        T_v0[i] = -Xv0[nu + i]
         wT[i] = max(W_T[i, i], 0.0)
     if nf and status == 0:
-        fixed_row_weights(wT, RX[nu:], Ainv, rptr[nu:] - rptr[nu], ridx[rptr[nu]:])
-    return status, v0, PX, W_U, X_UT, X_TU, W_T, Xv0[:nu].copy(), -Xv0[nu:], wU, wT, lam0, LamX
+        fptr = _itake1(ibuf, off, nf + 1)
+        for i in range(nf + 1):
+            fptr[i] = rptr[nu + i] - rptr[nu]
+        fixed_row_weights(wT, RX[nu:], Ainv, fptr, ridx[rptr[nu]:])
+    return status, v0, PX, W_U, X_UT, X_TU, W_T, U_v0, T_v0, wU, wT, lam0, LamX

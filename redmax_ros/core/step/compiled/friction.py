@@ -7,7 +7,7 @@ order, so both paths compute the same numbers from the same inputs:
 
     Z = Jdot qdot^prev                            # bias accelerations (recursive.bias_kernel)
     RX, lo_U = rows_kernel(...)                   # detection, rows [U; -T] (contact.py; Eq. 11-12, 1.90-1.91)
-    qdot_0, PX, W_U, W_T, ... = condense(...)     # the bilateral rows condensed once (condense.py)
+    qdot_0, PX, W_U, W_T, ... = condense_into(...)  # the bilateral rows condensed once (condense.py), on its arena
     beta = warm_start(cache)                      # friction impulses of the last step [Kaufman et al. 2008]
     wm = make_wrench_map(...); constant_wrenches(wm, ...)  # joint wrenches of Eq. (15)-(17): the map of x, W0 (bisp.py)
     staggered_kernel(...)                         # the loop: contact, BISP (Eq. 16), friction, Anderson
@@ -25,7 +25,7 @@ from collections import namedtuple
 import numpy as np
 
 from redmax_ros.core.friction.bisp import constant_wrenches, make_wrench_map
-from redmax_ros.core.friction.condense import condense
+from redmax_ros.core.friction.condense import arena_size, condense_into
 from redmax_ros.core.friction.contact import rows_kernel
 from redmax_ros.core.friction.staggered import finish, loop_state, staggered_kernel, warm_start
 from redmax_ros.core.jit import njit_inline
@@ -46,6 +46,9 @@ FRICTION_SPEC = (
     ("bound_mu", "f", 1), ("gravity", "f", 1),
     # scalars: see SC_* below
     ("scalars", "f", 1),
+    # not constants: the condensation's scratch (condense.condense_into's arena, floats, ints and offsets), reused
+    # every step, sized for the most rows a step can have (build_friction)
+    ("arena", "f", 1), ("iarena", "i", 1), ("arena_off", "i", 1),
 )
 FrictionConsts = namedtuple("FrictionConsts", [n for n, _, _ in FRICTION_SPEC])
 
@@ -69,7 +72,7 @@ def friction_views(f, i, t):
                           i1(i, t, 15), i1(i, t, 16), f1(f, t, 17), i1(i, t, 18), i1(i, t, 19),
                           i1(i, t, 20), i1(i, t, 21), i1(i, t, 22), i1(i, t, 23), f3(f, t, 24), i1(i, t, 25),
                           f1(f, t, 26), f1(f, t, 27),
-                          f1(f, t, 28))
+                          f1(f, t, 28), f1(f, t, 29), i1(i, t, 30), i1(i, t, 31))
 
 
 def friction_unsupported(mech) -> list:
@@ -110,6 +113,13 @@ def build_friction(mech):
         scalars=np.array([st.tol, st.max_iter, st.anderson, st.margin, st.erp, fm.n_tree, fm.n_slots, fm.joint_slot0,
                           float(joint), float(contacts)], dtype=float),
     )
+    # the most rows a step can have: bilateral (loops + every DOF prescribed) and staggered (contact normals,
+    # two-sided limits, ground tangents, constant joint rows, loop pins; contact.rows_kernel's RX)
+    n_pairs = len(fm.sph_jid) * len(fm.plane_n) if contacts else 0
+    m_max = (0 if mech.loop_select is None else mech.loop_select.shape[0]) + mech.ndof
+    nx_max = 3 * n_pairs + 2 * len(mech.limited) + values["rows_fixed"].shape[0] + values["loop_sdiff"].shape[0]
+    nfl, nin = arena_size(mech.ndof, m_max, nx_max)
+    values.update(arena=np.zeros(nfl), iarena=np.zeros(nin, dtype=np.int64), arena_off=np.zeros(2, dtype=np.int64))
     return pack(FRICTION_SPEC, values)
 
 
@@ -160,7 +170,8 @@ def friction_solve(m, d, c, h, cache, has_cache, cache_new, jn, rep, work_cap, r
         c.pin_moment, c.loop_sdiff, CU, lo_CU)
     nc = ks.shape[0]
     nf = RX.shape[0] - nu
-    status, v0, PX, W_U, X_UT, X_TU, W_T, U_v0, T_v0, wU, wT, lam0, LamX = condense(d.AR, d.bR, d.G, d.g, RX, nu)
+    status, v0, PX, W_U, X_UT, X_TU, W_T, U_v0, T_v0, wU, wT, lam0, LamX = condense_into(
+        d.AR, d.bR, d.G, d.g, RX, nu, c.arena, c.iarena, c.arena_off)
     if status == 1:
         return NOT_PD
     if status == 2:
