@@ -335,23 +335,14 @@ def _take(buf, off, r, c):
 
 
 @njit(cache=True, nogil=True)
-def _take1(buf, off, k):
-    """A (k,) view of the float arena from off[0] (advanced), or a new array if it is full."""
-    o = off[0]
+def _take1(buf, off, slot, k):
+    """A (k,) view of the arena ``buf`` (floats: slot 0, ints: slot 1) from off[slot] (advanced), or a new
+    array of its type if it is full."""
+    o = off[slot]
     if o + k <= buf.shape[0]:
-        off[0] = o + k
+        off[slot] = o + k
         return buf[o:o + k]
-    return np.empty(k)
-
-
-@njit(cache=True, nogil=True)
-def _itake1(ibuf, off, k):
-    """A (k,) view of the int arena from off[1] (advanced), or a new array if it is full."""
-    o = off[1]
-    if o + k <= ibuf.shape[0]:
-        off[1] = o + k
-        return ibuf[o:o + k]
-    return np.empty(k, dtype=np.int64)
+    return np.empty(k, dtype=buf.dtype)
 
 
 @njit(cache=True, nogil=True)
@@ -378,21 +369,21 @@ def condense_into(A, b, G, g, RX, nu, buf, ibuf, off):
     off[0] = 0
     off[1] = 0
     Ainv = _take(buf, off, n, n)
-    ok = spd_inverse_into(A, _itake1(ibuf, off, n), _take(buf, off, n, n), _take(buf, off, n, n),
+    ok = spd_inverse_into(A, _take1(ibuf, off, 1, n), _take(buf, off, n, n), _take(buf, off, n, n),
                           _take(buf, off, n, n), Ainv)
     status = 0 if ok else 1
     GA = _take(buf, off, m, n)  # G A^-1 = Y^T
     SG = _take(buf, off, m, n)
     P = _take(buf, off, n, n)
-    v0 = _take1(buf, off, n)
-    lam0 = _take1(buf, off, m)
+    v0 = _take1(buf, off, 0, n)
+    lam0 = _take1(buf, off, 0, m)
     GA[:, :] = 0.0
     SG[:, :] = 0.0
     v0[:] = 0.0
     lam0[:] = 0.0
     if ok and m:
-        gptr = _itake1(ibuf, off, m + 1)
-        gidx = _itake1(ibuf, off, m * n)
+        gptr = _take1(ibuf, off, 1, m + 1)
+        gidx = _take1(ibuf, off, 1, m * n)
         pattern_into(G, gptr, gidx)
         _sparse_left_into(G, gptr, gidx, Ainv, GA)
         GAT = _take(buf, off, n, m)
@@ -409,12 +400,12 @@ def condense_into(A, b, G, g, RX, nu, buf, ibuf, off):
             for i in range(n):
                 for j in range(n):
                     P[i, j] = Ainv[i, j] - P[i, j]
-            t1, t2 = _take1(buf, off, n), _take1(buf, off, n)
+            t1, t2 = _take1(buf, off, 0, n), _take1(buf, off, 0, n)
             np.dot(P, b, t1)
             np.dot(g, SG, t2)
             for i in range(n):
                 v0[i] = t1[i] + t2[i]
-            t3 = _take1(buf, off, m)
+            t3 = _take1(buf, off, 0, m)
             np.dot(GA, b, t3)
             for i in range(m):
                 t3[i] = t3[i] - g[i]
@@ -429,14 +420,14 @@ def condense_into(A, b, G, g, RX, nu, buf, ibuf, off):
     _symmetrize(P)
     PX = _take(buf, off, n, nx)
     WX = _take(buf, off, nx, nx)
-    Xv0 = _take1(buf, off, nx)
+    Xv0 = _take1(buf, off, 0, nx)
     LamX = _take(buf, off, m, nx)
     PX[:, :] = 0.0
     WX[:, :] = 0.0
     Xv0[:] = 0.0
     LamX[:, :] = 0.0
-    rptr = _itake1(ibuf, off, nx + 1)
-    ridx = _itake1(ibuf, off, nx * n)
+    rptr = _take1(ibuf, off, 1, nx + 1)
+    ridx = _take1(ibuf, off, 1, nx * n)
     pattern_into(RX, rptr, ridx)
     if nx and status == 0:
         RXP = _take(buf, off, nx, n)
@@ -469,8 +460,8 @@ def condense_into(A, b, G, g, RX, nu, buf, ibuf, off):
     for i in range(nf):
         for j in range(nf):
             W_T[i, j] = WX[nu + i, nu + j]
-    U_v0, T_v0 = _take1(buf, off, nu), _take1(buf, off, nf)
-    wU, wT = _take1(buf, off, nu), _take1(buf, off, nf)
+    U_v0, T_v0 = _take1(buf, off, 0, nu), _take1(buf, off, 0, nf)
+    wU, wT = _take1(buf, off, 0, nu), _take1(buf, off, 0, nf)
     for i in range(nu):
         U_v0[i] = Xv0[i]
         wU[i] = max(W_U[i, i], 0.0)
@@ -478,7 +469,7 @@ def condense_into(A, b, G, g, RX, nu, buf, ibuf, off):
         T_v0[i] = -Xv0[nu + i]
         wT[i] = max(W_T[i, i], 0.0)
     if nf and status == 0:
-        fptr = _itake1(ibuf, off, nf + 1)
+        fptr = _take1(ibuf, off, 1, nf + 1)
         for i in range(nf + 1):
             fptr[i] = rptr[nu + i] - rptr[nu]
         fixed_row_weights(wT, RX[nu:], Ainv, fptr, ridx[rptr[nu]:])

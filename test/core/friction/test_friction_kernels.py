@@ -7,7 +7,8 @@ over the implicit points, four-way sums)."""
 import numpy as np
 import pytest
 
-from redmax_ros.core.friction.condense import (FIXED_ROW, ancestor_chains, condense, dense_spd_inverse, fixed_row_weights,
+from redmax_ros.core.friction.condense import (FIXED_ROW, ancestor_chains, arena_size, condense, condense_into,
+                                              dense_spd_inverse, fixed_row_weights,
                                               pattern_of, spd_inverse, tree_inverse)
 from redmax_ros.core.friction.bisp import dense_wrench_map
 from redmax_ros.core.friction.contact import distinct_operators
@@ -125,6 +126,33 @@ def test_condense_matches_the_dense_schur_complement(m):
     assert close(v0, v_ref) and close(PX, P @ RX.T)
     assert close(W_U, W[:nu, :nu]) and close(W_T, W[nu:, nu:]) and close(X_UT, -W[:nu, nu:])
     assert np.array_equal(X_TU, X_UT.T) and close(U_v0, U @ v0) and close(T_v0, Tr @ v0)
+
+
+@pytest.mark.parametrize("m", [0, 5])
+def test_condense_on_a_reused_or_short_arena_gives_the_same_numbers(m):
+    """condense_into (the compiled step's call: every array a view of an arena it is handed each step): on a
+    fresh arena, on the same arena again after another system, and on one too short (its takes past the end
+    allocate), bit for bit what condense gives."""
+    rng = np.random.default_rng(20 + m)
+    n, nu, nf = 14, 3, 9
+    A, b = _spd(rng, n), rng.standard_normal(n)
+    G, g = _sparse_rows(rng, m, n, 4), rng.standard_normal(m)
+    RX = _sparse_rows(rng, nu + nf, n, 3)
+    ref = condense(A, b, G, g, RX, nu)
+    nfl, nin = arena_size(n, m, nu + nf)
+    buf, ibuf, off = np.full(nfl, np.nan), np.full(nin, -7, dtype=np.int64), np.zeros(2, dtype=np.int64)
+
+    def same(out):
+        assert out[0] == ref[0]
+        for a, r in zip(out[1:], ref[1:]):
+            assert a.shape == r.shape and np.array_equal(a, r)
+    same(condense_into(A, b, G, g, RX, nu, buf, ibuf, off))
+    assert off[0] <= nfl and off[1] <= nin  # arena_size bounds what it took
+    A2 = _spd(rng, n)
+    condense_into(A2, b, G, g, RX, nu, buf, ibuf, off)  # another system on the same arena
+    same(condense_into(A, b, G, g, RX, nu, buf, ibuf, off))
+    same(condense_into(A, b, G, g, RX, nu, np.empty(nfl // 3), np.empty(nin // 3, dtype=np.int64),
+                       np.zeros(2, dtype=np.int64)))
 
 
 @pytest.mark.parametrize("kmax", [7, 8])
