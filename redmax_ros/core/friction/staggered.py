@@ -117,10 +117,11 @@ def _pgs(W, c, lo, hi, x, tol, max_sweeps):
 
 @numba.njit(cache=True)
 def _small_solve(H, r):
-    """Gaussian elimination with partial pivoting (k <= Anderson depth); returns (x, ok)."""
+    """Gaussian elimination with partial pivoting (k <= Anderson depth), in place: H and r are overwritten (the
+    solution in r); returns (r, ok)."""
     k = len(r)
-    A = H.copy()
-    x = r.copy()
+    A = H
+    x = r
     for i in range(k):
         p = i
         for j in range(i + 1, k):
@@ -172,10 +173,11 @@ def loop_kernel(W_U, X_UT, X_TU, U_v0, lo_U, W_T, T_v0, mu_g, a0, wm, bound_mu, 
     """The staggered loop with the joint multipliers given as alpha = a0 + apply_wrenches(wm, x) (a dense map,
     bisp.dense_wrench_map: redmax_bench/sp_maximal.py), in one call. Returns (alpha, beta, bound, al,
     iterations, converged, residual)."""
-    sbuf, sint = loop_state(len(U_v0), len(T_v0), depth, len(a0))
+    nu, nf = len(U_v0), len(T_v0)
+    sbuf, sint = loop_state(nu, nf, depth, len(a0))
     out = staggered_kernel(W_U, X_UT, X_TU, U_v0, lo_U, W_T, T_v0, mu_g, a0, wm, np.zeros((0, 6, kmax)),
                            np.zeros(0, dtype=np.int64), 1.0, bound_mu, kmax, joint, wU, wT, tol, max_iter, depth,
-                           alpha, beta, sbuf, sint, np.inf)
+                           alpha, beta, sbuf, sint, np.inf, np.empty(loop_scratch_size(nu, nf, depth, len(a0))))
     return out[0], out[1], out[2], out[3], out[4], out[5], out[6]
 
 
@@ -185,13 +187,20 @@ def loop_state(nu, nf, depth, nal):
     return np.zeros(5 * nf + nu + nal + 2 * depth * nf + 2), np.zeros(3, dtype=np.int64)
 
 
+@numba.njit(cache=True)
+def loop_scratch_size(nu, nf, depth, na0):
+    """Floats of staggered_kernel's ``scratch`` (its work vectors, none of them state kept between pieces) for
+    nu unilateral and nf friction rows, Anderson depth and a0 of na0 entries (at least this; more is fine)."""
+    return na0 + 4 * nu + 6 * nf + depth * depth + depth
+
+
 KERNEL_FIRST_WORK = 2.0e6  # work units (~ multiply-adds, ~1-2 ms here) of the first call of the compiled loop
 KERNEL_SLICE = 2e-3  # s: CPU time of each further call under a budget, between two deadline checks
 
 
 @numba.njit(cache=True)
 def staggered_kernel(W_U, X_UT, X_TU, U_v0, lo_U, W_T, T_v0, mu_g, a0, wm, L_ops, L_of, h, bound_mu, kmax, joint, wU,
-                     wT, tol, max_iter, depth, alpha, beta, sbuf, sint, work_cap):
+                     wT, tol, max_iter, depth, alpha, beta, sbuf, sint, work_cap, scratch):
     """The staggered loop of solve() (same steps, same tests, PGS inner solves, Anderson) compiled:
     used when the friction bounds are whole-joint sums (no spherical joints) and qp = pgs.
     Joint multipliers (Eq. 16): with L_of (J,) given, the joint wrenches are W = a0 + apply_wrenches(wm, x)
@@ -205,11 +214,13 @@ def staggered_kernel(W_U, X_UT, X_TU, U_v0, lo_U, W_T, T_v0, mu_g, a0, wm, L_ops
     iteration per call), with paused = True. Called again with the same arrays it continues exactly where
     it stopped: the loop run in pieces gives bitwise the result of one call (work_cap = inf).
     Returns (alpha, beta, bound, al, iterations, converged, residual, paused); the work done so far is
-    sbuf[-1]."""
+    sbuf[-1]. ``scratch`` (loop_scratch_size floats): the work vectors, so the loop allocates nothing."""
     nu, nf, nc = len(U_v0), len(T_v0), len(mu_g)
     nw = L_of.shape[0]
     nal = len(a0) if nw == 0 else nw * kmax
-    wr = np.zeros(len(a0))
+    na0 = len(a0)
+    wr = scratch[:na0]
+    wr[:] = 0.0
     ng = 2 * nc
     nx = nu + nf
     o = 0  # the state, views of sbuf (layout of loop_state)
@@ -237,15 +248,29 @@ def staggered_kernel(W_U, X_UT, X_TU, U_v0, lo_U, W_T, T_v0, mu_g, a0, wm, L_ops
     work = sbuf[ir + 1]
     work0 = work
     it0 = it
-    zeros_u = np.zeros(nu)
-    inf_u = np.full(nu, 1e20)
-    x = np.zeros(nx)
-    c = np.zeros(nu)
-    cf = np.zeros(nf)
+    o = na0  # the work vectors, views of scratch
+    zeros_u = scratch[o:o + nu]
+    o += nu
+    inf_u = scratch[o:o + nu]
+    o += nu
+    x = scratch[o:o + nx]
+    o += nx
+    c = scratch[o:o + nu]
+    o += nu
+    cf = scratch[o:o + nf]
+    o += nf
+    zeros_u[:] = 0.0
+    inf_u[:] = 1e20
+    x[:] = 0.0
+    c[:] = 0.0
+    cf[:] = 0.0
     converged = False
     per_it = 2.0 * nu * nf + wrench_work(wm) + depth * (depth + 2) * nf + nx
-    b_in, g, f, out = np.empty(nf), np.empty(nf), np.empty(nf), np.empty(nf)  # Anderson's vectors
-    Hbuf, Dfbuf = np.empty((depth, depth)), np.empty(depth)
+    b_in, g, f, out = scratch[o:o + nf], scratch[o + nf:o + 2 * nf], scratch[o + 2 * nf:o + 3 * nf], \
+        scratch[o + 3 * nf:o + 4 * nf]  # Anderson's vectors
+    o += 4 * nf
+    Hbuf = scratch[o:o + depth * depth].reshape((depth, depth))
+    Dfbuf = scratch[o + depth * depth:o + depth * depth + depth]
     while True:
         if it > it0 and work - work0 > work_cap:  # pause: the state is in sbuf/sint, alpha, beta
             sint[0], sint[1], sint[2] = it, k_hist, 1 if have_prev else 0
@@ -525,12 +550,13 @@ def _compiled_loop(deadline, *args):
     W_U, T_v0, a0, L_of, kmax, depth = args[0], args[6], args[8], args[11], args[14], args[20]
     nal = len(a0) if L_of.shape[0] == 0 else L_of.shape[0] * kmax
     sbuf, sint = loop_state(len(W_U), len(T_v0), depth, nal)
+    scratch = np.empty(loop_scratch_size(len(W_U), len(T_v0), depth, len(a0)))
     if deadline is None:
-        return staggered_kernel(*args, sbuf, sint, math.inf)[:7]
+        return staggered_kernel(*args, sbuf, sint, math.inf, scratch)[:7]
     deadline.begin()
     cap = KERNEL_FIRST_WORK
     while True:
-        out = staggered_kernel(*args, sbuf, sint, cap)
+        out = staggered_kernel(*args, sbuf, sint, cap, scratch)
         if not out[7]:
             return out[:7]
         deadline.check("Staggered Projections (compiled loop)", out[4])

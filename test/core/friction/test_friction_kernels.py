@@ -12,7 +12,7 @@ from redmax_ros.core.friction.condense import (FIXED_ROW, ancestor_chains, arena
                                               pattern_of, spd_inverse, tree_inverse)
 from redmax_ros.core.friction.bisp import dense_wrench_map
 from redmax_ros.core.friction.contact import distinct_operators
-from redmax_ros.core.friction.staggered import cone_excess, loop_state, staggered_kernel
+from redmax_ros.core.friction.staggered import cone_excess, loop_scratch_size, loop_state, staggered_kernel
 
 
 def _spd(rng, n):
@@ -181,7 +181,7 @@ def test_joint_multipliers_and_bounds_of_the_loop_are_eq_16_at_its_last_iterate(
     alpha, beta, bound, al, it, conv, resid, paused = staggered_kernel(
         W_U, X_UT, X_UT.T.copy(), U_v0, lo_U, W_T, T_v0, mu_g, a0, dense_wrench_map(Mx), ops["L_ops"], ops["L_of"], h,
         bound_mu, kmax, True, wU, wT, 1e-6, 30,
-        5, np.zeros(nu), np.zeros(nf), sbuf, sint, np.inf)
+        5, np.zeros(nu), np.zeros(nf), sbuf, sint, np.inf, np.full(loop_scratch_size(nu, nf, 5, len(a0)), np.nan))
     assert not paused and it >= 2
     # converged: the bounds stopped moving and the impulses lie in them, both to the tolerance in velocity
     assert conv and resid <= 1e-6 and cone_excess(beta, bound, wT) <= 1e-6

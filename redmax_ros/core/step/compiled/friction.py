@@ -27,7 +27,7 @@ import numpy as np
 from redmax_ros.core.friction.bisp import constant_wrenches, make_wrench_map
 from redmax_ros.core.friction.condense import arena_size, condense_into
 from redmax_ros.core.friction.contact import rows_kernel
-from redmax_ros.core.friction.staggered import finish, loop_state, staggered_kernel, warm_start
+from redmax_ros.core.friction.staggered import finish, loop_scratch_size, loop_state, staggered_kernel, warm_start
 from redmax_ros.core.jit import njit_inline
 from redmax_ros.core.solvers.kkt import kkt_residual, max_row_residual
 from redmax_ros.core.solvers.recursive import bias_kernel
@@ -49,6 +49,8 @@ FRICTION_SPEC = (
     # not constants: the condensation's scratch (condense.condense_into's arena, floats, ints and offsets), reused
     # every step, sized for the most rows a step can have (build_friction)
     ("arena", "f", 1), ("iarena", "i", 1), ("arena_off", "i", 1),
+    # and the staggered loop's work vectors (staggered.loop_scratch_size)
+    ("loop_scratch", "f", 1),
 )
 FrictionConsts = namedtuple("FrictionConsts", [n for n, _, _ in FRICTION_SPEC])
 
@@ -72,7 +74,7 @@ def friction_views(f, i, t):
                           i1(i, t, 15), i1(i, t, 16), f1(f, t, 17), i1(i, t, 18), i1(i, t, 19),
                           i1(i, t, 20), i1(i, t, 21), i1(i, t, 22), i1(i, t, 23), f3(f, t, 24), i1(i, t, 25),
                           f1(f, t, 26), f1(f, t, 27),
-                          f1(f, t, 28), f1(f, t, 29), i1(i, t, 30), i1(i, t, 31))
+                          f1(f, t, 28), f1(f, t, 29), i1(i, t, 30), i1(i, t, 31), f1(f, t, 32))
 
 
 def friction_unsupported(mech) -> list:
@@ -119,7 +121,8 @@ def build_friction(mech):
     m_max = (0 if mech.loop_select is None else mech.loop_select.shape[0]) + mech.ndof
     nx_max = 3 * n_pairs + 2 * len(mech.limited) + values["rows_fixed"].shape[0] + values["loop_sdiff"].shape[0]
     nfl, nin = arena_size(mech.ndof, m_max, nx_max)
-    values.update(arena=np.zeros(nfl), iarena=np.zeros(nin, dtype=np.int64), arena_off=np.zeros(2, dtype=np.int64))
+    values.update(arena=np.zeros(nfl), iarena=np.zeros(nin, dtype=np.int64), arena_off=np.zeros(2, dtype=np.int64),
+                  loop_scratch=np.zeros(loop_scratch_size(nx_max, nx_max, int(st.anderson), 6 * len(values["L_of"]))))
     return pack(FRICTION_SPEC, values)
 
 
@@ -196,10 +199,14 @@ def friction_solve(m, d, c, h, cache, has_cache, cache_new, jn, rep, work_cap, r
         constant_wrenches(wm, d.ov, Z, c.gravity, v0, d.v_r, lam0, E0, W0)
     alpha = np.zeros(nu)
     nal = nw * kmax
-    sbuf, sint = loop_state(nu, nf, int(sc[SC_DEPTH]), nal)
+    depth = int(sc[SC_DEPTH])
+    sbuf, sint = loop_state(nu, nf, depth, nal)
+    scratch = c.loop_scratch
+    if loop_scratch_size(nu, nf, depth, 6 * nw) > scratch.shape[0]:  # more rows than build_friction counted
+        scratch = np.empty(loop_scratch_size(nu, nf, depth, 6 * nw))
     alpha, beta, bound, al, it, converged, resid, paused = staggered_kernel(
         W_U, X_UT, X_TU, U_v0, lo_U, W_T, T_v0, mu_g, W0.reshape(-1), wm, c.L_ops, c.L_of, h, c.bound_mu,
-        kmax, joint, wU, wT, sc[SC_TOL], int(sc[SC_MAX_ITER]), int(sc[SC_DEPTH]), alpha, beta, sbuf, sint, work_cap)
+        kmax, joint, wU, wT, sc[SC_TOL], int(sc[SC_MAX_ITER]), depth, alpha, beta, sbuf, sint, work_cap, scratch)
     if paused:
         return PAUSED
     if not joint:
