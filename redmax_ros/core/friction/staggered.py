@@ -188,6 +188,12 @@ def loop_state(nu, nf, depth, nal):
 
 
 @numba.njit(cache=True)
+def _carve(buf, o, k):
+    """(buf[o:o + k], o + k): the next view of a buffer laid out field after field."""
+    return buf[o:o + k], o + k
+
+
+@numba.njit(cache=True)
 def loop_scratch_size(nu, nf, depth, na0):
     """Floats of staggered_kernel's ``scratch`` (its work vectors, none of them state kept between pieces) for
     nu unilateral and nf friction rows, Anderson depth and a0 of na0 entries (at least this; more is fine)."""
@@ -223,42 +229,35 @@ def staggered_kernel(W_U, X_UT, X_TU, U_v0, lo_U, W_T, T_v0, mu_g, a0, wm, L_ops
     wr[:] = 0.0
     ng = 2 * nc
     nx = nu + nf
-    o = 0  # the state, views of sbuf (layout of loop_state)
-    bound = sbuf[o:o + nf]
-    o += nf
-    prev_u = sbuf[o:o + nu]
-    o += nu
-    prev_b = sbuf[o:o + nf]
-    o += nf
-    gprev = sbuf[o:o + nf]
-    o += nf
-    fprev = sbuf[o:o + nf]
-    o += nf
-    nb = sbuf[o:o + nf]
-    o += nf
-    al = sbuf[o:o + nal]
-    o += nal
-    dX = sbuf[o:o + depth * nf].reshape((depth, nf))
-    o += depth * nf
-    dF = sbuf[o:o + depth * nf].reshape((depth, nf))
-    o += depth * nf
+    # the state, views of sbuf (layout of loop_state)
+    bound, o = _carve(sbuf, 0, nf)
+    prev_u, o = _carve(sbuf, o, nu)
+    prev_b, o = _carve(sbuf, o, nf)
+    gprev, o = _carve(sbuf, o, nf)
+    fprev, o = _carve(sbuf, o, nf)
+    nb, o = _carve(sbuf, o, nf)
+    al, o = _carve(sbuf, o, nal)
+    dX, o = _carve(sbuf, o, depth * nf)
+    dF, ir = _carve(sbuf, o, depth * nf)  # sbuf[ir]: the residual, sbuf[ir + 1]: the work done so far
+    dX, dF = dX.reshape((depth, nf)), dF.reshape((depth, nf))
     it, k_hist, have_prev = sint[0], sint[1], sint[2] != 0
-    ir = o  # sbuf[ir]: the residual, sbuf[ir + 1]: the work done so far
     resid = np.inf if it == 0 else sbuf[ir]
     work = sbuf[ir + 1]
     work0 = work
     it0 = it
-    o = na0  # the work vectors, views of scratch
-    zeros_u = scratch[o:o + nu]
-    o += nu
-    inf_u = scratch[o:o + nu]
-    o += nu
-    x = scratch[o:o + nx]
-    o += nx
-    c = scratch[o:o + nu]
-    o += nu
-    cf = scratch[o:o + nf]
-    o += nf
+    # the work vectors, views of scratch (after wr)
+    zeros_u, o = _carve(scratch, na0, nu)
+    inf_u, o = _carve(scratch, o, nu)
+    x, o = _carve(scratch, o, nx)
+    c, o = _carve(scratch, o, nu)
+    cf, o = _carve(scratch, o, nf)
+    b_in, o = _carve(scratch, o, nf)  # Anderson's vectors, its matrix and right-hand side
+    g, o = _carve(scratch, o, nf)
+    f, o = _carve(scratch, o, nf)
+    out, o = _carve(scratch, o, nf)
+    Hbuf, o = _carve(scratch, o, depth * depth)
+    Dfbuf, o = _carve(scratch, o, depth)
+    Hbuf = Hbuf.reshape((depth, depth))
     zeros_u[:] = 0.0
     inf_u[:] = 1e20
     x[:] = 0.0
@@ -266,11 +265,6 @@ def staggered_kernel(W_U, X_UT, X_TU, U_v0, lo_U, W_T, T_v0, mu_g, a0, wm, L_ops
     cf[:] = 0.0
     converged = False
     per_it = 2.0 * nu * nf + wrench_work(wm) + depth * (depth + 2) * nf + nx
-    b_in, g, f, out = scratch[o:o + nf], scratch[o + nf:o + 2 * nf], scratch[o + 2 * nf:o + 3 * nf], \
-        scratch[o + 3 * nf:o + 4 * nf]  # Anderson's vectors
-    o += 4 * nf
-    Hbuf = scratch[o:o + depth * depth].reshape((depth, depth))
-    Dfbuf = scratch[o + depth * depth:o + depth * depth + depth]
     while True:
         if it > it0 and work - work0 > work_cap:  # pause: the state is in sbuf/sint, alpha, beta
             sint[0], sint[1], sint[2] = it, k_hist, 1 if have_prev else 0
