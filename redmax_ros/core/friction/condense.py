@@ -181,9 +181,7 @@ def dense_spd_inverse_into(A, L, Li, LiT, Ainv):
         d = L[i, i]
         for j in range(i):
             si[j] = si[j] / d
-    for i in range(n):
-        for j in range(n):
-            LiT[i, j] = Li[j, i]
+    _transpose_into(Li, LiT)
     np.dot(LiT, Li, Ainv)
     return True
 
@@ -249,16 +247,8 @@ def pattern_into(R, ptr, idx):
 
 
 @njit(cache=True, nogil=True)
-def _sparse_left(R, ptr, idx, B):
-    """R @ B over the nonzeros of R (R (r,n) with pattern ptr/idx, B (n,k))."""
-    out = np.empty((R.shape[0], B.shape[1]))
-    _sparse_left_into(R, ptr, idx, B, out)
-    return out
-
-
-@njit(cache=True, nogil=True)
 def _sparse_left_into(R, ptr, idx, B, out):
-    """:func:`_sparse_left` into out (r, k)."""
+    """out (r, k) = R @ B over the nonzeros of R (R (r,n) with pattern ptr/idx, B (n,k))."""
     out[:, :] = 0.0
     for i in range(R.shape[0]):
         for q in range(ptr[i], ptr[i + 1]):
@@ -269,23 +259,11 @@ def _sparse_left_into(R, ptr, idx, B, out):
 
 
 @njit(cache=True, nogil=True)
-def _sparse_right_t(BT, R, ptr, idx, lower=False):
-    """B @ R^T over the nonzeros of R, given BT = B^T (n,k) contiguous, R (r,n) with pattern ptr/idx -> (k, r):
-    row j of the transposed product accumulates R[j, c] times row c of B^T over the row's nonzeros (contiguous
-    rows: vectorised), each entry summed in the order of R's pattern. ``lower`` (k = r, a symmetric product
-    such as G A^-1 G^T or RX P RX^T): the entries i >= j only, mirrored into the upper triangle."""
-    k = BT.shape[1]
-    outT = np.empty((R.shape[0], k))
-    _sparse_right_t_into(BT, R, ptr, idx, lower, outT)
-    if lower:
-        return outT
-    return np.ascontiguousarray(outT.T)
-
-
-@njit(cache=True, nogil=True)
 def _sparse_right_t_into(BT, R, ptr, idx, lower, outT):
-    """(B @ R^T)^T of :func:`_sparse_right_t` into outT (r, k) (with ``lower``, r = k: the symmetric product
-    itself, both triangles)."""
+    """outT (r, k) = (B @ R^T)^T over the nonzeros of R, given BT = B^T (n,k) contiguous, R (r,n) with pattern
+    ptr/idx: row j accumulates R[j, c] times row c of B^T over the row's nonzeros (contiguous rows: vectorised),
+    each entry summed in the order of R's pattern. ``lower`` (k = r, a symmetric product such as G A^-1 G^T or
+    RX P RX^T): the entries i >= j only, mirrored into the upper triangle (outT is then the product itself)."""
     k = BT.shape[1]
     outT[:, :] = 0.0
     for j in range(R.shape[0]):
@@ -301,6 +279,14 @@ def _sparse_right_t_into(BT, R, ptr, idx, lower, outT):
         for j in range(k):
             for i in range(j):
                 outT[j, i] = outT[i, j]
+
+
+@njit(cache=True, nogil=True)
+def _transpose_into(src, dst):
+    """dst (c, r) = src (r, c)^T."""
+    for i in range(dst.shape[0]):
+        for j in range(dst.shape[1]):
+            dst[i, j] = src[j, i]
 
 
 @njit(cache=True, nogil=True)
@@ -387,9 +373,7 @@ def condense_into(A, b, G, g, RX, nu, buf, ibuf, off):
         pattern_into(G, gptr, gidx)
         _sparse_left_into(G, gptr, gidx, Ainv, GA)
         GAT = _take(buf, off, n, m)
-        for i in range(n):
-            for j in range(m):
-                GAT[i, j] = GA[j, i]
+        _transpose_into(GA, GAT)
         S = _take(buf, off, m, m)
         _sparse_right_t_into(GAT, G, gptr, gidx, True, S)
         Sinv = _take(buf, off, m, m)
@@ -432,21 +416,15 @@ def condense_into(A, b, G, g, RX, nu, buf, ibuf, off):
     if nx and status == 0:
         RXP = _take(buf, off, nx, n)
         _sparse_left_into(RX, rptr, ridx, P, RXP)  # RX P = PX^T
-        for i in range(n):
-            for j in range(nx):
-                PX[i, j] = RXP[j, i]
+        _transpose_into(RXP, PX)
         _sparse_right_t_into(PX, RX, rptr, ridx, True, WX)  # symmetric, as P
         np.dot(RX, v0, Xv0)
         if m:
             SGT = _take(buf, off, n, m)
-            for i in range(n):
-                for j in range(m):
-                    SGT[i, j] = SG[j, i]
+            _transpose_into(SG, SGT)
             LamXT = _take(buf, off, nx, m)
             _sparse_right_t_into(SGT, RX, rptr, ridx, False, LamXT)  # S^-1 Y^T RX^T
-            for i in range(m):
-                for j in range(nx):
-                    LamX[i, j] = LamXT[j, i]
+            _transpose_into(LamXT, LamX)
     W_U = _take(buf, off, nu, nu)
     X_UT = _take(buf, off, nu, nf)
     X_TU = _take(buf, off, nf, nu)
