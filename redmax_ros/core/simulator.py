@@ -97,6 +97,8 @@ def _names(what, value) -> list:
 
 def _step_count(n) -> int:
     """n as a step count (an integer >= 1, given as an int or an integral float), else CommandError."""
+    if type(n) is int and 1 <= n <= MAX_STEPS:  # the common case, without the checks below
+        return n
     if isinstance(n, (bool, np.bool_)) or not isinstance(n, (int, float, np.integer, np.floating)) \
             or not math.isfinite(n) or int(n) != n or not 1 <= n <= MAX_STEPS:
         raise CommandError(f"step count must be a positive integer (at most {MAX_STEPS}), got {n!r}")

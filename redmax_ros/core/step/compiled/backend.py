@@ -79,7 +79,7 @@ class CompiledBackend:
         self.model = build_model(mech)
         self.bdf2 = mech.scheme == "bdf2"  # integrator.scheme: the kernel keeps BDF2's history (step/scheme.py)
         self._data = {}
-        self._free = None  # _free_inputs: (tau, Data) of a step without commands
+        self._free = None  # _free_inputs: the Data of a step without prescriptions
         self._no_q, self._no_v = mech.q0.copy(), np.zeros(mech.ndof)  # BDF1's history placeholders (never read)
         self._layouts = {}
         self.handoffs = Counter()
@@ -112,8 +112,8 @@ class CompiledBackend:
     def _inputs(self, state, cmd, h):
         """(resolved commands, tau, Data, gj, sv) of a step the kernel can take, or None (the reference's)."""
         if not (cmd.joint_velocities or cmd.site_velocities or cmd.joint_trajectories or cmd.body_twists
-                or cmd.site_forces) and cmd.joint_torques is None and h > 0 and math.isfinite(h):
-            return self._free_inputs(cmd)  # nothing commanded: the same inputs every step
+                or cmd.site_forces) and h > 0 and math.isfinite(h):
+            return self._free_inputs(cmd)  # nothing prescribed: the same Data every step
         if cmd.body_twists or cmd.site_forces:
             self.handoffs["body twists or site forces commanded"] += 1
             return None
@@ -134,11 +134,13 @@ class CompiledBackend:
         return rcmd, np.asarray(tau, dtype=float), d, gj, s
 
     def _free_inputs(self, cmd):
-        """_inputs without commands (built once): torque0, the Data of no prescriptions, no rows."""
+        """_inputs without prescriptions: the Data of no prescriptions (built once), no rows, and the torques
+        torque0 (+ the commanded joint torques), as _inputs computes them."""
         if self._free is None:
-            self._free = (self.mech.torque0, self._data_for(cmd))
-        tau, d = self._free
-        return cmd, tau, d, _NO_V, _NO_S
+            self._free = self._data_for(cmd)
+        jt = cmd.joint_torques
+        tau = self.mech.torque0 if jt is None else np.asarray(self.mech.torque0 + jt, dtype=float)
+        return cmd, tau, self._free, _NO_V, _NO_S
 
     def _history(self, state, h) -> bool:
         """Whether the step of h from ``state`` is a BDF2 step (integrator.scheme bdf2 and a history of h)."""
