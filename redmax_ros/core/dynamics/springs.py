@@ -220,7 +220,7 @@ LEVER_FLOOR = 0.5  # clamp_lever_blocks: each body's lever-arm block B_j >= -LEV
 
 
 @njit
-def clamp_lever_blocks(I, B):
+def clamp_lever_blocks_into(I, B, T):
     """Keep the LHS of Eq. (2) positive definite under the lever-arm blocks: per joint j with a nonzero block,
     B_j (h^2-scaled, world frame, :func:`geometric_blocks_kernel`) is replaced by the nearest matrix with
     B_j >= -LEVER_FLOOR I_j in the metric of the body's spatial inertia I_j (world frame, same coordinates):
@@ -234,9 +234,9 @@ def clamp_lever_blocks(I, B):
     springs, leaves such a mode with at least half of its inertia: since every other term of the LHS is positive
     semi-definite, A >= J^T (I + B) J >= 1/2 M. It is idle (B_j unchanged, checked by one 6x6 Cholesky of
     I_j + B_j / LEVER_FLOOR) whenever the step resolves the lever instabilities, which covers every shipped scene
-    (docs/scenes.md, "Full maximal spring stiffness"). Returns the number of blocks changed."""
+    (docs/scenes.md, "Full maximal spring stiffness"). Returns the number of blocks changed. ``T``: (6, 6) scratch (the
+    compiled step's, so that it allocates nothing while the clamp is idle)."""
     nj = I.shape[0]
-    T = np.empty((6, 6))
     changed = 0
     for j in range(1, nj):
         nz = False
@@ -283,6 +283,13 @@ def clamp_lever_blocks(I, B):
         B[j] = (LV * w) @ LV.T
         changed += 1
     return changed
+
+
+
+@njit
+def clamp_lever_blocks(I, B):
+    """:func:`clamp_lever_blocks_into` with a scratch of its own."""
+    return clamp_lever_blocks_into(I, B, np.empty((6, 6)))
 
 
 def needs_velocities(mech) -> bool:

@@ -175,7 +175,43 @@ def _clear_columns(W, lo, hi):
 
 
 @njit
+def spring_cross_slots(parents) -> int:
+    """The accumulators :func:`spring_cross_lower_into` has alive at once (its W's first size): the finished
+    subtrees not yet merged into their parent's, at most, over the reverse depth-first visit (at least 1)."""
+    nj = parents.shape[0]
+    nchild = np.zeros(nj, np.int64)
+    for j in range(1, nj):
+        if parents[j] > 0:
+            nchild[parents[j]] += 1
+    pending = 0
+    cap = 1
+    for j in range(nj - 1, 0, -1):
+        pending += 1 - nchild[j]
+        cap = max(cap, pending)
+        if parents[j] == 0:
+            pending -= 1
+    return cap
+
+
+@njit
+def spring_cross_iwork_size(nj, P, cap):
+    """Length of :func:`spring_cross_lower_into`'s int64 scratch for nj joints, P springs, cap slots."""
+    return 3 * nj + 2 * P + 3 * cap
+
+
+@njit
 def spring_cross_lower_kernel(parents, idx_v, nv_j, St, ja, pa, jb, pb, C, A):
+    """:func:`spring_cross_lower_into` with scratch of its own."""
+    nv, nj = St.shape[0], parents.shape[0]
+    cap = spring_cross_slots(parents)
+    ptr, runs = all_support_runs(parents, idx_v, nv_j)
+    spring_cross_lower_into(parents, idx_v, nv_j, St, ja, pa, jb, pb, C, A, ptr, runs, np.empty((cap, 6, nv)),
+                            np.empty(spring_cross_iwork_size(nj, ja.shape[0], cap), np.int64), np.empty((6, nv)),
+                            np.empty((6, 6)))
+
+
+@njit
+def spring_cross_lower_into(parents, idx_v, nv_j, St, ja, pa, jb, pb, C, A, ptr, runs, W, iwork, StT, Q):
     """A's lower triangle (diagonal included) -= that of N = sum_s J_a^T C J_b + J_b^T C^T J_a, over the
     springs between two different moving bodies (the off-diagonal body blocks of sum_s J_s^T C_s J_s; the
     diagonal ones are in the composite inertias).
@@ -187,12 +223,21 @@ def spring_cross_lower_kernel(parents, idx_v, nv_j, St, ja, pa, jb, pb, C, A):
     joints are visited leaves first (reverse depth-first order) with a stack of the finished subtrees'
     accumulators, a joint's Wbar accumulated in place of its first child's, each over the column range [lo, hi)
     its ends touched: each spring end adds O(d_o) (d_o DOFs support the other end), each row costs O(hi - lo),
-    instead of O(d_a d_b) per spring pair by pair; every loop is a contiguous (vectorised) row."""
+    instead of O(d_a d_b) per spring pair by pair; every loop is a contiguous (vectorised) row.
+
+    Nothing is allocated: ``ptr``, ``runs`` the tree's :func:`all_support_runs`; scratch ``W`` (cap, 6, nv) with cap
+    = :func:`spring_cross_slots` (parents), ``iwork`` (:func:`spring_cross_iwork_size`,) int64, ``StT`` (6, nv), ``Q`` (6, 6)."""
     nv = St.shape[0]
     nj = parents.shape[0]
     P = ja.shape[0]
-    head = np.full(nj, -1, np.int64)  # spring ends per joint (e = 2 s + end), linked through nxt
-    nxt = np.empty(2 * P, np.int64)
+    cap = W.shape[0]
+    head, nxt = iwork[:nj], iwork[nj:nj + 2 * P]
+    off = nj + 2 * P
+    lo, hi, free = iwork[off:off + cap], iwork[off + cap:off + 2 * cap], iwork[off + 2 * cap:off + 3 * cap]
+    off += 3 * cap
+    st_joint, st_slot = iwork[off:off + nj], iwork[off + nj:off + 2 * nj]
+    for j in range(nj):
+        head[j] = -1  # spring ends per joint (e = 2 s + end), linked through nxt
     nends = 0
     for s in range(P):
         i, k = ja[s], jb[s]
@@ -205,31 +250,14 @@ def spring_cross_lower_kernel(parents, idx_v, nv_j, St, ja, pa, jb, pb, C, A):
         nends += 2
     if nends == 0:
         return
-    nchild = np.zeros(nj, np.int64)
-    for j in range(1, nj):
-        if parents[j] > 0:
-            nchild[parents[j]] += 1
-    pending = 0  # accumulators alive at once: the finished subtrees not yet merged into their parent's
-    cap = 1
-    for j in range(nj - 1, 0, -1):
-        pending += 1 - nchild[j]
-        cap = max(cap, pending)
-        if parents[j] == 0:
-            pending -= 1
-    W = np.zeros((cap, 6, nv))
-    lo = np.full(cap, nv, np.int64)
-    hi = np.zeros(cap, np.int64)
-    free = np.arange(cap)
+    W[:, :, :] = 0.0
+    for c in range(cap):
+        lo[c], hi[c], free[c] = nv, 0, c
     nfree = cap
-    st_joint = np.empty(nj, np.int64)
-    st_slot = np.empty(nj, np.int64)
     sp = 0
-    StT = np.empty((6, nv))
     for c in range(nv):
         for a in range(6):
             StT[a, c] = St[c, a]
-    ptr, runs = all_support_runs(parents, idx_v, nv_j)
-    Q = np.empty((6, 6))
     for j in range(nj - 1, 0, -1):
         w = -1
         while sp > 0 and parents[st_joint[sp - 1]] == j:  # j's children, finished just before it

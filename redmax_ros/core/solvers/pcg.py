@@ -162,28 +162,10 @@ def lhs_kernel(parents, idx_v, nv_j, St, I, blocks, use_blocks, ja, pa, jb, pb, 
 
 
 @njit
-def add_point_block(Bj, alpha, x, C):
-    """Bj += X^T C X with X = [alpha 1, -[x]] (3x6)."""
-    X = np.zeros((3, 6))
-    X[0, 0] = X[1, 1] = X[2, 2] = alpha
-    # -[x]
-    X[0, 4], X[0, 5] = x[2], -x[1]
-    X[1, 3], X[1, 5] = -x[2], x[0]
-    X[2, 3], X[2, 4] = x[1], -x[0]
-    CX = np.zeros((3, 6))
-    for a in range(3):
-        for b in range(6):
-            CX[a, b] = C[a, 0] * X[0, b] + C[a, 1] * X[1, b] + C[a, 2] * X[2, b]
-    for a in range(6):
-        for b in range(6):
-            Bj[a, b] += X[0, a] * CX[0, b] + X[1, a] * CX[1, b] + X[2, a] * CX[2, b]
-
-
-@njit
 def add_spring_end(B, j, alpha, x0, x1, x2, C, CX):
-    """B[j] += X^T C X with X = [alpha 1, -[x]], x = (x0, x1, x2): :func:`add_point_block` with the zero
-    entries of X left out (the same sums of the same nonzero products, so the same result), for one end of
-    a spring (alpha = 1) or a spring with both ends on one body (alpha = 0, x = x_a - x_b). CX: 3x6 scratch."""
+    """B[j] += X^T C X with X = [alpha 1, -[x]], x = (x0, x1, x2), the zero entries of X left out, for one end
+    of a spring (alpha = 1), a spring with both ends on one body (alpha = 0, x = x_a - x_b) or a point damper
+    (the compiled step's body damping). CX: 3x6 scratch."""
     for a in range(3):
         c0, c1, c2 = C[a, 0], C[a, 1], C[a, 2]
         CX[a, 0] = alpha * c0
@@ -203,9 +185,14 @@ def add_spring_end(B, j, alpha, x0, x1, x2, C, CX):
 
 @njit
 def spring_blocks_kernel(ja, pa, jb, pb, C, blocks):
+    """:func:`spring_blocks_into` with a scratch of its own."""
+    spring_blocks_into(ja, pa, jb, pb, C, blocks, np.empty((3, 6)))
+
+
+@njit
+def spring_blocks_into(ja, pa, jb, pb, C, blocks, CX):
     """blkdiag over bodies of sum_s J_s^T C_s J_s in maximal (body-twist) coordinates: each end gets
-    X^T C X; a spring with both ends on the same body gives its exact own block."""
-    CX = np.empty((3, 6))
+    X^T C X; a spring with both ends on the same body gives its exact own block. CX: (3, 6) scratch."""
     for s in range(ja.shape[0]):
         i, k = ja[s], jb[s]
         if i == k:

@@ -13,6 +13,7 @@ from collections import namedtuple
 
 import numpy as np
 
+from redmax_ros.core.dynamics.tree_forces import spring_cross_iwork_size, spring_cross_slots
 from redmax_ros.core.jit import njit_inline
 from redmax_ros.core.step.compiled.packing import f1, f2, f3, i1, i2, pack
 
@@ -61,6 +62,11 @@ DATA_SPEC = (
     ("kkt_span", "i", 2),
     # St transposed (6, nv) for the composite-rigid-body rows (tree_forces.crba_runs_kernel); the KKT residual (ndof,)
     ("StT", "f", 2), ("kkt_r", "f", 1),
+    # the springs' cross-body LHS terms (tree_forces.spring_cross_lower_into): accumulators (slots, 6, nv) and
+    # int64 bookkeeping; (6, 6) and (3, 6) scratch (that and springs.clamp_lever_blocks_into, pcg.spring_blocks_into)
+    ("cross_W", "f", 3), ("cross_i", "i", 1), ("m66", "f", 2), ("m36", "f", 2),
+    # the columns of a loop row's nonzeros (stabilization.chord_factor_into), (ndof,)
+    ("chord_nz", "i", 1),
 )
 
 Data = namedtuple("Data", [n for n, _, _ in DATA_SPEC])
@@ -96,7 +102,9 @@ def data_views(f, i, t):
                 f1(f, t, 74), f1(f, t, 75), f1(f, t, 76), f1(f, t, 77), f1(f, t, 78),
                 f1(f, t, 79), f1(f, t, 80), f2(f, t, 81), f2(f, t, 82), f2(f, t, 83),
                 i1(i, t, 84), i2(i, t, 85), i2(i, t, 86),
-                f2(f, t, 87), f1(f, t, 88))
+                f2(f, t, 87), f1(f, t, 88),
+                f3(f, t, 89), i1(i, t, 90), f2(f, t, 91), f2(f, t, 92),
+                i1(i, t, 93))
 
 
 def build_data(mech, model, joints: tuple, sites: tuple, site_axes: dict, T) -> "Packed":
@@ -128,6 +136,7 @@ def build_data(mech, model, joints: tuple, sites: tuple, site_axes: dict, T) -> 
         site_k.append(len(ax))
     m = nl + len(dofs) + sum(site_k)
     nlim = len(mech.limited)
+    slots = spring_cross_slots(np.asarray(model["parents"], np.int64)) if P else 0
     values = dict(
         jR=np.tile(np.eye(3), (nj, 1, 1)), jp=np.zeros((nj, 3)), Sl=model["Sl0"].copy(), c_local=np.zeros((nj, 6)),
         R=np.tile(np.eye(3), (nj, 1, 1)), p=np.zeros((nj, 3)), St=np.zeros((nv, 6)), I=np.zeros((nj, 6, 6)),
@@ -159,5 +168,7 @@ def build_data(mech, model, joints: tuple, sites: tuple, site_axes: dict, T) -> 
         q_base=np.zeros(nq), q_lin=np.zeros(nq), v_lin=np.zeros(ndof), v_mom_h=np.zeros(ndof), v_mom=np.zeros(nv),
         back=np.zeros(nv), bdf_d=np.zeros(nv), ovm=np.zeros((nj, 6)), ovb=np.zeros((nj, 6)), Xf=np.zeros((S, 3)),
         StT=np.zeros((6, nv)), kkt_r=np.zeros(ndof),
+        cross_W=np.zeros((slots, 6, nv)), cross_i=np.zeros(spring_cross_iwork_size(nj, P, slots), np.int64),
+        m66=np.zeros((6, 6)), m36=np.zeros((3, 6)), chord_nz=np.zeros(ndof, np.int64),
     )
     return pack(DATA_SPEC, values)

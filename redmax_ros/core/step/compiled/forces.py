@@ -15,11 +15,11 @@ from __future__ import annotations
 
 import numpy as np
 
-from redmax_ros.core.dynamics.springs import clamp_lever_blocks, geometric_blocks_kernel, spring_kernel, spring_shift
-from redmax_ros.core.dynamics.tree_forces import crba_runs_kernel, nle_wrench_kernel, spring_cross_lower_kernel
+from redmax_ros.core.dynamics.springs import clamp_lever_blocks_into, geometric_blocks_kernel, spring_kernel, spring_shift
+from redmax_ros.core.dynamics.tree_forces import crba_runs_kernel, nle_wrench_kernel, spring_cross_lower_into
 from redmax_ros.core.jit import njit_inline
 from redmax_ros.core.linalg import mirror_lower
-from redmax_ros.core.solvers.pcg import add_point_block, spring_blocks_kernel
+from redmax_ros.core.solvers.pcg import add_spring_end, spring_blocks_into
 from redmax_ros.core.solvers.recursive import add_point_wrench, bias_kernel, jtw_kernel, jv_kernel
 from redmax_ros.core.step.compiled.manifold import difference
 
@@ -142,7 +142,7 @@ def lhs(m, d, h, A):
     if m.spring_a.shape[0] and m.scalars[4] != 0.0:  # integrator.spring_stiffness: full: the lever-arm blocks of K_m
         geometric_blocks_kernel(m.spring_ja, d.pa, m.spring_jb, d.pb, d.spring_f, m.spring_explicit, h * h, d.I,
                                 d.blocks)
-        clamp_lever_blocks(d.I, d.blocks)
+        clamp_lever_blocks_into(d.I, d.blocks, d.m66)
     C3 = d.C33
     C3[:, :] = 0.0
     x = d.x3
@@ -153,7 +153,7 @@ def lhs(m, d, h, A):
         hc = h * m.damp_c[k]
         for r in range(3):
             C3[r, r] = hc * m.damp_m[k]
-        add_point_block(d.blocks[j], 1.0, x, C3)
+        add_spring_end(d.blocks, j, 1.0, x[0], x[1], x[2], C3, d.m36)
         for a in range(3):
             for b in range(3):
                 s = 0.0
@@ -162,7 +162,7 @@ def lhs(m, d, h, A):
                         s += d.R[j, a, e] * m.damp_I[k, e, f] * d.R[j, b, f]
                 d.blocks[j, 3 + a, 3 + b] += hc * s
     if m.spring_a.shape[0]:
-        spring_blocks_kernel(m.spring_ja, d.pa, m.spring_jb, d.pb, d.spring_C, d.blocks)
+        spring_blocks_into(m.spring_ja, d.pa, m.spring_jb, d.pb, d.spring_C, d.blocks, d.m36)
     for j in range(1, nj):
         for a in range(6):
             for b in range(6):
@@ -171,8 +171,8 @@ def lhs(m, d, h, A):
     A[:, :] = 0.0
     crba_runs_kernel(m.parents, m.idx_v, m.nv_j, d.St, d.blocks, A, m.support_ptr, m.support_runs, d.StT)
     if m.spring_a.shape[0]:
-        spring_cross_lower_kernel(m.parents, m.idx_v, m.nv_j, d.St, m.spring_ja, d.pa, m.spring_jb, d.pb,
-                                  d.spring_C, A)
+        spring_cross_lower_into(m.parents, m.idx_v, m.nv_j, d.St, m.spring_ja, d.pa, m.spring_jb, d.pb,
+                                d.spring_C, A, m.support_ptr, m.support_runs, d.cross_W, d.cross_i, d.StT, d.m66)
     hh = h * h
     for i in range(A.shape[0]):
         A[i, i] += m.armature[i] + (h * m.damping[i] + hh * m.stiffness[i])
