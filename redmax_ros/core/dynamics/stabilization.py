@@ -123,7 +123,7 @@ def chord_project_kernel(parents, kind, idx_q, idx_v, nv_j, axis, pitch, place_R
     Leaves placements of the last q evaluated in (jR, jp, Sl, R, p, St)."""
     m, n, k = G.shape[0], G.shape[1], held.shape[0]
     L = np.empty((m + k, m + k))
-    if not chord_factor_into(G, held, np.zeros((m + k, m + k)), L):
+    if not chord_factor_into(G, held, np.zeros((m + k, m + k)), L, np.empty(n, dtype=np.int64)):
         return q, 0.0, CHORD_SINGULAR
     y, dq, step = np.empty(m + k), np.empty(n), np.empty(n if T.shape[0] == 0 else T.shape[0])
     bufs = np.empty((2, q.shape[0]))  # the iterates, alternately (the input q is never written)
@@ -156,18 +156,18 @@ def chord_factor(G, held):
     K K^T = [[G G^T, G[:, held]], [G[:, held]^T, I]]. Returns (L, ok)."""
     n = G.shape[0] + held.shape[0]
     L = np.empty((n, n))
-    ok = chord_factor_into(G, held, np.zeros((n, n)), L)
+    ok = chord_factor_into(G, held, np.zeros((n, n)), L, np.empty(G.shape[1], dtype=np.int64))
     return L, ok
 
 
 @njit
-def chord_factor_into(G, held, KK, L):
+def chord_factor_into(G, held, KK, L, nz):
     """chord_factor into given arrays: K K^T into KK, its factor into L ((m + k) square); returns ok. The
     products G_r . G_c run over the nonzeros of row r (a loop row touches the DOFs of its two chains only),
-    in increasing column order: the same sums as over every column."""
+    in increasing column order: the same sums as over every column. ``nz``: int scratch (n,), the columns of
+    row r's nonzeros."""
     m, n, k = G.shape[0], G.shape[1], held.shape[0]
     KK[:, :] = 0.0
-    nz = np.empty(n, dtype=np.int64)
     for r in range(m):
         Gr = G[r]
         cnt = 0

@@ -61,6 +61,8 @@ DATA_SPEC = (
     ("kkt_span", "i", 2),
     # St transposed (6, nv) for the composite-rigid-body rows (tree_forces.crba_runs_kernel); the KKT residual (ndof,)
     ("StT", "f", 2), ("kkt_r", "f", 1),
+    # the columns of a loop row's nonzeros (ndof,), dynamics/stabilization.chord_factor_into
+    ("chord_nz", "i", 1),
 )
 
 Data = namedtuple("Data", [n for n, _, _ in DATA_SPEC])
@@ -96,7 +98,7 @@ def data_views(f, i, t):
                 f1(f, t, 74), f1(f, t, 75), f1(f, t, 76), f1(f, t, 77), f1(f, t, 78),
                 f1(f, t, 79), f1(f, t, 80), f2(f, t, 81), f2(f, t, 82), f2(f, t, 83),
                 i1(i, t, 84), i2(i, t, 85), i2(i, t, 86),
-                f2(f, t, 87), f1(f, t, 88))
+                f2(f, t, 87), f1(f, t, 88), i1(i, t, 89))
 
 
 def build_data(mech, model, joints: tuple, sites: tuple, site_axes: dict, T) -> "Packed":
@@ -158,6 +160,6 @@ def build_data(mech, model, joints: tuple, sites: tuple, site_axes: dict, T) -> 
         pa=np.zeros((P, 3)), pb=np.zeros((P, 3)), Gr_loop=np.zeros((nl, nv)), q_tmp=np.zeros(nq), step_v=np.zeros(nv),
         q_base=np.zeros(nq), q_lin=np.zeros(nq), v_lin=np.zeros(ndof), v_mom_h=np.zeros(ndof), v_mom=np.zeros(nv),
         back=np.zeros(nv), bdf_d=np.zeros(nv), ovm=np.zeros((nj, 6)), ovb=np.zeros((nj, 6)), Xf=np.zeros((S, 3)),
-        StT=np.zeros((6, nv)), kkt_r=np.zeros(ndof),
+        StT=np.zeros((6, nv)), kkt_r=np.zeros(ndof), chord_nz=np.zeros(ndof, np.int64),
     )
     return pack(DATA_SPEC, values)

@@ -47,7 +47,7 @@ def update_configuration(m, d, q, h):
     if m.scalars[0] != 0.0:  # Baumgarte: the rows' RHS did it; report max|phi| at q+
         return True, loop_error_at(m, d, d.q_new), True
     G = d.G[:nl]
-    if not chord_factor_into(G, d.held, d.chord_KK, d.chord_L):
+    if not chord_factor_into(G, d.held, d.chord_KK, d.chord_L, d.chord_nz):
         return False, 0.0, False
     for _ in range(CHORD_MAX_ITER):
         err = loop_error_at(m, d, d.q_new)
