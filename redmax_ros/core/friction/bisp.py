@@ -37,6 +37,7 @@ from numba import njit
 
 from redmax_ros.core.jit import njit_inline
 from redmax_ros.core.solvers import recursive as rc
+from redmax_ros.core.friction.arena import empty_arena, take, take1
 from redmax_ros.core.friction.contact import FrictionWork, coupling_csr
 from redmax_ros.core.dynamics.forces import spring_terms
 
@@ -323,14 +324,38 @@ def wrench_work(wm):
 @njit(cache=True, nogil=True)
 def make_wrench_map(nu, h, PX, T_ptr, T_idx, T_val, LamX, sel_r, sel_c, sel_v, loop_index, n_tree, c_jid, c_X, c_n,
                     c_t, pin_ja, pin_jb, pin_moment, f_ja, f_jb, f_xa, f_xb, parents, idx_v, nv_j, St, I, R, p, jids):
-    """The WrenchMap of a step (its scratch allocated here; pin moments divided by h)."""
+    """:func:`make_wrench_map_into` with its scratch allocated here (the reference pipeline's call)."""
+    buf, ibuf, off = empty_arena()
+    return make_wrench_map_into(nu, h, PX, T_ptr, T_idx, T_val, LamX, sel_r, sel_c, sel_v, loop_index, n_tree, c_jid,
+                                c_X, c_n, c_t, pin_ja, pin_jb, pin_moment, f_ja, f_jb, f_xa, f_xb, parents, idx_v,
+                                nv_j, St, I, R, p, jids, buf, off)
+
+
+@njit(cache=True, nogil=True)
+def wrench_map_arena_size(n, nv, m, n_pts, nj, n_pins):
+    """Floats that :func:`make_wrench_map_into` takes from its arena for n DOFs (PX rows), nv velocity DOFs,
+    m bilateral rows, n_pts point forces, nj tree joints and n_pins loop pins."""
+    return 3 * n_pins + n + nv + m + 3 * n_pts + 12 * nj + 15
+
+
+@njit(cache=True, nogil=True)
+def make_wrench_map_into(nu, h, PX, T_ptr, T_idx, T_val, LamX, sel_r, sel_c, sel_v, loop_index, n_tree, c_jid, c_X,
+                         c_n, c_t, pin_ja, pin_jb, pin_moment, f_ja, f_jb, f_xa, f_xb, parents, idx_v, nv_j, St, I, R,
+                         p, jids, buf, off):
+    """The WrenchMap of a step, its scratch and the pin moments divided by h taken from the float arena ``buf``
+    (offsets ``off``: arena.py, wrench_map_arena_size; not reset here)."""
     n_pts = f_ja.shape[0]
+    pin_mh = take(buf, off, pin_moment.shape[0], 3)
+    for q in range(pin_moment.shape[0]):  # as pin_moment / h
+        for a in range(3):
+            pin_mh[q, a] = pin_moment[q, a] / h
+    nj = parents.shape[0]
     return WrenchMap(nu, 1.0 / h, PX, T_ptr, T_idx, T_val, LamX, sel_r, sel_c, sel_v, loop_index, n_tree, c_jid, c_X,
-                     c_n, c_t, pin_ja, pin_jb, PX.shape[1] - len(pin_ja), pin_moment / h, f_ja, f_jb, f_xa, f_xb,
-                     parents, idx_v, nv_j, St, I, R, p, jids, np.zeros((0, PX.shape[1])), np.empty(PX.shape[0]),
-                     np.empty(len(T_ptr) - 1), np.empty(LamX.shape[0]), np.empty((n_pts, 3)),
-                     np.empty((parents.shape[0], 6)), np.empty((parents.shape[0], 6)), np.empty(6), np.empty(6),
-                     np.empty(3))
+                     c_n, c_t, pin_ja, pin_jb, PX.shape[1] - len(pin_ja), pin_mh, f_ja, f_jb, f_xa, f_xb,
+                     parents, idx_v, nv_j, St, I, R, p, jids, take(buf, off, 0, PX.shape[1]),
+                     take1(buf, off, 0, PX.shape[0]), take1(buf, off, 0, len(T_ptr) - 1),
+                     take1(buf, off, 0, LamX.shape[0]), take(buf, off, n_pts, 3), take(buf, off, nj, 6),
+                     take(buf, off, nj, 6), take1(buf, off, 0, 6), take1(buf, off, 0, 6), take1(buf, off, 0, 3))
 
 
 def dense_wrench_map(Mx):

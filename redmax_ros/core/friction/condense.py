@@ -23,6 +23,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
+from redmax_ros.core.friction.arena import take, take1
 from redmax_ros.core.linalg import cholesky
 
 
@@ -310,28 +311,6 @@ def arena_size(n, m, nx):
 
 
 @njit(cache=True, nogil=True)
-def _take(buf, off, r, c):
-    """An (r, c) view of the float arena ``buf`` from offset off[0] (advanced), or a new array if it is full."""
-    o = off[0]
-    k = r * c
-    if o + k <= buf.shape[0]:
-        off[0] = o + k
-        return buf[o:o + k].reshape((r, c))
-    return np.empty((r, c))
-
-
-@njit(cache=True, nogil=True)
-def _take1(buf, off, slot, k):
-    """A (k,) view of the arena ``buf`` (floats: slot 0, ints: slot 1) from off[slot] (advanced), or a new
-    array of its type if it is full."""
-    o = off[slot]
-    if o + k <= buf.shape[0]:
-        off[slot] = o + k
-        return buf[o:o + k]
-    return np.empty(k, dtype=buf.dtype)
-
-
-@njit(cache=True, nogil=True)
 def condense(A, b, G, g, RX, nu):
     """:func:`condense_into` on an arena of its own (arena_size): the reference pipeline's call."""
     nf_, ni_ = arena_size(len(b), G.shape[0], RX.shape[0])
@@ -354,42 +333,42 @@ def condense_into(A, b, G, g, RX, nu, buf, ibuf, off):
     nf = nx - nu
     off[0] = 0
     off[1] = 0
-    Ainv = _take(buf, off, n, n)
-    ok = spd_inverse_into(A, _take1(ibuf, off, 1, n), _take(buf, off, n, n), _take(buf, off, n, n),
-                          _take(buf, off, n, n), Ainv)
+    Ainv = take(buf, off, n, n)
+    ok = spd_inverse_into(A, take1(ibuf, off, 1, n), take(buf, off, n, n), take(buf, off, n, n),
+                          take(buf, off, n, n), Ainv)
     status = 0 if ok else 1
-    GA = _take(buf, off, m, n)  # G A^-1 = Y^T
-    SG = _take(buf, off, m, n)
-    P = _take(buf, off, n, n)
-    v0 = _take1(buf, off, 0, n)
-    lam0 = _take1(buf, off, 0, m)
+    GA = take(buf, off, m, n)  # G A^-1 = Y^T
+    SG = take(buf, off, m, n)
+    P = take(buf, off, n, n)
+    v0 = take1(buf, off, 0, n)
+    lam0 = take1(buf, off, 0, m)
     GA[:, :] = 0.0
     SG[:, :] = 0.0
     v0[:] = 0.0
     lam0[:] = 0.0
     if ok and m:
-        gptr = _take1(ibuf, off, 1, m + 1)
-        gidx = _take1(ibuf, off, 1, m * n)
+        gptr = take1(ibuf, off, 1, m + 1)
+        gidx = take1(ibuf, off, 1, m * n)
         pattern_into(G, gptr, gidx)
         _sparse_left_into(G, gptr, gidx, Ainv, GA)
-        GAT = _take(buf, off, n, m)
+        GAT = take(buf, off, n, m)
         _transpose_into(GA, GAT)
-        S = _take(buf, off, m, m)
+        S = take(buf, off, m, m)
         _sparse_right_t_into(GAT, G, gptr, gidx, True, S)
-        Sinv = _take(buf, off, m, m)
-        ok = dense_spd_inverse_into(S, _take(buf, off, m, m), _take(buf, off, m, m), _take(buf, off, m, m), Sinv)
+        Sinv = take(buf, off, m, m)
+        ok = dense_spd_inverse_into(S, take(buf, off, m, m), take(buf, off, m, m), take(buf, off, m, m), Sinv)
         if ok:
             np.dot(Sinv, GA, SG)  # S^-1 Y^T
             np.dot(GAT, SG, P)
             for i in range(n):
                 for j in range(n):
                     P[i, j] = Ainv[i, j] - P[i, j]
-            t1, t2 = _take1(buf, off, 0, n), _take1(buf, off, 0, n)
+            t1, t2 = take1(buf, off, 0, n), take1(buf, off, 0, n)
             np.dot(P, b, t1)
             np.dot(g, SG, t2)
             for i in range(n):
                 v0[i] = t1[i] + t2[i]
-            t3 = _take1(buf, off, 0, m)
+            t3 = take1(buf, off, 0, m)
             np.dot(GA, b, t3)
             for i in range(m):
                 t3[i] = t3[i] - g[i]
@@ -402,33 +381,33 @@ def condense_into(A, b, G, g, RX, nu, buf, ibuf, off):
             np.dot(Ainv, b, v0)
         P[:, :] = Ainv
     _symmetrize(P)
-    PX = _take(buf, off, n, nx)
-    WX = _take(buf, off, nx, nx)
-    Xv0 = _take1(buf, off, 0, nx)
-    LamX = _take(buf, off, m, nx)
+    PX = take(buf, off, n, nx)
+    WX = take(buf, off, nx, nx)
+    Xv0 = take1(buf, off, 0, nx)
+    LamX = take(buf, off, m, nx)
     PX[:, :] = 0.0
     WX[:, :] = 0.0
     Xv0[:] = 0.0
     LamX[:, :] = 0.0
-    rptr = _take1(ibuf, off, 1, nx + 1)
-    ridx = _take1(ibuf, off, 1, nx * n)
+    rptr = take1(ibuf, off, 1, nx + 1)
+    ridx = take1(ibuf, off, 1, nx * n)
     pattern_into(RX, rptr, ridx)
     if nx and status == 0:
-        RXP = _take(buf, off, nx, n)
+        RXP = take(buf, off, nx, n)
         _sparse_left_into(RX, rptr, ridx, P, RXP)  # RX P = PX^T
         _transpose_into(RXP, PX)
         _sparse_right_t_into(PX, RX, rptr, ridx, True, WX)  # symmetric, as P
         np.dot(RX, v0, Xv0)
         if m:
-            SGT = _take(buf, off, n, m)
+            SGT = take(buf, off, n, m)
             _transpose_into(SG, SGT)
-            LamXT = _take(buf, off, nx, m)
+            LamXT = take(buf, off, nx, m)
             _sparse_right_t_into(SGT, RX, rptr, ridx, False, LamXT)  # S^-1 Y^T RX^T
             _transpose_into(LamXT, LamX)
-    W_U = _take(buf, off, nu, nu)
-    X_UT = _take(buf, off, nu, nf)
-    X_TU = _take(buf, off, nf, nu)
-    W_T = _take(buf, off, nf, nf)
+    W_U = take(buf, off, nu, nu)
+    X_UT = take(buf, off, nu, nf)
+    X_TU = take(buf, off, nf, nu)
+    W_T = take(buf, off, nf, nf)
     for i in range(nu):
         for j in range(nu):
             W_U[i, j] = WX[i, j]
@@ -438,8 +417,8 @@ def condense_into(A, b, G, g, RX, nu, buf, ibuf, off):
     for i in range(nf):
         for j in range(nf):
             W_T[i, j] = WX[nu + i, nu + j]
-    U_v0, T_v0 = _take1(buf, off, 0, nu), _take1(buf, off, 0, nf)
-    wU, wT = _take1(buf, off, 0, nu), _take1(buf, off, 0, nf)
+    U_v0, T_v0 = take1(buf, off, 0, nu), take1(buf, off, 0, nf)
+    wU, wT = take1(buf, off, 0, nu), take1(buf, off, 0, nf)
     for i in range(nu):
         U_v0[i] = Xv0[i]
         wU[i] = max(W_U[i, i], 0.0)
@@ -447,7 +426,7 @@ def condense_into(A, b, G, g, RX, nu, buf, ibuf, off):
         T_v0[i] = -Xv0[nu + i]
         wT[i] = max(W_T[i, i], 0.0)
     if nf and status == 0:
-        fptr = _take1(ibuf, off, 1, nf + 1)
+        fptr = take1(ibuf, off, 1, nf + 1)
         for i in range(nf + 1):
             fptr[i] = rptr[nu + i] - rptr[nu]
         fixed_row_weights(wT, RX[nu:], Ainv, fptr, ridx[rptr[nu]:])

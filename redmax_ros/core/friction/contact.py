@@ -49,6 +49,7 @@ import pinocchio as pin
 from numba import njit
 
 from redmax_ros.core.errors import SceneError
+from redmax_ros.core.friction.arena import empty_arena, take, take1, take3
 from redmax_ros.core.model.joint_maps import ROTATION_TYPES, carrier_name, is_mapped
 from redmax_ros.core.solvers import recursive as rc
 from redmax_ros.core.spatial import rpy_matrix
@@ -443,13 +444,35 @@ class ContactSet:
 @njit(cache=True, nogil=True)
 def _detect_kernel(R, p, St, sph_jid, sph_local, sph_radius, sph_support, sph_mu, plane_n, plane_off, plane_t,
                    plane_mu, margin, erp, h, T):
+    """:func:`detect_into` on arrays of its own (the reference pipeline's call)."""
+    buf, ibuf, off = empty_arena()
+    return detect_into(R, p, St, sph_jid, sph_local, sph_radius, sph_support, sph_mu, plane_n, plane_off, plane_t,
+                       plane_mu, margin, erp, h, T, buf, ibuf, off)
+
+
+@njit(cache=True, nogil=True)
+def rows_arena_size(K, P, nv, ndof, nlim, F1, Lf):
+    """(floats, ints) that :func:`rows_kernel_into` takes from its arena for K spheres, P planes, nv velocity
+    DOFs, ndof hyper-reduced DOFs, nlim unilateral limit rows, F1 joint and Lf loop-pin friction rows, with
+    every sphere/plane pair in contact (an upper bound: every take counted)."""
+    cnt = K * P
+    nu = cnt + nlim
+    nx = nu + 2 * cnt + F1 + Lf
+    floats = 3 * K + K * P + 15 * cnt + 3 * cnt * nv + 3 * cnt * ndof + nx * ndof + nu
+    return floats, 3 * cnt
+
+
+@njit(cache=True, nogil=True)
+def detect_into(R, p, St, sph_jid, sph_local, sph_radius, sph_support, sph_mu, plane_n, plane_off, plane_t,
+                plane_mu, margin, erp, h, T, buf, ibuf, off):
     """Sphere/plane pairs with gap d = n . c - offset - r < margin (sphere-major, as np.nonzero) and their
     rows: N = n^T J_x, T_k = t_k^T J_x with J_x = J_lin + J_ang x x on the supporting DOFs (Eq. 1.90-1.91,
     J_mr written through the world motion subspaces St), times the coupling matrix T (Eq. 9) if given;
-    lo = -d/h (d >= 0, speculative) or -erp d/h (d < 0, stabilisation)."""
+    lo = -d/h (d >= 0, speculative) or -erp d/h (d < 0, stabilisation). Every array is taken from the arena
+    (``buf``, ``ibuf``, ``off``: arena.py; not reset here)."""
     K, P, nv = len(sph_jid), len(plane_off), St.shape[0]
-    C = np.empty((K, 3))
-    gap = np.empty((K, P))
+    C = take(buf, off, K, 3)
+    gap = take(buf, off, K, P)
     cnt = 0
     for k in range(K):
         j = sph_jid[k]
@@ -461,10 +484,13 @@ def _detect_kernel(R, p, St, sph_jid, sph_local, sph_radius, sph_support, sph_mu
                          - plane_off[q] - sph_radius[k])
             if gap[k, q] < margin:
                 cnt += 1
-    ks, ps = np.empty(cnt, np.int64), np.empty(cnt, np.int64)
-    X, n, t = np.empty((cnt, 3)), np.empty((cnt, 3)), np.empty((cnt, 2, 3))
-    d, lo, mu, jid = np.empty(cnt), np.empty(cnt), np.empty(cnt), np.empty(cnt, np.int64)
-    Nv, Tv = np.zeros((cnt, nv)), np.zeros((2 * cnt, nv))
+    ks, ps = take1(ibuf, off, 1, cnt), take1(ibuf, off, 1, cnt)
+    X, n, t = take(buf, off, cnt, 3), take(buf, off, cnt, 3), take3(buf, off, cnt, 2, 3)
+    d, lo, mu, jid = take1(buf, off, 0, cnt), take1(buf, off, 0, cnt), take1(buf, off, 0, cnt), \
+        take1(ibuf, off, 1, cnt)
+    Nv, Tv = take(buf, off, cnt, nv), take(buf, off, 2 * cnt, nv)
+    Nv[:, :] = 0.0
+    Tv[:, :] = 0.0
     i = 0
     for k in range(K):
         for q in range(P):
@@ -494,7 +520,10 @@ def _detect_kernel(R, p, St, sph_jid, sph_local, sph_radius, sph_support, sph_mu
                 Tv[2 * i + 1, c] = t[i, 1, 0] * j0 + t[i, 1, 1] * j1 + t[i, 1, 2] * j2
             i += 1
     if T.shape[0]:
-        Nv, Tv = Nv @ T, Tv @ T
+        NT, TT = take(buf, off, cnt, T.shape[1]), take(buf, off, 2 * cnt, T.shape[1])
+        np.dot(Nv, T, NT)  # as Nv @ T
+        np.dot(Tv, T, TT)
+        Nv, Tv = NT, TT
     return ks, ps, X, n, t, d, mu, jid, Nv, Tv, lo
 
 
@@ -520,19 +549,40 @@ _EMPTY = np.zeros((0, 0))
 @njit(cache=True, nogil=True)
 def rows_kernel(R, p, St, sph_jid, sph_local, sph_radius, sph_support, sph_mu, plane_n, plane_off, plane_t, plane_mu,
                  margin, erp, h, T, T_ptr, T_idx, T_val, ndof, rows_fixed, pin_moment, loop_sdiff, CU, lo_CU):
-    """_detect_kernel plus the stacked rows of the staggered solve, RX = [N; CU; -T_ground; -T_joints;
+    """:func:`rows_kernel_into` on arrays of its own (the reference pipeline's call)."""
+    buf, ibuf, off = empty_arena()
+    return rows_kernel_into(R, p, St, sph_jid, sph_local, sph_radius, sph_support, sph_mu, plane_n, plane_off,
+                            plane_t, plane_mu, margin, erp, h, T, T_ptr, T_idx, T_val, ndof, rows_fixed, pin_moment,
+                            loop_sdiff, CU, lo_CU, buf, ibuf, off)
+
+
+@njit(cache=True, nogil=True)
+def _put_negated(dst, r0, src):
+    """dst[r0:r0 + len(src)] = -src (row by row, no temporary)."""
+    for i in range(src.shape[0]):
+        for j in range(src.shape[1]):
+            dst[r0 + i, j] = -src[i, j]
+
+
+@njit(cache=True, nogil=True)
+def rows_kernel_into(R, p, St, sph_jid, sph_local, sph_radius, sph_support, sph_mu, plane_n, plane_off, plane_t,
+                     plane_mu, margin, erp, h, T, T_ptr, T_idx, T_val, ndof, rows_fixed, pin_moment, loop_sdiff, CU,
+                     lo_CU, buf, ibuf, off):
+    """detect_into plus the stacked rows of the staggered solve, RX = [N; CU; -T_ground; -T_joints;
     -T_loops] (unilateral rows first: ground normals, then the limit rows CU), with the loop-pin rows
-    r axis^T (J_w,a - J_w,b) mapped through the coupling matrix (CSR)."""
-    ks, ps, X, n, t, d, mu, jid, N, Tv, lo = _detect_kernel(R, p, St, sph_jid, sph_local, sph_radius, sph_support,
-                                                           sph_mu, plane_n, plane_off, plane_t, plane_mu, margin, erp,
-                                                           h, T)
+    r axis^T (J_w,a - J_w,b) mapped through the coupling matrix (CSR). Every array is taken from the arena
+    (``buf``, ``ibuf``, ``off``: arena.py, rows_arena_size; not reset here)."""
+    ks, ps, X, n, t, d, mu, jid, N, Tv, lo = detect_into(R, p, St, sph_jid, sph_local, sph_radius, sph_support,
+                                                         sph_mu, plane_n, plane_off, plane_t, plane_mu, margin, erp,
+                                                         h, T, buf, ibuf, off)
     nc, nlim, F1, Lf, nv = len(ks), CU.shape[0], rows_fixed.shape[0], pin_moment.shape[0], St.shape[0]
     nu = nc + nlim
-    RX = np.zeros((nu + 2 * nc + F1 + Lf, ndof))
+    RX = take(buf, off, nu + 2 * nc + F1 + Lf, ndof)
+    RX[:, :] = 0.0
     RX[:nc] = N
     RX[nc:nu] = CU
-    RX[nu:nu + 2 * nc] = -Tv
-    RX[nu + 2 * nc:nu + 2 * nc + F1] = -rows_fixed
+    _put_negated(RX, nu, Tv)
+    _put_negated(RX, nu + 2 * nc, rows_fixed)
     r0 = nu + 2 * nc + F1
     for q in range(Lf):
         for c in range(nv):
@@ -542,7 +592,7 @@ def rows_kernel(R, p, St, sph_jid, sph_local, sph_radius, sph_support, sph_mu, p
             w = sd * (pin_moment[q, 0] * St[c, 3] + pin_moment[q, 1] * St[c, 4] + pin_moment[q, 2] * St[c, 5])
             for e in range(T_ptr[c], T_ptr[c + 1]):
                 RX[r0 + q, T_idx[e]] -= w * T_val[e]
-    lo_U = np.empty(nu)
+    lo_U = take1(buf, off, 0, nu)
     lo_U[:nc] = lo
     lo_U[nc:] = lo_CU
     return ks, ps, X, n, t, d, mu, jid, N, Tv, lo, RX, lo_U, nu

@@ -184,7 +184,13 @@ def loop_kernel(W_U, X_UT, X_TU, U_v0, lo_U, W_T, T_v0, mu_g, a0, wm, bound_mu, 
 @numba.njit(cache=True)
 def loop_state(nu, nf, depth, nal):
     """The state of a new staggered loop for staggered_kernel: (float buffer, int buffer), zeros."""
-    return np.zeros(5 * nf + nu + nal + 2 * depth * nf + 2), np.zeros(3, dtype=np.int64)
+    return np.zeros(loop_state_size(nu, nf, depth, nal)), np.zeros(3, dtype=np.int64)
+
+
+@numba.njit(cache=True)
+def loop_state_size(nu, nf, depth, nal):
+    """Floats of loop_state's float buffer (its int buffer has 3)."""
+    return 5 * nf + nu + nal + 2 * depth * nf + 2
 
 
 @numba.njit(cache=True)
@@ -483,16 +489,23 @@ _NO_GAP = np.zeros(0)
 
 @numba.njit(cache=True)
 def warm_start(cache, has_cache, sphere, plane, n_planes, j0, nf):
+    """:func:`warm_start_into` on arrays of its own: (slots, beta)."""
+    return warm_start_into(cache, has_cache, sphere, plane, n_planes, j0, np.empty(nf, dtype=np.int64), np.empty(nf))
+
+
+@numba.njit(cache=True)
+def warm_start_into(cache, has_cache, sphere, plane, n_planes, j0, slots, beta):
     """Cache slots of this step's friction rows (2 per (sphere, plane) ground contact, then the joint and
-    loop rows from j0) and the warm-start impulses beta [Kaufman et al. 2008] (zeros without a cache)."""
+    loop rows from j0) into ``slots`` (nf,) and the warm-start impulses [Kaufman et al. 2008] into ``beta``
+    (nf,; zeros without a cache). Returns (slots, beta)."""
     nc = len(sphere)
-    slots = np.empty(nf, dtype=np.int64)
+    nf = len(slots)
     for c in range(nc):
         g0 = 2 * (sphere[c] * n_planes + plane[c])
         slots[2 * c], slots[2 * c + 1] = g0, g0 + 1
     for i in range(nf - 2 * nc):
         slots[2 * nc + i] = j0 + i
-    beta = np.zeros(nf)
+    beta[:] = 0.0
     if has_cache:
         for i in range(nf):
             beta[i] = cache[slots[i]]
@@ -501,18 +514,47 @@ def warm_start(cache, has_cache, sphere, plane, n_planes, j0, nf):
 
 @numba.njit(cache=True)
 def finish(v0, PX, b, RX, lam0, LamX, alpha, beta, bound, al, slots, n_slots, gap, kmax, h):
-    """Outputs of the staggered solve from its last iterate x = [alpha; beta]: velocity qdot_0 + PX x,
-    generalized impulse RHS b + RX^T x, multipliers lambda_0 + LamX x, the new warm-start cache, and the
-    report's counts (active ground contacts, deepest penetration, sticking friction rows, joint normal
-    loads sum_k |alpha_k| / h)."""
+    """:func:`finish_into` on arrays of its own: (v, r, lam, cache, active, max_pen, sticking, jn)."""
+    v, r, lam, cache = np.empty(len(v0)), np.empty(len(b)), np.empty(len(lam0)), np.empty(n_slots)
+    jn = np.empty(len(al) // kmax)
+    scratch = np.empty(finish_scratch_size(len(alpha) + len(beta), len(b), len(lam0)))
+    active, max_pen, sticking = finish_into(v0, PX, b, RX, lam0, LamX, alpha, beta, bound, al, slots, gap, kmax, h,
+                                            v, r, lam, cache, jn, scratch)
+    return v, r, lam, cache, active, max_pen, sticking, jn
+
+
+@numba.njit(cache=True)
+def finish_scratch_size(nx, n, m):
+    """Floats of finish_into's ``scratch`` for nx staggered rows, n DOFs and m bilateral rows."""
+    return nx + n + m
+
+
+@numba.njit(cache=True)
+def finish_into(v0, PX, b, RX, lam0, LamX, alpha, beta, bound, al, slots, gap, kmax, h, v, r, lam, cache, jn,
+                scratch):
+    """Outputs of the staggered solve from its last iterate x = [alpha; beta] into the given arrays: velocity
+    v = qdot_0 + PX x, generalized impulse RHS r = b + RX^T x, multipliers lam = lambda_0 + LamX x, the new
+    warm-start ``cache`` (n_slots,), the joint normal loads jn = sum_k |alpha_k| / h (len(al) // kmax,);
+    returns the report's counts (active ground contacts, deepest penetration, sticking friction rows).
+    ``scratch``: finish_scratch_size floats (x and the products)."""
     nu, nf = len(alpha), len(beta)
-    x = np.empty(nu + nf)
+    n, m = len(v0), len(lam0)
+    x = scratch[:nu + nf]
+    tn = scratch[nu + nf:nu + nf + n]
+    tm = scratch[nu + nf + n:nu + nf + n + m]
     x[:nu] = alpha
     x[nu:] = beta
-    v = v0 + PX @ x
-    r = b + x @ RX
-    lam = lam0 + LamX @ x if len(lam0) else lam0.copy()
-    cache = np.zeros(n_slots)
+    np.dot(PX, x, tn)  # as v0 + PX @ x
+    for i in range(n):
+        v[i] = v0[i] + tn[i]
+    np.dot(x, RX, tn)  # as b + x @ RX
+    for i in range(len(b)):
+        r[i] = b[i] + tn[i]
+    if m:
+        np.dot(LamX, x, tm)
+        for i in range(m):
+            lam[i] = lam0[i] + tm[i]
+    cache[:] = 0.0
     for i in range(nf):
         cache[slots[i]] = beta[i]
     nc = len(gap)
@@ -527,13 +569,12 @@ def finish(v0, PX, b, RX, lam0, LamX, alpha, beta, bound, al, slots, n_slots, ga
         if bound[i] > 1e-12 and bound[i] - abs(beta[i]) > 1e-9 * max(bound[i], 1e-300):
             sticking += 1
     nj = len(al) // kmax
-    jn = np.zeros(nj)
     for j in range(nj):
         sacc = 0.0
         for k in range(kmax):
             sacc += abs(al[j * kmax + k])
         jn[j] = sacc / h
-    return v, r, lam, cache, active, max_pen, sticking, jn
+    return active, max_pen, sticking
 
 
 def _compiled_loop(deadline, *args):

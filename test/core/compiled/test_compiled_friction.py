@@ -156,3 +156,33 @@ def test_proxsuite_inner_solves_stay_on_the_reference():
     assert type(Simulator.load("klann", over).backend).__name__ != "CompiledBackend"
     with pytest.raises(SceneError, match="friction.qp: proxsuite"):
         Simulator.load("klann", over, solver="compiled")
+
+
+def test_a_short_step_arena_gives_the_same_walker_bit_for_bit(monkeypatch):
+    """friction_solve takes every array of a step from the friction pack's step arena (arena.py), sized by
+    step_arena_size for the most rows a step can have; a take past its end allocates instead. The walker on an
+    arena a tenth of the size (most takes allocate) and on none steps bit for bit as on the full one, whose
+    count bounds what a step took."""
+    from redmax_ros.core.step.compiled import friction as cf
+
+    def run(shrink):
+        if shrink is not None:
+            full = cf.step_arena_size
+            monkeypatch.setattr(cf, "step_arena_size", lambda *a: tuple(k // shrink for k in full(*a)))
+        sim = Simulator.load(*WALKER, solver="compiled")
+        monkeypatch.undo()
+        fr = sim.backend.friction
+        states = []
+        for _ in range(60):
+            r = sim.step()
+            assert r.diagnostics.solver == "compiled"
+            states.append(np.concatenate([r.q, r.v, r.effort]))
+            if shrink is None:
+                assert fr["step_off"][0] <= fr["step_arena"].shape[0]
+                assert fr["step_off"][1] <= fr["step_iarena"].shape[0]
+        return np.array(states), fr["step_arena"].shape[0]
+
+    ref, n_full = run(None)
+    for shrink in (10, n_full + 1):
+        out, n = run(shrink)
+        assert n < n_full and np.array_equal(out, ref)

@@ -20,7 +20,8 @@ SOURCES = ("step/compiled/kernel.py", "step/compiled/kinematics.py", "step/compi
            "linalg.py", "jit.py",
            "dynamics/tree_forces.py", "dynamics/tree_kinematics.py", "dynamics/stabilization.py",
            "dynamics/energy.py", "dynamics/springs.py",
-           "friction/staggered.py", "friction/condense.py", "friction/contact.py", "friction/bisp.py")
+           "friction/staggered.py", "friction/condense.py", "friction/contact.py", "friction/bisp.py",
+           "friction/arena.py")
 
 
 def drop_stale() -> bool:

@@ -6,12 +6,17 @@ The kernels are those of the reference pipeline's friction stage (friction/stagg
 order, so both paths compute the same numbers from the same inputs:
 
     Z = Jdot qdot^prev                            # bias accelerations (recursive.bias_kernel)
-    RX, lo_U = rows_kernel(...)                   # detection, rows [U; -T] (contact.py; Eq. 11-12, 1.90-1.91)
+    RX, lo_U = rows_kernel_into(...)              # detection, rows [U; -T] (contact.py; Eq. 11-12, 1.90-1.91)
     qdot_0, PX, W_U, W_T, ... = condense_into(...)  # the bilateral rows condensed once (condense.py), on its arena
-    beta = warm_start(cache)                      # friction impulses of the last step [Kaufman et al. 2008]
-    wm = make_wrench_map(...); constant_wrenches(wm, ...)  # joint wrenches of Eq. (15)-(17): the map of x, W0 (bisp.py)
+    beta = warm_start_into(cache)                 # friction impulses of the last step [Kaufman et al. 2008]
+    wm = make_wrench_map_into(...); constant_wrenches(wm, ...)  # joint wrenches of Eq. (15)-(17): the map of x, W0 (bisp.py)
     staggered_kernel(...)                         # the loop: contact, BISP (Eq. 16), friction, Anderson
-    finish(...)                                   # qdot_R+, lambda, the new cache, the report's counts
+    finish_into(...)                              # qdot_R+, lambda, the new cache, the report's counts
+
+A step allocates nothing: every array it makes is a view of an arena of the friction pack (friction/arena.py),
+sized in build_friction for the most rows a step can have: the condensation's (condense.arena_size), the
+loop's work vectors (staggered.loop_scratch_size) and the step arena for the rest (step_arena_size); a step
+that needed more would allocate what did not fit, with the same numbers.
 
 :data:`FRICTION_SPEC` packs the constants of a Mechanism's contact.FrictionModel (built once, like the Model);
 :func:`friction_unsupported` says which friction scenes stay on the reference pipeline (spherical joint
@@ -24,12 +29,14 @@ from collections import namedtuple
 
 import numpy as np
 
-from redmax_ros.core.friction.bisp import constant_wrenches, make_wrench_map
+from redmax_ros.core.friction.arena import take, take1
+from redmax_ros.core.friction.bisp import constant_wrenches, make_wrench_map_into, wrench_map_arena_size
 from redmax_ros.core.friction.condense import arena_size, condense_into
-from redmax_ros.core.friction.contact import rows_kernel
-from redmax_ros.core.friction.staggered import finish, loop_scratch_size, loop_state, staggered_kernel, warm_start
+from redmax_ros.core.friction.contact import rows_arena_size, rows_kernel_into
+from redmax_ros.core.friction.staggered import (finish_into, finish_scratch_size, loop_scratch_size, loop_state_size,
+                                                staggered_kernel, warm_start_into)
 from redmax_ros.core.jit import njit_inline
-from redmax_ros.core.solvers.kkt import kkt_residual, max_row_residual
+from redmax_ros.core.solvers.kkt import kkt_residual_into, max_row_residual
 from redmax_ros.core.solvers.recursive import bias_kernel
 from redmax_ros.core.step.compiled.packing import f1, f2, f3, i1, pack
 
@@ -51,6 +58,8 @@ FRICTION_SPEC = (
     ("arena", "f", 1), ("iarena", "i", 1), ("arena_off", "i", 1),
     # and the staggered loop's work vectors (staggered.loop_scratch_size)
     ("loop_scratch", "f", 1),
+    # and the rest of a step's arrays (friction_solve; arena.py: floats, ints and offsets, step_arena_size)
+    ("step_arena", "f", 1), ("step_iarena", "i", 1), ("step_off", "i", 1),
 )
 FrictionConsts = namedtuple("FrictionConsts", [n for n, _, _ in FRICTION_SPEC])
 
@@ -74,7 +83,8 @@ def friction_views(f, i, t):
                           i1(i, t, 15), i1(i, t, 16), f1(f, t, 17), i1(i, t, 18), i1(i, t, 19),
                           i1(i, t, 20), i1(i, t, 21), i1(i, t, 22), i1(i, t, 23), f3(f, t, 24), i1(i, t, 25),
                           f1(f, t, 26), f1(f, t, 27),
-                          f1(f, t, 28), f1(f, t, 29), i1(i, t, 30), i1(i, t, 31), f1(f, t, 32))
+                          f1(f, t, 28), f1(f, t, 29), i1(i, t, 30), i1(i, t, 31), f1(f, t, 32),
+                          f1(f, t, 33), i1(i, t, 34), i1(i, t, 35))
 
 
 def friction_unsupported(mech) -> list:
@@ -123,21 +133,48 @@ def build_friction(mech):
     nfl, nin = arena_size(mech.ndof, m_max, nx_max)
     values.update(arena=np.zeros(nfl), iarena=np.zeros(nin, dtype=np.int64), arena_off=np.zeros(2, dtype=np.int64),
                   loop_scratch=np.zeros(loop_scratch_size(nx_max, nx_max, int(st.anderson), 6 * len(values["L_of"]))))
+    sfl, sin = step_arena_size(mech, values, m_max)
+    values.update(step_arena=np.zeros(sfl), step_iarena=np.zeros(sin, dtype=np.int64),
+                  step_off=np.zeros(2, dtype=np.int64))
     return pack(FRICTION_SPEC, values)
 
 
+def step_arena_size(mech, values, m_max):
+    """(floats, ints) that friction_solve takes from the step arena (step_arena, step_iarena): every take
+    counted, with every sphere/plane pair in contact, both bounds of every limited coordinate finite and m_max
+    bilateral rows (the most a step can have). ``values``: build_friction's constants."""
+    ndof, nv_T, nj = mech.ndof, len(values["T_ptr"]) - 1, mech.model.njoints
+    K = len(values["sph_jid"])
+    P = len(values["plane_off"]) if K else 0
+    nlim = 2 * len(mech.limited)
+    F1, Lf = values["rows_fixed"].shape[0], values["pin_moment"].shape[0]
+    rfl, rin = rows_arena_size(K, P, mech.nv, ndof, nlim, F1, Lf)
+    nu = K * P + nlim
+    nf = 2 * K * P + F1 + Lf
+    nw, kmax, nloops = len(values["L_of"]), values["L_ops"].shape[2], len(mech.loop_ab)
+    depth, n_slots = int(values["scalars"][SC_DEPTH]), int(values["scalars"][SC_N_SLOTS])
+    floats = (6 * nj + nlim * ndof + nlim + rfl  # Z, the limit rows, the contacts and rows
+              + nf + 6 * nw + 6 * nloops  # beta, W0, the loops' points
+              + wrench_map_arena_size(ndof, nv_T, m_max, nloops, nj, Lf) + 6 * nj  # the wrench map, E0
+              + nu + loop_state_size(nu, nf, depth, nw * kmax)  # alpha, the loop's state
+              + 2 * ndof + m_max + n_slots + nw + finish_scratch_size(nu + nf, ndof, m_max)  # finish
+              + ndof)  # the KKT residual's vector
+    return floats, rin + nf + 3
+
+
 @njit_inline
-def unilateral_limit_rows(C, lo, hi):
+def unilateral_limit_rows(C, lo, hi, buf, off):
     """(CU, lo_CU): the joint-limit rows of Eq. (5) as unilateral rows CU qdot >= lo_CU, the finite lower bounds
-    (rows C) first, then the finite upper ones (rows -C), as contact.staggered_rows stacks them."""
+    (rows C) first, then the finite upper ones (rows -C), as contact.staggered_rows stacks them; taken from the
+    float arena ``buf`` (offsets ``off``, arena.py)."""
     n_lo, n_hi = 0, 0
     for r in range(lo.shape[0]):
         if np.isfinite(lo[r]):
             n_lo += 1
         if np.isfinite(hi[r]):
             n_hi += 1
-    CU = np.empty((n_lo + n_hi, C.shape[1]))
-    lo_CU = np.empty(n_lo + n_hi)
+    CU = take(buf, off, n_lo + n_hi, C.shape[1])
+    lo_CU = take1(buf, off, 0, n_lo + n_hi)
     k = 0
     for r in range(lo.shape[0]):
         if np.isfinite(lo[r]):
@@ -164,13 +201,16 @@ def friction_solve(m, d, c, h, cache, has_cache, cache_new, jn, rep, work_cap, r
     KKT residual (rep[REP_KKT], a diagnostic) is computed, else NaN (kernel.one_step)."""
     sc = c.scalars
     ndof = d.AR.shape[0]
-    Z = np.empty((m.parents.shape[0], 6))
+    buf, ibuf, off = c.step_arena, c.step_iarena, c.step_off  # every array of the step is taken from it
+    off[0] = 0
+    off[1] = 0
+    Z = take(buf, off, m.parents.shape[0], 6)
     bias_kernel(m.parents, m.idx_v, m.nv_j, d.St, d.ov, d.v_r, d.R, d.p, d.c_local, Z)
-    CU, lo_CU = unilateral_limit_rows(m.limit_rows, d.lo, d.hi)
-    ks, ps, X, n, t, gap, mu_g, jid, N, Tv, lo, RX, lo_U, nu = rows_kernel(
+    CU, lo_CU = unilateral_limit_rows(m.limit_rows, d.lo, d.hi, buf, off)
+    ks, ps, X, n, t, gap, mu_g, jid, N, Tv, lo, RX, lo_U, nu = rows_kernel_into(
         d.R, d.p, d.St, c.sph_jid, c.sph_local, c.sph_radius, c.sph_support, c.sph_mu, c.plane_n, c.plane_off,
         c.plane_t, c.plane_mu, sc[SC_MARGIN], sc[SC_ERP], h, m.T, c.T_ptr, c.T_idx, c.T_val, ndof, c.rows_fixed,
-        c.pin_moment, c.loop_sdiff, CU, lo_CU)
+        c.pin_moment, c.loop_sdiff, CU, lo_CU, buf, ibuf, off)
     nc = ks.shape[0]
     nf = RX.shape[0] - nu
     status, v0, PX, W_U, X_UT, X_TU, W_T, U_v0, T_v0, wU, wT, lam0, LamX = condense_into(
@@ -179,28 +219,36 @@ def friction_solve(m, d, c, h, cache, has_cache, cache_new, jn, rep, work_cap, r
         return NOT_PD
     if status == 2:
         return RANK_DEFICIENT
-    slots, beta = warm_start(cache, has_cache != 0, ks, ps, c.plane_n.shape[0], int(sc[SC_SLOT0]), nf)
+    slots, beta = warm_start_into(cache, has_cache != 0, ks, ps, c.plane_n.shape[0], int(sc[SC_SLOT0]),
+                                  take1(ibuf, off, 1, nf), take1(buf, off, 0, nf))
     joint = sc[SC_JOINT] != 0.0
     nw = c.L_of.shape[0]
     kmax = c.L_ops.shape[2]
-    W0 = np.zeros((nw, 6))
+    W0 = take(buf, off, nw, 6)
+    W0[:, :] = 0.0
     nloops = m.loop_a.shape[0]
-    xa = np.empty((nloops, 3))
-    xb = np.empty((nloops, 3))
+    xa = take(buf, off, nloops, 3)
+    xb = take(buf, off, nloops, 3)
     for lp in range(nloops):
         for a in range(3):
             xa[lp, a] = d.X[m.loop_a[lp], a]
             xb[lp, a] = d.X[m.loop_b[lp], a]
-    wm = make_wrench_map(nu, h, PX, c.T_ptr, c.T_idx, c.T_val, LamX, c.sel_r, c.sel_c, c.sel_v, c.loop_index,
-                         int(sc[SC_N_TREE]), jid, X, n, t, c.pin_ja, c.pin_jb, c.pin_moment, c.loop_ja[:nloops],
-                         c.loop_jb[:nloops], xa, xb, m.parents, m.idx_v, m.nv_j, d.St, d.I, d.R, d.p, c.fj_jid)
+    wm = make_wrench_map_into(nu, h, PX, c.T_ptr, c.T_idx, c.T_val, LamX, c.sel_r, c.sel_c, c.sel_v, c.loop_index,
+                              int(sc[SC_N_TREE]), jid, X, n, t, c.pin_ja, c.pin_jb, c.pin_moment, c.loop_ja[:nloops],
+                              c.loop_jb[:nloops], xa, xb, m.parents, m.idx_v, m.nv_j, d.St, d.I, d.R, d.p, c.fj_jid,
+                              buf, off)
     if joint:  # Eq. (15)-(17): the constant part W0 here, the part linear in x = [alpha_U; beta] in the loop
-        E0 = d.ext.copy()  # constant world wrenches of the step (stage 2; no maximal springs here)
+        E0 = take(buf, off, d.ext.shape[0], d.ext.shape[1])
+        E0[:, :] = d.ext  # constant world wrenches of the step (stage 2; no maximal springs here)
         constant_wrenches(wm, d.ov, Z, c.gravity, v0, d.v_r, lam0, E0, W0)
-    alpha = np.zeros(nu)
+    alpha = take1(buf, off, 0, nu)
+    alpha[:] = 0.0
     nal = nw * kmax
     depth = int(sc[SC_DEPTH])
-    sbuf, sint = loop_state(nu, nf, depth, nal)
+    sbuf = take1(buf, off, 0, loop_state_size(nu, nf, depth, nal))  # a new loop's state (staggered.loop_state)
+    sint = take1(ibuf, off, 1, 3)
+    sbuf[:] = 0.0
+    sint[:] = 0
     scratch = c.loop_scratch
     if loop_scratch_size(nu, nf, depth, 6 * nw) > scratch.shape[0]:  # more rows than build_friction counted
         scratch = np.empty(loop_scratch_size(nu, nf, depth, 6 * nw))
@@ -210,9 +258,13 @@ def friction_solve(m, d, c, h, cache, has_cache, cache_new, jn, rep, work_cap, r
     if paused:
         return PAUSED
     if not joint:
-        al = np.zeros(0)
-    v, r, lam, new_cache, active, max_pen, sticking, jnv = finish(v0, PX, d.bR, RX, lam0, LamX, alpha, beta, bound,
-                                                                   al, slots, int(sc[SC_N_SLOTS]), gap, kmax, h)
+        al = al[:0]
+    nx = nu + nf
+    v, r, lam = take1(buf, off, 0, ndof), take1(buf, off, 0, ndof), take1(buf, off, 0, lam0.shape[0])
+    new_cache, jnv = take1(buf, off, 0, int(sc[SC_N_SLOTS])), take1(buf, off, 0, al.shape[0] // kmax)
+    active, max_pen, sticking = finish_into(
+        v0, PX, d.bR, RX, lam0, LamX, alpha, beta, bound, al, slots, gap, kmax, h, v, r, lam, new_cache, jnv,
+        take1(buf, off, 0, finish_scratch_size(nx, ndof, lam0.shape[0])))
     d.v_hyper[:] = v
     d.lam[:] = lam
     d.mu[:] = 0.0
@@ -227,7 +279,8 @@ def friction_solve(m, d, c, h, cache, has_cache, cache_new, jn, rep, work_cap, r
     rep[REP_STICKING] = sticking
     rep[REP_PAUSED] = 0.0
     # the relative KKT residual of the last contact stage's system A qdot = b + RX^T x - G^T lambda
-    rep[REP_KKT] = kkt_residual(d.AR, r, d.v_hyper, d.G, d.lam, m.limit_rows[:0], d.mu[:0]) if report else np.nan
+    rep[REP_KKT] = kkt_residual_into(d.AR, r, d.v_hyper, d.G, d.lam, m.limit_rows[:0], d.mu[:0],
+                                     take1(buf, off, 0, ndof)) if report else np.nan
     return SOLVED
 
 
