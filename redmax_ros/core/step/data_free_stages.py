@@ -186,7 +186,7 @@ def solve_pcg(mech, ws, system: MatrixFreeSystem, b, cons: Constraints, x0, rtol
     X, its, conv, rel = block_pcg(ops, B, X0, rtol, max_iter, ws.deadline)
     stats["solves"] = its.tolist()
     total = sum(stats["solves"])
-    if not conv.all():
+    if not all(conv.tolist()):  # (conv.all(): ~1 us more)
         bad = int(np.flatnonzero(~conv)[0])
         raise Fallback(f"PCG did not reach rtol {rtol:g} in {max_iter} iterations "
                        f"(solve {bad}: relative residual {rel[bad]:.2e})", total)
