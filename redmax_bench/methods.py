@@ -340,18 +340,15 @@ def run_ours(problem, h, energy_cap=None, budget=None, name="ours (direct)", req
     run = rec.run
     hyb = problem.hybrid
     _warm_up(sim, hyb, h, rate)
-    if hyb is None and rec.n_sub == 1:
-        return _run_ours_every_step(problem, rec, require_solver)
+    if hyb is None:
+        return _run_ours_blocks(problem, rec, require_solver)
     for k in range(problem.n_samples):
         t0, c0 = time.perf_counter(), time.process_time()
         try:
-            if hyb is None:
-                res = sim.step(rec.n_sub)
-            else:
-                for _ in range(rec.n_sub):
-                    t = sim.time
-                    sim.commands.joint_velocities[hyb.joint] = np.array([rate(hyb, t, h)])
-                    res = sim.step(1)
+            for _ in range(rec.n_sub):
+                t = sim.time
+                sim.commands.joint_velocities[hyb.joint] = np.array([rate(hyb, t, h)])
+                res = sim.step(1)
         except StepError as e:
             run.wall += time.perf_counter() - t0
             run.cpu += time.process_time() - c0
@@ -364,7 +361,7 @@ def run_ours(problem, h, energy_cap=None, budget=None, name="ours (direct)", req
         d = res.diagnostics
         if require_solver and require_solver not in str(d.solver):
             return run.fail("not-applicable", f"the stepper ran solver '{d.solver}', not '{require_solver}'")
-        tau = float(res.effort[hyb.dof]) if hyb is not None else None
+        tau = float(res.effort[hyb.dof])
         if not rec.record(k, res.q, d.E_total, d.violation_pos, tau, float(np.abs(res.v).max(initial=0.0))):
             return run
     return run
@@ -385,22 +382,23 @@ def _warm_up(sim, hyb, h, rate):
     sim.set_state(start)
 
 
-SAMPLES_PER_CALL = 100  # step_results calls of _run_ours_every_step: the budget is checked between them
+SAMPLES_PER_CALL = 100  # samples per timed block (ours, MuJoCo): the per-sample checks and the budget run between blocks
 
 
-def _run_ours_every_step(problem, rec, require_solver=None):
-    """run_ours when every step is a sample (h = sample_dt): the steps as a user who wants each step's result
-    takes them, ``Simulator.step_results`` (one kernel call per block of steps on the compiled path, which
-    records every step's outputs) instead of one ``step(1)`` call per step; the results are those of single
-    steps (test_step_results.py). Blocks of SAMPLES_PER_CALL samples, the blow-up and budget checks after
-    each (a blow-up inside a block is caught at its sample, as with single steps)."""
+def _run_ours_blocks(problem, rec, require_solver=None):
+    """run_ours without prescriptions: blocks of SAMPLES_PER_CALL samples, each timed as a whole (the clock read
+    once per block, not per sample, as run_mujoco does) and the blow-up and budget checks after it (a blow-up
+    inside a block is caught at its sample, as with single calls). When every step is a sample (h = sample_dt)
+    the block is one ``Simulator.step_results`` call, as a user who wants each step's result takes them (one
+    kernel call per block on the compiled path, which records every step's outputs; the results are those of
+    single steps, test_step_results.py), else one ``step(n_sub)`` call per sample."""
     sim, run = problem.sim, rec.run
     k = 0
     while k < problem.n_samples:
         n = min(SAMPLES_PER_CALL, problem.n_samples - k)
         t0, c0 = time.perf_counter(), time.process_time()
         try:
-            results = sim.step_results(n)
+            results = sim.step_results(n) if rec.n_sub == 1 else [sim.step(rec.n_sub) for _ in range(n)]
         except StepError as e:
             run.wall += time.perf_counter() - t0
             run.cpu += time.process_time() - c0
@@ -409,7 +407,7 @@ def _run_ours_every_step(problem, rec, require_solver=None):
             return run.fail("blow-up" if bad else "nonconvergence", msg)
         run.wall += time.perf_counter() - t0
         run.cpu += time.process_time() - c0
-        run.steps += n
+        run.steps += n * rec.n_sub
         for res in results:
             d = res.diagnostics
             if require_solver and require_solver not in str(d.solver):
@@ -515,20 +513,27 @@ def run_mujoco(problem, h, integrator, energy_cap=None, budget=None):
     rec = _Recorder(problem, h, f"MuJoCo {integrator}", energy_cap, budget)
     run = rec.run
     m = ex.model
-    for k in range(problem.n_samples):
+    k = 0
+    while k < problem.n_samples:  # blocks of samples timed as a whole, as _run_ours_blocks does ours
+        n = min(SAMPLES_PER_CALL, problem.n_samples - k)
         t0, c0 = time.perf_counter(), time.process_time()
-        mujoco.mj_step(m, d, nstep=rec.n_sub)
+        states = []
+        for _ in range(n):
+            mujoco.mj_step(m, d, nstep=rec.n_sub)
+            states.append((d.qpos.copy(), d.qvel.copy()))
         run.wall += time.perf_counter() - t0
         run.cpu += time.process_time() - c0
-        run.steps += rec.n_sub
+        run.steps += n * rec.n_sub
         for w in ("mjWARN_BADQPOS", "mjWARN_BADQVEL", "mjWARN_BADQACC"):  # MuJoCo resets the state on these
             if int(d.warning[getattr(mujoco.mjtWarning, w)].number):
                 return run.fail("blow-up", f"MuJoCo: {w} (state reset to qpos0) before t = {d.time:.4g} s")
-        q = ex.q(d.qpos)
-        v = ex.v(q, d.qvel)
-        E = baselines.mechanical_energy(mech, ws, q, v) if np.all(np.isfinite(v)) else float("nan")
-        if not rec.record(k, q, E, loop_residual(mech, ws.data, q), None, float(np.abs(d.qvel).max())):
-            return run
+        for qpos, qvel in states:
+            q = ex.q(qpos)
+            v = ex.v(q, qvel)
+            E = baselines.mechanical_energy(mech, ws, q, v) if np.all(np.isfinite(v)) else float("nan")
+            if not rec.record(k, q, E, loop_residual(mech, ws.data, q), None, float(np.abs(qvel).max())):
+                return run
+            k += 1
     return run
 
 
