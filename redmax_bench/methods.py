@@ -342,21 +342,16 @@ def run_ours(problem, h, energy_cap=None, budget=None, name="ours (direct)", req
     _warm_up(sim, hyb, h, rate)
     if hyb is None:
         return _run_ours_blocks(problem, rec, require_solver)
+    def sample():  # the steps of one sample, the prescribed joint's rate set before each
+        for _ in range(rec.n_sub):
+            sim.commands.joint_velocities[hyb.joint] = np.array([rate(hyb, sim.time, h)])
+            res = sim.step(1)
+        return res
+
     for k in range(problem.n_samples):
-        t0, c0 = time.perf_counter(), time.process_time()
-        try:
-            for _ in range(rec.n_sub):
-                t = sim.time
-                sim.commands.joint_velocities[hyb.joint] = np.array([rate(hyb, t, h)])
-                res = sim.step(1)
-        except StepError as e:
-            run.wall += time.perf_counter() - t0
-            run.cpu += time.process_time() - c0
-            msg = str(e)
-            bad = "diverged" in msg or "non-finite" in msg
-            return run.fail("blow-up" if bad else "nonconvergence", msg)
-        run.wall += time.perf_counter() - t0
-        run.cpu += time.process_time() - c0
+        res, failed = _timed(run, sample)
+        if failed:
+            return failed
         run.steps += rec.n_sub
         d = res.diagnostics
         if require_solver and require_solver not in str(d.solver):
@@ -365,6 +360,22 @@ def run_ours(problem, h, energy_cap=None, budget=None, name="ours (direct)", req
         if not rec.record(k, res.q, d.E_total, d.violation_pos, tau, float(np.abs(res.v).max(initial=0.0))):
             return run
     return run
+
+
+def _timed(run, take):
+    """take() with its wall and CPU time added to ``run``: (its value, None), or (None, ``run`` failed) on a
+    StepError: a blow-up when the step diverged or went non-finite, else nonconvergence."""
+    t0, c0 = time.perf_counter(), time.process_time()
+    try:
+        out, err = take(), None
+    except StepError as e:
+        out, err = None, str(e)
+    run.wall += time.perf_counter() - t0
+    run.cpu += time.process_time() - c0
+    if err is None:
+        return out, None
+    bad = "diverged" in err or "non-finite" in err
+    return None, run.fail("blow-up" if bad else "nonconvergence", err)
 
 
 def _warm_up(sim, hyb, h, rate):
@@ -396,17 +407,10 @@ def _run_ours_blocks(problem, rec, require_solver=None):
     k = 0
     while k < problem.n_samples:
         n = min(SAMPLES_PER_CALL, problem.n_samples - k)
-        t0, c0 = time.perf_counter(), time.process_time()
-        try:
-            results = sim.step_results(n) if rec.n_sub == 1 else [sim.step(rec.n_sub) for _ in range(n)]
-        except StepError as e:
-            run.wall += time.perf_counter() - t0
-            run.cpu += time.process_time() - c0
-            msg = str(e)
-            bad = "diverged" in msg or "non-finite" in msg
-            return run.fail("blow-up" if bad else "nonconvergence", msg)
-        run.wall += time.perf_counter() - t0
-        run.cpu += time.process_time() - c0
+        results, failed = _timed(run, lambda: sim.step_results(n) if rec.n_sub == 1
+                                 else [sim.step(rec.n_sub) for _ in range(n)])
+        if failed:
+            return failed
         run.steps += n * rec.n_sub
         for res in results:
             d = res.diagnostics
