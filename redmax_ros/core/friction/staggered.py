@@ -44,6 +44,7 @@ import numpy as np
 import proxsuite
 
 from redmax_ros.core.friction import bisp
+from redmax_ros.core.friction.arena import empty_arena, take1
 from redmax_ros.core.friction.bisp import apply_wrenches, wrench_work
 from redmax_ros.core.friction.condense import condense
 from redmax_ros.core.friction.contact import staggered_rows
@@ -184,7 +185,18 @@ def loop_kernel(W_U, X_UT, X_TU, U_v0, lo_U, W_T, T_v0, mu_g, a0, wm, bound_mu, 
 @numba.njit(cache=True)
 def loop_state(nu, nf, depth, nal):
     """The state of a new staggered loop for staggered_kernel: (float buffer, int buffer), zeros."""
-    return np.zeros(loop_state_size(nu, nf, depth, nal)), np.zeros(3, dtype=np.int64)
+    buf, ibuf, off = empty_arena()
+    return loop_state_into(nu, nf, depth, nal, buf, ibuf, off)
+
+
+@numba.njit(cache=True)
+def loop_state_into(nu, nf, depth, nal, buf, ibuf, off):
+    """:func:`loop_state` taken from an arena (``buf``, ``ibuf``, ``off``: arena.py), zeroed."""
+    sbuf = take1(buf, off, 0, loop_state_size(nu, nf, depth, nal))
+    sint = take1(ibuf, off, 1, 3)
+    sbuf[:] = 0.0
+    sint[:] = 0
+    return sbuf, sint
 
 
 @numba.njit(cache=True)

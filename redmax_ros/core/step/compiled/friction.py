@@ -33,8 +33,8 @@ from redmax_ros.core.friction.arena import take, take1
 from redmax_ros.core.friction.bisp import constant_wrenches, make_wrench_map_into, wrench_map_arena_size
 from redmax_ros.core.friction.condense import arena_size, condense_into
 from redmax_ros.core.friction.contact import rows_arena_size, rows_kernel_into
-from redmax_ros.core.friction.staggered import (finish_into, finish_scratch_size, loop_scratch_size, loop_state_size,
-                                                staggered_kernel, warm_start_into)
+from redmax_ros.core.friction.staggered import (finish_into, finish_scratch_size, loop_scratch_size, loop_state_into,
+                                                loop_state_size, staggered_kernel, warm_start_into)
 from redmax_ros.core.jit import njit_inline
 from redmax_ros.core.solvers.kkt import kkt_residual_into, max_row_residual
 from redmax_ros.core.solvers.recursive import bias_kernel
@@ -245,10 +245,7 @@ def friction_solve(m, d, c, h, cache, has_cache, cache_new, jn, rep, work_cap, r
     alpha[:] = 0.0
     nal = nw * kmax
     depth = int(sc[SC_DEPTH])
-    sbuf = take1(buf, off, 0, loop_state_size(nu, nf, depth, nal))  # a new loop's state (staggered.loop_state)
-    sint = take1(ibuf, off, 1, 3)
-    sbuf[:] = 0.0
-    sint[:] = 0
+    sbuf, sint = loop_state_into(nu, nf, depth, nal, buf, ibuf, off)  # a new loop's state
     scratch = c.loop_scratch
     if loop_scratch_size(nu, nf, depth, 6 * nw) > scratch.shape[0]:  # more rows than build_friction counted
         scratch = np.empty(loop_scratch_size(nu, nf, depth, 6 * nw))
