@@ -342,6 +342,7 @@ def run_ours(problem, h, energy_cap=None, budget=None, name="ours (direct)", req
     _warm_up(sim, hyb, h, rate)
     if hyb is None:
         return _run_ours_blocks(problem, rec, require_solver)
+
     def sample():  # the steps of one sample, the prescribed joint's rate set before each
         for _ in range(rec.n_sub):
             sim.commands.joint_velocities[hyb.joint] = np.array([rate(hyb, sim.time, h)])
@@ -520,13 +521,15 @@ def run_mujoco(problem, h, integrator, energy_cap=None, budget=None):
     k = 0
     while k < problem.n_samples:  # blocks of samples timed as a whole, as _run_ours_blocks does ours
         n = min(SAMPLES_PER_CALL, problem.n_samples - k)
-        t0, c0 = time.perf_counter(), time.process_time()
-        states = []
-        for _ in range(n):
-            mujoco.mj_step(m, d, nstep=rec.n_sub)
-            states.append((d.qpos.copy(), d.qvel.copy()))
-        run.wall += time.perf_counter() - t0
-        run.cpu += time.process_time() - c0
+
+        def block():  # n samples: n_sub steps each, the state after them
+            states = []
+            for _ in range(n):
+                mujoco.mj_step(m, d, nstep=rec.n_sub)
+                states.append((d.qpos.copy(), d.qvel.copy()))
+            return states
+
+        states, _ = _timed(run, block)
         run.steps += n * rec.n_sub
         for w in ("mjWARN_BADQPOS", "mjWARN_BADQVEL", "mjWARN_BADQACC"):  # MuJoCo resets the state on these
             if int(d.warning[getattr(mujoco.mjtWarning, w)].number):
