@@ -388,7 +388,7 @@ def _warm_up(sim, hyb, h, rate):
     if hyb is not None:
         sim.commands.joint_velocities[hyb.joint] = np.array([rate(hyb, sim.time, h)])
     try:
-        sim.step_results(1)
+        sim.step_results(1) if hyb is not None else sim.rollout(1)
     except StepError:
         pass  # the timed run meets it again and reports it
     sim.set_state(start)
@@ -400,24 +400,24 @@ SAMPLES_PER_CALL = 100  # samples per timed block (ours, MuJoCo): the per-sample
 def _run_ours_blocks(problem, rec, require_solver=None):
     """run_ours without prescriptions: blocks of SAMPLES_PER_CALL samples, each timed as a whole (the clock read
     once per block, not per sample, as run_mujoco does) and the blow-up and budget checks after it (a blow-up
-    inside a block is caught at its sample, as with single calls). When every step is a sample (h = sample_dt)
-    the block is one ``Simulator.step_results`` call, as a user who wants each step's result takes them (one
-    kernel call per block on the compiled path, which records every step's outputs; the results are those of
-    single steps, test_step_results.py), else one ``step(n_sub)`` call per sample."""
+    inside a block is caught at its sample, as with single calls). A block is one ``Simulator.rollout(n,
+    n_sub)`` call, as a user who wants a sampled trajectory takes it: on the compiled path one kernel call that
+    records the sampled steps only, the numbers single steps give (test_rollout.py), where MuJoCo's block is one
+    mj_step(nstep=n_sub) call and a copy of qpos and qvel per sample."""
     sim, run = problem.sim, rec.run
     k = 0
     while k < problem.n_samples:
         n = min(SAMPLES_PER_CALL, problem.n_samples - k)
-        results, failed = _timed(run, lambda: sim.step_results(n) if rec.n_sub == 1
-                                 else [sim.step(rec.n_sub) for _ in range(n)])
+        ro, failed = _timed(run, lambda: sim.rollout(n, rec.n_sub))
         if failed:
             return failed
         run.steps += n * rec.n_sub
-        for res in results:
-            d = res.diagnostics
-            if require_solver and require_solver not in str(d.solver):
-                return run.fail("not-applicable", f"the stepper ran solver '{d.solver}', not '{require_solver}'")
-            if not rec.record(k, res.q, d.E_total, d.violation_pos, None, float(np.abs(res.v).max(initial=0.0))):
+        E = ro.E_total
+        for i in range(n):
+            if require_solver and require_solver not in str(ro.solver[i]):
+                return run.fail("not-applicable", f"the stepper ran solver '{ro.solver[i]}', not '{require_solver}'")
+            if not rec.record(k, ro.q[i], float(E[i]), float(ro.violation_pos[i]), None,
+                              float(np.abs(ro.v[i]).max(initial=0.0))):
                 return run
             k += 1
     return run

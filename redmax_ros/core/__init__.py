@@ -13,9 +13,9 @@ from redmax_ros.core.simulator import SceneDescription, Simulator
 from redmax_ros.core.solvers.budget import StepBudget
 from redmax_ros.core.step.compile import compile_scene
 from redmax_ros.core.step.compiled.poses import BodyFrames, body_frames
-from redmax_ros.core.step.state import BatchResult, Commands, Diagnostics, State, StepResult
+from redmax_ros.core.step.state import BatchResult, Commands, Diagnostics, Rollout, State, StepResult
 from redmax_ros.core.step.workspace import Workspace
 
 __all__ = ["SOLVERS", "BatchResult", "CommandError", "SceneError", "SceneNotFound", "StepError", "DofPositions", "JointInfo", "Mechanism",
            "list_scenes", "load_scene", "scene_from_dict", "SceneSpec", "SceneDescription", "Simulator", "StepBudget",
-           "compile_scene", "BodyFrames", "body_frames", "Commands", "Diagnostics", "State", "StepResult", "Workspace"]
+           "compile_scene", "BodyFrames", "body_frames", "Commands", "Diagnostics", "Rollout", "State", "StepResult", "Workspace"]

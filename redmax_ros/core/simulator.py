@@ -28,7 +28,7 @@ from redmax_ros.core.step.backends import check_dense_size, make_backend
 from redmax_ros.core.step import body_twist, trajectory
 from redmax_ros.core.step.compile import compile_scene
 from redmax_ros.core.step.deformable_stages import deform_state
-from redmax_ros.core.step.state import BatchResult, Commands, State, StepResult, step_each
+from redmax_ros.core.step.state import BatchResult, Commands, Rollout, State, StepResult, step_each
 
 
 _AXES = {"x": (1.0, 0.0, 0.0), "y": (0.0, 1.0, 0.0), "z": (0.0, 0.0, 1.0)}
@@ -525,6 +525,37 @@ class Simulator:
                 raise err from None
             self.last = out[-1]
         return out
+
+    def rollout(self, n: int = 1, every: int = 1) -> Rollout:
+        """Advance n * every steps; returns the outputs of every ``every``-th step (n rows) stacked in arrays, a
+        Rollout whose rows hold the numbers step_results gives for those steps (test_rollout.py). On the compiled
+        path each run of steps is one kernel call that records only those steps, and under BDF2 computes the
+        energies of those steps only: no Python object per step, the way to take long trajectories (sweeps,
+        work-precision runs). On StepError the state is that after the last successful step (``err.steps_done``
+        of them) and ``err.rollout`` holds the rows recorded before it (or None)."""
+        n, every = _step_count(n), _step_count(every)
+        parts, rows, phase, done = [], 0, 0, 0
+        run = getattr(self.backend, "rollout_run", None)
+        while rows < n:
+            try:
+                if run is None:
+                    self.state, res = self.backend.step(self.state, self.commands, self.dt, self._budget)
+                    part, k = (Rollout.from_results([res]) if phase + 1 == every else None), 1
+                else:
+                    steps = min((n - rows) * every - phase, RECORD_ROWS * every)
+                    self.state, part, k = run(self.state, self.commands, self.dt, steps, every, phase, self._budget)
+            except (StepError, np.linalg.LinAlgError) as e:
+                reason = e.reason if isinstance(e, StepError) else _linalg_reason(e)
+                err = StepError(f"step at t = {self.state.t:.6g} s failed: {reason}", steps_done=done)
+                err.rollout = Rollout.concatenate(parts) if parts else None
+                raise err from None
+            done += k
+            phase = (phase + k) % every
+            if part is not None:
+                parts.append(part)
+                rows += len(part)
+                self.last = part.last
+        return Rollout.concatenate(parts)
 
     def step_batch(self, states, n: int = 1):
         """Advance each of the independent ``states`` (of this scene) by n steps with this simulator's commands

@@ -1,4 +1,4 @@
-"""What a step takes and gives: State (immutable), Commands, Diagnostics, StepResult; the input checks and
+"""What a step takes and gives: State (immutable), Commands, Diagnostics, StepResult, Rollout; the input checks and
 the divergence limit shared by every backend (SI units: m, rad, s, N, N m, J).
 
 Divergence is the step's velocity beyond MAX_SPEED (check_speed, after the solve). Inputs that cannot give
@@ -112,6 +112,58 @@ class BatchResult:
     states: list
     steps_done: np.ndarray
     errors: list
+
+
+@dataclass
+class Rollout:
+    """What Simulator.rollout gives: the outputs of every ``every``-th step of a run, stacked; row i holds
+    the numbers of the StepResult of step (i + 1) every (SI units, as StepResult and Diagnostics)."""
+    t: np.ndarray  # (k,) time after the step [s]
+    q: np.ndarray  # (k, nq) configuration
+    v: np.ndarray  # (k, nv) reduced velocities
+    effort: np.ndarray  # (k, nv) applied + required torques [N m, N]
+    site_forces: dict  # prescribed site -> (k, 3) required force, world frame [N]
+    E_kin: np.ndarray  # (k,) [J]
+    E_pot: np.ndarray  # (k,) [J]
+    E_spring: np.ndarray  # (k,) [J]
+    violation_pos: np.ndarray  # (k,) max loop-closure residual [m]
+    violation_vel: np.ndarray  # (k,) max |G qdot - g| of the bilateral rows
+    iterations: np.ndarray  # (k,) int
+    solver: list  # (k,) the solver label of each row's step
+    last: StepResult | None = None  # the last row's full StepResult (multipliers, friction report)
+
+    def __len__(self) -> int:
+        return len(self.t)
+
+    @property
+    def E_total(self) -> np.ndarray:
+        return self.E_kin + self.E_pot + self.E_spring
+
+    @classmethod
+    def from_results(cls, results: list) -> "Rollout":
+        """The rows of these StepResults, in order."""
+        d = [r.diagnostics for r in results]
+        names = list(results[0].site_forces) if results else []
+        return cls(np.array([r.t for r in results], dtype=float), np.array([r.q for r in results], dtype=float),
+                   np.array([r.v for r in results], dtype=float), np.array([r.effort for r in results], dtype=float),
+                   {n: np.array([r.site_forces[n] for r in results], dtype=float) for n in names},
+                   np.array([x.E_kin for x in d], dtype=float), np.array([x.E_pot for x in d], dtype=float),
+                   np.array([x.E_spring for x in d], dtype=float), np.array([x.violation_pos for x in d], dtype=float),
+                   np.array([x.violation_vel for x in d], dtype=float),
+                   np.array([x.iterations for x in d], dtype=np.int64), [x.solver for x in d],
+                   results[-1] if results else None)
+
+    @classmethod
+    def concatenate(cls, parts: list) -> "Rollout":
+        """One Rollout of the rows of ``parts`` (non-empty), in order; ``last`` the last part's."""
+        if len(parts) == 1:
+            return parts[0]
+        cat = np.concatenate
+        return cls(cat([p.t for p in parts]), cat([p.q for p in parts]), cat([p.v for p in parts]),
+                   cat([p.effort for p in parts]), {n: cat([p.site_forces[n] for p in parts]) for n in parts[0].site_forces},
+                   cat([p.E_kin for p in parts]), cat([p.E_pot for p in parts]), cat([p.E_spring for p in parts]),
+                   cat([p.violation_pos for p in parts]), cat([p.violation_vel for p in parts]),
+                   cat([p.iterations for p in parts]), [s for p in parts for s in p.solver], parts[-1].last)
 
 
 def step_each(step, states, cmd, h, n, budget=None) -> BatchResult:

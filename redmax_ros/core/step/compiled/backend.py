@@ -31,7 +31,7 @@ from redmax_ros.core.step.compiled.kernel import STAGE_NAMES, friction_step_n_ke
 from redmax_ros.core.step.compiled.model import build_model, unsupported
 from redmax_ros.core.step.pipeline import pinocchio_velocity, step as pipeline_step
 from redmax_ros.core.step.scheme import bdf2_point, continues, next_history
-from redmax_ros.core.step.state import BatchResult, Diagnostics, StepResult, step_each
+from redmax_ros.core.step.state import BatchResult, Diagnostics, Rollout, StepResult, step_each
 from redmax_ros.core.step.workspace import Workspace
 
 _NO_V = np.zeros(0)
@@ -172,7 +172,7 @@ class CompiledBackend:
             return self._friction_step(state, cmd, h, budget, inp, t0)
         qp, vp, hist = self._history_args(state, h)
         q, v = state.q.copy(), state.v.copy()  # a run of one step: the kernel advances them in place
-        if not step_n_kernel(*self.model.args, *d.args, q, v, tau, float(h), gj, sv, 1, qp, vp, hist, hist, _NO_REC):
+        if not step_n_kernel(*self.model.args, *d.args, q, v, tau, float(h), gj, sv, 1, qp, vp, hist, hist, _NO_REC, 1, 0):
             self._handed_back(d)
             return self.reference_step(state, cmd, h, budget)
         if hist and cmd.joint_trajectories and d["out"][OUT_ORDER] == 1.0:
@@ -198,29 +198,12 @@ class CompiledBackend:
         cache, has, cache_new, jn, rep, cap = self._friction_args(state, budget)
         q, v = state.q.copy(), state.v.copy()  # a run of one step: the kernel advances them and the cache in place
         if not friction_step_n_kernel(*self.model.args, *d.args, *self.friction.args, q, v, tau, float(h), gj, sv, 1,
-                                      cache, has, cache_new, jn, rep, cap, _NO_REC):
+                                      cache, has, cache_new, jn, rep, cap, _NO_REC, 1, 0):
             self._handed_back(d)
             return self.reference_step(state, cmd, h, budget)
         new = state.advanced(h, q, v, cache)
         return new, self._result(new, d, q.copy(), rcmd, t0)
 
-    def _friction_run(self, state, cmd, h, n, budget, inp, record=False):
-        """step_run with contact or joint friction: up to n steps in one friction_step_n_kernel call."""
-        t0 = time.perf_counter()
-        rcmd, tau, d, gj, sv = inp
-        cache, has, cache_new, jn, rep, cap = self._friction_args(state, budget)
-        q, v = state.q.copy(), state.v.copy()
-        rec = np.empty((n, self._layout(d)["width"])) if record else _NO_REC
-        k = friction_step_n_kernel(*self.model.args, *d.args, *self.friction.args, q, v, tau, float(h), gj, sv, n,
-                                   cache, has, cache_new, jn, rep, cap, rec)
-        if k == 0:
-            self._handed_back(d)
-            new, res = self.reference_step(state, cmd, h, budget)
-            return new, [res] if record else res, 1
-        new = state.advanced(h, q, v, cache, steps=k)
-        if record:
-            return new, self._recorded(state, h, d, rec, k, rcmd, time.perf_counter() - t0), k
-        return new, self._result(new, d, q.copy(), rcmd, t0), k
 
     def friction_report(self):
         """The FrictionReport of the kernel's last frictional step (staggered.FrictionReport)."""
@@ -242,26 +225,55 @@ class CompiledBackend:
         (State, the k steps' StepResults, k): the kernel records each step's outputs (kernel.record_step) and
         they are the results single steps give (diagnostics.wall_time: the run's wall time / k). A StepError
         comes only from a single step (the state before it is the input's)."""
+        r = self._run(state, cmd, h, n, budget, n if record else 0, 1, 0)
+        if r[0] is None:  # one step by ``step``
+            _, new, res = r
+            return new, [res] if record else res, 1
+        new, d, rec, k, rcmd, t0 = r
+        if record:
+            return new, self._recorded(state, h, d, rec, k, rcmd, time.perf_counter() - t0), k
+        return new, self._result(new, d, new.q.copy(), rcmd, t0), k
+
+    def rollout_run(self, state, cmd, h, n, every, phase, budget=None):
+        """step_run recording only every ``every``-th step, counted from ``phase`` (< every) steps taken before
+        this run: (State, a Rollout of the recorded steps or None, k). The kernel records those steps' outputs
+        (and computes BDF2's energies for those steps only, kernel.tail_stages); their numbers are the ones
+        step_results gives."""
+        r = self._run(state, cmd, h, n, budget, (n + phase) // every, every, phase)
+        if r[0] is None:
+            _, new, res = r
+            return new, (Rollout.from_results([res]) if phase + 1 == every else None), 1
+        new, d, rec, k, rcmd, t0 = r
+        rows = (k + phase) // every
+        if not rows:
+            return new, None, k
+        return new, self._rollout(state, h, d, rec[:rows], every, phase, rcmd, time.perf_counter() - t0, k), k
+
+    def _run(self, state, cmd, h, n, budget, rows, every, phase):
+        """One kernel call of up to n steps recording ``rows`` rows (kernel.record_row: every ``every``-th step
+        from ``phase``): (State, Data, record, k, resolved commands, start time), or (None, State, StepResult)
+        when ``step`` took one step instead."""
         inp = None if cmd.joint_trajectories else self._inputs(state, cmd, h)
         if inp is None:
-            new, res = self.step(state, cmd, h, budget)
-            return new, [res] if record else res, 1
-        if self.friction is not None:
-            return self._friction_run(state, cmd, h, n, budget, inp, record)
+            return (None, *self.step(state, cmd, h, budget))
         t0 = time.perf_counter()
         rcmd, tau, d, gj, sv = inp
         q, v = state.q.copy(), state.v.copy()
-        qp, vp, hist = self._history_args(state, h)
-        rec = np.empty((n, self._layout(d)["width"])) if record else _NO_REC
-        k = step_n_kernel(*self.model.args, *d.args, q, v, tau, float(h), gj, sv, n, qp, vp, hist, int(self.bdf2), rec)
+        rec = np.empty((rows, self._layout(d)["width"])) if rows else _NO_REC
+        if self.friction is not None:
+            cache, has, cache_new, jn, rep, cap = self._friction_args(state, budget)
+            k = friction_step_n_kernel(*self.model.args, *d.args, *self.friction.args, q, v, tau, float(h), gj, sv, n,
+                                       cache, has, cache_new, jn, rep, cap, rec, every, phase)
+            new = state.advanced(h, q, v, cache, steps=k) if k else None
+        else:
+            qp, vp, hist = self._history_args(state, h)
+            k = step_n_kernel(*self.model.args, *d.args, q, v, tau, float(h), gj, sv, n, qp, vp, hist, int(self.bdf2),
+                              rec, every, phase)
+            new = self._advanced(state, h, q, v, qp, vp, steps=k) if k else None
         if k == 0:
             self._handed_back(d)
-            new, res = self.reference_step(state, cmd, h, budget)
-            return new, [res] if record else res, 1
-        new = self._advanced(state, h, q, v, qp, vp, steps=k)
-        if record:
-            return new, self._recorded(state, h, d, rec, k, rcmd, time.perf_counter() - t0), k
-        return new, self._result(new, d, q.copy(), rcmd, t0), k
+            return (None, *self.reference_step(state, cmd, h, budget))
+        return new, d, rec, k, rcmd, t0
 
     def _layout(self, d) -> dict:
         """record_layout of the Data ``d`` (kept per Data)."""
@@ -271,9 +283,26 @@ class CompiledBackend:
             lay = self._layouts[id(d)] = record_layout(d, None if fm is None else fm.fj_names)
         return lay
 
-    def _recorded(self, state, h, d, rec, k, rcmd, wall) -> list:
+    def _rollout(self, state, h, d, rec, every, phase, rcmd, wall, k) -> Rollout:
+        """The Rollout of the record rows ``rec`` of a run of k steps from ``state`` (row i: step (i + 1) every -
+        phase of the run; t = t0 + (k0 + step) h as State.advanced computes it)."""
+        lay = self._layout(d)
+        steps = np.arange(1, len(rec) + 1, dtype=np.int64) * every - phase
+        t0 = state.t if state.t0 is None else state.t0
+        O = rec[:, lay["out"]]
+        F = rec[:, lay["site_force"]]
+        col = np.ascontiguousarray
+        last = self._recorded(state, h, d, rec[-1:], 1, rcmd, wall / k, int(steps[-1]))[0]
+        return Rollout(t0 + (state.k + steps) * h, col(rec[:, lay["q_new"]]), col(rec[:, lay["v_new"]]),
+                       col(rec[:, lay["effort"]]),
+                       {name: col(F[:, 3 * j:3 * j + 3]) for j, name in enumerate(rcmd.site_velocities)},
+                       col(O[:, OUT_E_KIN]), col(O[:, OUT_E_POT]), col(O[:, OUT_E_SPRING]), col(O[:, OUT_VIOL_POS]),
+                       col(O[:, OUT_VIOL_VEL]), O[:, OUT_ITERS].astype(np.int64), ["compiled"] * len(rec), last)
+
+    def _recorded(self, state, h, d, rec, k, rcmd, wall, first=1) -> list:
         """The StepResults of the first k rows of a run's record ``rec`` from ``state`` (the numbers _result
-        gives after each of those steps; t = t0 + (k0 + i) h as State.advanced computes it)."""
+        gives after each of those steps; row i is step first + i of the run, t = t0 + (k0 + first + i) h as
+        State.advanced computes it)."""
         lay = self._layout(d)
         Q, H, V, E, F, _, L, M = (rec[:k, lay[n]] for n in RECORD_FIELDS)  # row i of each: step i's views
         O = rec[:k, lay["out"]].tolist()  # Python floats of the outputs, all rows at once
@@ -290,7 +319,7 @@ class CompiledBackend:
                                "compiled", each, sol,
                                self._friction_report(rec[i, lay["rep"]], rec[i, lay["jn"]]) if friction else None)
             site_forces = {name: F[i, 3 * j:3 * j + 3] for j, name in enumerate(names)} if names else {}
-            out.append(StepResult(t0 + (state.k + i + 1) * h, Q[i], V[i], E[i], site_forces, diag, {}))
+            out.append(StepResult(t0 + (state.k + i + first) * h, Q[i], V[i], E[i], site_forces, diag, {}))
         return out
 
     def step_batch(self, states, cmd, h, n=1, budget=None) -> BatchResult:
@@ -325,7 +354,7 @@ class CompiledBackend:
 
         def run(b):
             return step_n_kernel(*self.model.args, DF[b], DI[b], d.tab, Q[b], V[b], tau, float(h), gj, sv, int(todo[b]),
-                                 QP[b], VP[b], int(HIST[b]), bdf2, _NO_REC)
+                                 QP[b], VP[b], int(HIST[b]), bdf2, _NO_REC, 1, 0)
 
         while todo.any():
             live = [int(b) for b in np.flatnonzero(todo)]

@@ -11,7 +11,7 @@ preallocated workspace):
     friction_solve(m, d, c, h, cache, ...) # 4'' instead of 4: contact and joint friction, Alg. 2-3 (friction.py)
     update_configuration(m, d, q^, hh)     # 5  manifold update, loop post-stabilization (update.py)
     required_forces(m, d, tau, hh)         # 6  Eq. 7 torques and site forces (update.py)
-    energies(m, d, q+, qdot_r+, placed)    #    diagnostics (energy.py)
+    energies(m, d, q+, qdot_r+, placed)    #    diagnostics (energy.py): BDF1 steps, and BDF2 steps a run returns
 
 with hh = h for BDF1 (q^ = q* = q_k, v^ = v* = qdot_k: the paper's step) and hh = 2h/3 for BDF2. A BDF2 step
 that the order control rejects (scheme.accepted, step/scheme.accepts) is taken again from the same state as
@@ -81,7 +81,7 @@ def one_step(m, d, q, vR, tau, h, gj, sv, qp, vp, hist, warm, report):
     BDF1 from the same state; returns OK or REFERENCE. ``warm``: d holds the placements and twists at (q, vR),
     left by the previous step of the run (its energies); a BDF1 step uses them (kinematics.kinematics).
     ``report``: the step's outputs are returned (the last step of a run, or a recorded one), so its KKT residual
-    (a diagnostic only) is computed; else d.out[OUT_RESIDUAL] is NaN."""
+    (a diagnostic only) is computed, and under BDF2 its energies (tail_stages); else those outputs are NaN."""
     order = hist
     while True:  # one call site: the stages are inlined once (a plain call copies the namedtuples)
         status = stages(m, d, q, vR, tau, h, gj, sv, qp, vp, order, warm, report)
@@ -124,7 +124,7 @@ def stages(m, d, q, vR, tau, h, gj, sv, qp, vp, hist, warm, report):
         d.out[OUT_RESIDUAL] = kkt_residual_into(d.AR, d.bR, d.v_hyper, d.G, d.lam, m.limit_rows, d.mu, d.kkt_r)
     else:
         d.out[OUT_RESIDUAL] = np.nan
-    return tail_stages(m, d, tau, hh)  # 5-6
+    return tail_stages(m, d, tau, hh, report or not hist)  # 5-6
 
 
 @njit_inline
@@ -158,15 +158,21 @@ def rigid_stages(m, d, q, vR, tau, h, gj, sv, qp, vp, hist, warm):
 
 
 @njit_inline
-def tail_stages(m, d, tau, hh):
-    """Stages 5-6 and the energies after a solve (d.v_hyper, d.lam); returns OK or REFERENCE."""
+def tail_stages(m, d, tau, hh, energy):
+    """Stages 5-6 and, with ``energy``, the energies after a solve (d.v_hyper, d.lam); returns OK or REFERENCE.
+    Without ``energy`` (a BDF2 step whose outputs the run does not return: nobody reads its energies, and the
+    next step, BDF2 from q* or a BDF1 retry, computes its own kinematics instead of reusing theirs) d.out's
+    energies are NaN."""
     converged, viol_pos, placed = update_configuration(m, d, d.q_base, hh)  # 5
     if not converged or not _finite_sum(d.q_new):
         return _handoff(d.out, STAGE_PROJECTION)
     required_forces(m, d, tau, hh)  # 6
-    ek, ep, es = energies(m, d, d.q_new, d.v_new, placed)
-    if not (ek + ep + es) - (ek + ep + es) == 0.0:
-        return _handoff(d.out, STAGE_ENERGY)
+    if energy:
+        ek, ep, es = energies(m, d, d.q_new, d.v_new, placed)
+        if not (ek + ep + es) - (ek + ep + es) == 0.0:
+            return _handoff(d.out, STAGE_ENERGY)
+    else:
+        ek = ep = es = np.nan
     d.out[OUT_E_KIN] = ek
     d.out[OUT_E_POT] = ep
     d.out[OUT_E_SPRING] = es
@@ -193,7 +199,7 @@ def one_friction_step(m, d, c, q, vR, tau, h, gj, sv, cache, has_cache, cache_ne
         return _handoff(d.out, STAGE_SPEED)
     d.out[OUT_VIOL_VEL] = bilateral_residual(d)
     d.out[OUT_RESIDUAL] = rep[REP_KKT]
-    return tail_stages(m, d, tau, hh)  # 5-6
+    return tail_stages(m, d, tau, hh, True)  # 5-6
 
 
 @njit_inline
@@ -219,22 +225,35 @@ def record_step(row, d):
     return _put(row, j, d.mu)
 
 
+@njit_inline
+def record_row(k, every, phase, rows):
+    """The row of a run's record that step k of the run goes to, or -1: every ``every``-th step is recorded,
+    counted from ``phase`` steps taken before the run (0 <= phase < every), while rows remain."""
+    r = k + 1 + phase
+    if r % every:
+        return -1
+    i = r // every - 1
+    return i if i < rows else -1
+
+
 @njit
 def friction_step_n_kernel(mf, mi, mt, df, di, dt, ff, fi, ft, q, vR, tau, h, gj, sv, n, cache, has_cache, cache_new,
-                           jn, rep, work_cap, rec):
+                           jn, rep, work_cap, rec, every, phase):
     """Up to n frictional steps with the same commands: (q, vR) and the friction ``cache`` advanced in place
     after every step taken; returns the number of steps taken (as step_n_kernel). ``rec`` (rows, width): the
-    outputs of step k go to rec[k] when k < rows (record_step, then rep and jn); (0, 0) records nothing."""
+    outputs of every ``every``-th step (record_row) go to its rows (record_step, then rep and jn); (0, 0)
+    records nothing."""
     m = model_views(mf, mi, mt)
     d = data_views(df, di, dt)
     c = friction_views(ff, fi, ft)
     for k in range(n):  # after the first step, d holds the placements and twists at (q, vR) (one_step)
+        i = record_row(k, every, phase, rec.shape[0])
         if one_friction_step(m, d, c, q, vR, tau, h, gj, sv, cache, has_cache, cache_new, jn, rep, work_cap,
-                             k > 0, k == n - 1 or k < rec.shape[0]) != OK:
+                             k > 0, k == n - 1 or i >= 0) != OK:
             return k
-        if k < rec.shape[0]:
-            j = record_step(rec[k], d)
-            _put(rec[k], _put(rec[k], j, rep), jn)
+        if i >= 0:
+            j = record_step(rec[i], d)
+            _put(rec[i], _put(rec[i], j, rep), jn)
         q[:] = d.q_new
         vR[:] = d.v_hyper
         cache[:] = cache_new
@@ -243,19 +262,21 @@ def friction_step_n_kernel(mf, mi, mt, df, di, dt, ff, fi, ft, q, vR, tau, h, gj
 
 
 @njit
-def step_n_kernel(mf, mi, mt, df, di, dt, q, vR, tau, h, gj, sv, n, qp, vp, hist, bdf2, rec):
+def step_n_kernel(mf, mi, mt, df, di, dt, q, vR, tau, h, gj, sv, n, qp, vp, hist, bdf2, rec, every, phase):
     """Up to n steps with the same commands, (q, vR) advanced in place; returns the number of steps taken
     (< n: the next step was handed back, d.out[OUT_STAGE] says why). The Data holds the last step's outputs.
     ``bdf2`` nonzero: integrator.scheme bdf2, the history (qp, vp) kept in place (the state before the last
     step taken; ``hist`` whether the input's history is valid for h), else every step is BDF1. ``rec``
-    (rows, width): the outputs of step k go to rec[k] when k < rows (record_step); (0, 0) records nothing."""
+    (rows, width): the outputs of every ``every``-th step (record_row, counted from ``phase`` steps before the
+    run) go to its rows (record_step); (0, 0) records nothing."""
     m = model_views(mf, mi, mt)
     d = data_views(df, di, dt)
     for k in range(n):  # after the first step, d holds the placements and twists at (q, vR) (one_step)
-        if one_step(m, d, q, vR, tau, h, gj, sv, qp, vp, hist, k > 0, k == n - 1 or k < rec.shape[0]) != OK:
+        i = record_row(k, every, phase, rec.shape[0])
+        if one_step(m, d, q, vR, tau, h, gj, sv, qp, vp, hist, k > 0, k == n - 1 or i >= 0) != OK:
             return k
-        if k < rec.shape[0]:
-            record_step(rec[k], d)
+        if i >= 0:
+            record_step(rec[i], d)
         if bdf2:
             qp[:] = q
             vp[:] = vR
