@@ -40,6 +40,9 @@ def parse_args(argv=None):
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                     help="override a scene value or builder parameter, e.g. params.n=20, joints.elbow.q0=0.3")
     ap.add_argument("--out", type=Path, help="CSV file to write (default: runs/<scene>.csv)")
+    ap.add_argument("--every", type=int, default=1, metavar="K",
+                    help="write every K-th step's row (and the last step's); the steps between are taken but not "
+                         "recorded (default 1: every step)")
     ap.add_argument("--quiet", action="store_true", help="no progress bar")
     ap.add_argument("--step-budget-ms", type=float, default=None, metavar="MS",
                     help="CPU time a step's iterative solvers may take before the step fails (default: the "
@@ -181,7 +184,7 @@ def csv_row(sim: Simulator, res) -> np.ndarray:
     return np.concatenate([np.atleast_1d(np.asarray(p, float)) for p in parts])
 
 
-CHUNK = 64  # steps per Simulator.step_results call of ``run`` (and per progress-bar update)
+CHUNK = 64  # rows per Simulator.rollout call of ``run`` (and steps per progress-bar update when stepping singly)
 
 
 def progress_bar(total: int, quiet: bool, unit: str = "step", desc: str | None = None):
@@ -190,40 +193,70 @@ def progress_bar(total: int, quiet: bool, unit: str = "step", desc: str | None =
                 dynamic_ncols=True)
 
 
-def run(sim: Simulator, n_steps: int, quiet=False, controller=None, on_step=None):
-    """Step n times; returns (header, rows (k+1, C) incl. the initial state, StepError or None, wall time of the
-    stepping [s]); the rows stop at the last successful step. ``controller(t, state) -> commands`` is called
-    before each step and its commands applied (``apply_commands``; its exceptions propagate);
-    ``on_step(sim, res)`` after each successful step."""
+def run(sim: Simulator, n_steps: int, quiet=False, controller=None, on_step=None, every: int = 1):
+    """Step n times; returns (header, rows incl. the initial state, StepError or None, wall time of the stepping
+    [s]): a row after every ``every``-th step and after the last one, stopping at the last recorded step before a
+    failure. ``controller(t, state) -> commands`` is called before each step and its commands applied
+    (``apply_commands``; its exceptions propagate); ``on_step(sim, res)`` after each successful step."""
     header = csv_header(sim)
-    rows = np.empty((n_steps + 1, len(header)))
+    full, rem = divmod(n_steps, every)  # rows after every ``every`` steps, then one after the last ``rem``
+    n_rows = full + (rem > 0)
+    rows = np.empty((n_rows + 1, len(header)))
     r0 = initial_row(sim)
     rows[0, :len(r0)] = r0
     rows[0, len(r0):] = np.nan  # no required forces before the first step
     err = None
     t0 = time.perf_counter()
-    k = 0
-    # without a controller, a callback or deformables (whose CSV columns are read from the simulator's
-    # state), steps go in runs of CHUNK: Simulator.step_results records them all in one kernel call
+    r = 0  # rows written after the initial one
+    # without a controller, a callback or deformables (whose CSV columns are read from the simulator's state),
+    # steps go in runs: Simulator.rollout records the rows' steps in one kernel call per run
     chunked = controller is None and on_step is None and sim.deformables is None
     with progress_bar(n_steps, quiet) as bar:
-        while k < n_steps and err is None:
+        k = 0  # steps taken (single steps)
+        while r < n_rows and err is None:
+            if chunked:
+                stride, n = (every, min(CHUNK, full - r)) if r < full else (rem, 1)
+                try:
+                    ro = sim.rollout(n, stride)
+                except StepError as e:
+                    err = e
+                    ro = e.rollout
+                got = 0 if ro is None else len(ro)
+                if got:
+                    rows[r + 1:r + 1 + got] = rollout_rows(sim, ro)
+                r += got
+                bar.update(got * stride)
+                continue
             if controller is not None:
                 apply_commands(sim, controller(sim.time, sim.state))
             try:
-                results = sim.step_results(min(CHUNK, n_steps - k)) if chunked else [sim.step()]
+                res = sim.step()
             except StepError as e:
                 err = e
-                results = getattr(e, "results", [])
-            for res in results:
-                k += 1
-                rows[k] = csv_row(sim, res)
-                if on_step is not None:
-                    on_step(sim, res)
-                if k % CHUNK == 0:
-                    bar.update(CHUNK)
+                break
+            k += 1
+            if on_step is not None:
+                on_step(sim, res)
+            if k % every == 0 or k == n_steps:
+                r += 1
+                rows[r] = csv_row(sim, res)
+            if k % CHUNK == 0:
+                bar.update(CHUNK)
     wall = time.perf_counter() - t0
-    return header, rows[:k + 1], err, wall
+    return header, rows[:r + 1], err, wall
+
+
+def rollout_rows(sim: Simulator, ro) -> np.ndarray:
+    """The CSV rows (csv_row's columns and numbers) of a Rollout's steps."""
+    parts = [ro.t[:, None], ro.q, ro.v, np.stack([ro.E_kin, ro.E_pot, ro.E_spring, ro.E_total, ro.violation_pos], 1)]
+    for name in sim.prescribed_joints():
+        j = sim.mech.joint_index[name]
+        parts.append(ro.effort[:, j.idx_v:j.idx_v + j.nv])
+    for name in sim.prescribed_sites():
+        parts.append(ro.site_forces[name])
+    for name in sim.prescribed_bodies():
+        parts.append(ro.body_wrenches[name])
+    return np.concatenate(parts, axis=1)
 
 
 def write_csv(path: Path, header, rows) -> None:
@@ -240,7 +273,7 @@ def initial_row(sim: Simulator) -> np.ndarray:
 
 
 def summary(sim, header, rows, wall, err) -> str:
-    n = len(rows) - 1
+    n = int(round((rows[-1, 0] - rows[0, 0]) / sim.dt))  # steps up to the last row (rows may be every K-th step)
     E = rows[:, header.index("E_total")]
     viol = rows[:, header.index("violation")]
     drift = E[-1] - E[0]
@@ -262,12 +295,14 @@ def main(argv=None) -> int:
     try:
         sim = load_simulator(a.scene, scene_overrides(a.set, a.dt, a.solver), a.step_budget_ms)
         n = step_count(sim, a.duration)
+        if a.every < 1:
+            raise CommandError(f"--every must be a positive integer (a row every K steps), got {a.every}")
         controller = load_controller(a.controller) if a.controller else None
     except (SceneError, CommandError, ValueError) as e:
         print(f"redmax_run: {e}", file=sys.stderr)
         return 2
     try:
-        header, rows, err, wall = run(sim, n, a.quiet, controller)
+        header, rows, err, wall = run(sim, n, a.quiet, controller, every=a.every)
     except CommandError as e:
         print(f"redmax_run: controller: {e}", file=sys.stderr)
         return 2

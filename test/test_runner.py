@@ -92,3 +92,28 @@ def test_controller_commands_each_step(tmp_path):
         assert rows[k, header.index("q:hinge")] == sim.step().q[0]
     assert runner.main(["pendulum", "--duration", "0.01", "--out", str(out), "--quiet", "--controller", f"{ctl}:bad"]) == 2
     assert runner.main(["pendulum", "--quiet", "--controller", f"{ctl}:nope"]) == 2
+
+
+def test_every_kth_row_is_the_single_step(tmp_path, capsys):
+    """--every 7 over 50 steps (hand, elbow prescribed; and the chain under BDF2, whose unrecorded steps skip
+    their energies): rows after steps 7, 14, ..., 49 and the last, 50, bitwise the single steps' numbers; the
+    summary counts the 50 steps."""
+    for scene, sets, cols in (("hand", ["params.pip=0.5"], ["tau:elbow"]), ("chain", ["integrator.scheme=bdf2"], [])):
+        out = tmp_path / f"{scene}.csv"
+        args = [scene, "--duration", "0.05", "--dt", "0.001", "--every", "7", "--out", str(out), "--quiet"]
+        for s in sets:
+            args += ["--set", s]
+        assert runner.main(args) == 0
+        header, rows = read(out)
+        steps = [7 * i for i in range(1, 8)] + [50]
+        assert rows.shape[0] == 1 + len(steps)
+        sim = Simulator.load(scene, sets + ["dt=0.001"])
+        singles = [sim.step() for _ in range(50)]
+        for row, k in zip(rows[1:], steps):
+            res = singles[k - 1]
+            assert row[0] == res.t and np.array_equal(row[1:1 + len(res.q)], res.q)
+            assert row[header.index("E_total")] == res.diagnostics.E_total
+            for c in cols:
+                assert row[header.index(c)] == res.effort[sim.mech.joint_index["elbow"].idx_v]
+        assert f"{scene}: 50 steps" in capsys.readouterr().out
+    assert runner.main(["hand", "--every", "0", "--quiet", "--out", str(tmp_path / "x.csv")]) == 2

@@ -131,6 +131,7 @@ class Rollout:
     iterations: np.ndarray  # (k,) int
     solver: list  # (k,) the solver label of each row's step
     last: StepResult | None = None  # the last row's full StepResult (multipliers, friction report)
+    body_wrenches: dict = field(default_factory=dict)  # prescribed body -> (k, 6) required wrench [N m; N], its frame
 
     def __len__(self) -> int:
         return len(self.t)
@@ -151,7 +152,9 @@ class Rollout:
                    np.array([x.E_spring for x in d], dtype=float), np.array([x.violation_pos for x in d], dtype=float),
                    np.array([x.violation_vel for x in d], dtype=float),
                    np.array([x.iterations for x in d], dtype=np.int64), [x.solver for x in d],
-                   results[-1] if results else None)
+                   results[-1] if results else None,
+                   {n: np.array([r.body_wrenches[n] for r in results], dtype=float)
+                    for n in (results[0].body_wrenches if results else {})})
 
     @classmethod
     def concatenate(cls, parts: list) -> "Rollout":
@@ -163,7 +166,8 @@ class Rollout:
                    cat([p.effort for p in parts]), {n: cat([p.site_forces[n] for p in parts]) for n in parts[0].site_forces},
                    cat([p.E_kin for p in parts]), cat([p.E_pot for p in parts]), cat([p.E_spring for p in parts]),
                    cat([p.violation_pos for p in parts]), cat([p.violation_vel for p in parts]),
-                   cat([p.iterations for p in parts]), [s for p in parts for s in p.solver], parts[-1].last)
+                   cat([p.iterations for p in parts]), [s for p in parts for s in p.solver], parts[-1].last,
+                   {n: cat([p.body_wrenches[n] for p in parts]) for n in parts[0].body_wrenches})
 
 
 def step_each(step, states, cmd, h, n, budget=None) -> BatchResult:
