@@ -62,6 +62,7 @@ class Case:
     prepare: Callable | None = None  # (mech, q0, vR0) -> (q0, vR0), may edit mech (e.g. rest lengths)
     hybrid: dict | None = None  # {"joint": name, "q": f(t), "v": f(t), "a": f(t)}
     note: str = ""
+    probe: str | None = None  # a joint whose error at the end of the run is recorded too (probe_final)
 
 
 CASES: dict = {}
@@ -759,6 +760,10 @@ def errors(problem, ref: Reference, run: Run) -> dict:
          for k in range(n)]
     out["state_max"] = float(max(e))
     out["state_final"] = float(e[-1])
+    if problem.case.probe is not None and out["complete"]:  # |error| of one joint at t = T [rad, m]
+        j = problem.mech.joint_index[problem.case.probe]
+        d = pin.difference(model, ref.q[-1], run.q[-1])
+        out["probe_final"] = float(np.abs(d[j.idx_v:j.idx_v + j.nv]).max())
     E = np.asarray(run.E)
     out["energy_drift"] = float(np.nanmax(np.abs(E - ref.E0))) if E.size else None
     out["energy_final"] = float(E[-1] - ref.E0) if E.size else None

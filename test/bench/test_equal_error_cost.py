@@ -39,3 +39,11 @@ def test_a_failed_larger_step_gives_the_measured_run():
     eps = 10.0 * 5e-3 ** 2
     assert cost_at_equal_error(runs, CASE, eps) == 1e-6 / 5e-3
     assert cost_at_equal_error(runs, CASE, 1e-12) is None
+
+
+def test_another_error_field():
+    """``key`` reads another error field of the runs (probe_final: the four-bar's crank angle at 2 s)."""
+    runs = [{"h": h, "status": "ok", "state_max": 1.0, "probe_final": 1e-3 * h / 2e-3, TIME_KEY: 1e-6 / h} for h in HS]
+    assert cost_at(runs, CASE, 1e-3) is None
+    assert cost_at(runs, CASE, 1e-3, "probe_final") == 1e-6 / 2e-3
+    assert cost_at_equal_error(runs, CASE, 1e-3, "probe_final") == pytest.approx(1e-6 / 2e-3, rel=1e-12)
