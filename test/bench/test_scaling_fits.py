@@ -27,3 +27,14 @@ def test_levels_reach_ten_thousand_dof():
     assert rigid[:5] == [80, 160, 320, 640, 1280] and flexy[:5] == [60, 120, 240, 480, 960]
     assert umbrella[:5] == [241, 385, 529, 769, 1105]
     assert min(rigid[7], flexy[7], umbrella[7]) >= 10000
+
+
+def test_the_small_size_fit_resolves_the_fixed_cost_the_all_size_fit_does_not():
+    """100 us fixed + 2 us per DOF with +1 % on the largest size: the fit over all sizes is off by far more than
+    the fit over the three smallest, which scaling reports beside it (pcg_per_step_fit_small)."""
+    dof = [80, 160, 320, 640, 1280, 2560, 5120, 10240]
+    t = [100e-6 + 2e-6 * d for d in dof]
+    t[-1] *= 1.01
+    a_all = linear_fit(dof, t)["a_us"]
+    a_small = linear_fit(dof[:3], t[:3])["a_us"]
+    assert abs(a_small - 100.0) < 1e-6 and abs(a_all - 100.0) > 20.0
