@@ -533,7 +533,11 @@ class Simulator:
         energies of those steps only: no Python object per step, the way to take long trajectories (sweeps,
         work-precision runs). On StepError the state is that after the last successful step (``err.steps_done``
         of them) and ``err.rollout`` holds the rows recorded before it (or None)."""
-        n, every = _step_count(n), _step_count(every)
+        n = _step_count(n)
+        try:
+            every = _step_count(every)
+        except CommandError:
+            raise CommandError(f"rollout's every (steps per recorded row) must be a positive integer, got {every!r}") from None
         parts, rows, phase, done = [], 0, 0, 0
         run = getattr(self.backend, "rollout_run", None)
         while rows < n:

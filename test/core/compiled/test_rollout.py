@@ -10,7 +10,7 @@ import pytest
 
 import redmax_ros.core.simulator as simulator
 from redmax_ros.core import Rollout, Simulator
-from redmax_ros.core.errors import StepError
+from redmax_ros.core.errors import CommandError, StepError
 
 TIPS = ["index_tip", "middle_tip", "ring_tip", "little_tip", "thumb_tip"]
 
@@ -114,4 +114,14 @@ def test_a_rejected_step_keeps_the_state_and_the_rows_before_it():
     with pytest.raises(StepError) as e:
         sim.rollout(5, 2)
     assert e.value.steps_done == 0 and e.value.rollout is None
+    assert sim.state is before
+
+
+@pytest.mark.parametrize("n,every", [(0, 1), (3, 0), (2.5, 1), (3, float("nan")), (3, -2)])
+def test_bad_counts_are_refused_by_name(n, every):
+    """A row count or stride that is not a positive integer: CommandError naming it, nothing stepped."""
+    sim = Simulator.load("chain", ["params.n=3"], solver="compiled")
+    before = sim.state
+    with pytest.raises(CommandError, match="every" if n == 3 else "step count"):
+        sim.rollout(n, every)
     assert sim.state is before
