@@ -174,14 +174,20 @@ def csv_row(sim: Simulator, res) -> np.ndarray:
     rep = sim.deformable_report()
     if rep is not None:
         parts.append([rep["E_kin"], rep["E_elastic"], rep["attachment_drift"]])
+    parts += prescribed_columns(sim, res.effort, res.site_forces, res.body_wrenches)
+    return np.concatenate([np.atleast_1d(np.asarray(p, float)) for p in parts])
+
+
+def prescribed_columns(sim: Simulator, effort, site_forces: dict, body_wrenches: dict) -> list:
+    """The required torques, site forces and body wrenches of the prescribed joints, sites and bodies, in the
+    CSV's column order (csv_header): arrays whose last axis is the columns (one step's, or a Rollout's rows)."""
+    parts = []
     for name in sim.prescribed_joints():
         j = sim.mech.joint_index[name]
-        parts.append(res.effort[j.idx_v:j.idx_v + j.nv])
-    for name in sim.prescribed_sites():
-        parts.append(res.site_forces[name])
-    for name in sim.prescribed_bodies():
-        parts.append(res.body_wrenches[name])
-    return np.concatenate([np.atleast_1d(np.asarray(p, float)) for p in parts])
+        parts.append(effort[..., j.idx_v:j.idx_v + j.nv])
+    parts += [site_forces[name] for name in sim.prescribed_sites()]
+    parts += [body_wrenches[name] for name in sim.prescribed_bodies()]
+    return parts
 
 
 CHUNK = 64  # rows per Simulator.rollout call of ``run`` (and steps per progress-bar update when stepping singly)
@@ -249,13 +255,7 @@ def run(sim: Simulator, n_steps: int, quiet=False, controller=None, on_step=None
 def rollout_rows(sim: Simulator, ro) -> np.ndarray:
     """The CSV rows (csv_row's columns and numbers) of a Rollout's steps."""
     parts = [ro.t[:, None], ro.q, ro.v, np.stack([ro.E_kin, ro.E_pot, ro.E_spring, ro.E_total, ro.violation_pos], 1)]
-    for name in sim.prescribed_joints():
-        j = sim.mech.joint_index[name]
-        parts.append(ro.effort[:, j.idx_v:j.idx_v + j.nv])
-    for name in sim.prescribed_sites():
-        parts.append(ro.site_forces[name])
-    for name in sim.prescribed_bodies():
-        parts.append(ro.body_wrenches[name])
+    parts += prescribed_columns(sim, ro.effort, ro.site_forces, ro.body_wrenches)
     return np.concatenate(parts, axis=1)
 
 

@@ -478,6 +478,12 @@ class Simulator:
         return {k: v.copy() for k, v in self.commands.site_velocities.items()}
 
     # -- stepping
+    def _failure(self, e, steps_done: int) -> StepError:
+        """The StepError that step, step_results and rollout raise for a failed step: its time and reason (a
+        LinAlgError: non-finite numbers reaching a factorisation, huge scene values), after ``steps_done`` steps."""
+        reason = e.reason if isinstance(e, StepError) else _linalg_reason(e)
+        return StepError(f"step at t = {self.state.t:.6g} s failed: {reason}", steps_done=steps_done)
+
     def step(self, n: int = 1) -> StepResult:
         """Advance n steps; returns the last StepResult. On StepError the state is that after the last
         successful step (``err.steps_done`` of them); the failing step changed nothing."""
@@ -492,10 +498,8 @@ class Simulator:
                     k = 1
                 else:
                     self.state, res, k = run(self.state, self.commands, self.dt, int(n) - done, self._budget)
-            except StepError as e:
-                raise StepError(f"step at t = {self.state.t:.6g} s failed: {e.reason}", steps_done=done) from None
-            except np.linalg.LinAlgError as e:  # non-finite numbers reaching a factorisation (huge scene values)
-                raise StepError(f"step at t = {self.state.t:.6g} s failed: {_linalg_reason(e)}", steps_done=done) from None
+            except (StepError, np.linalg.LinAlgError) as e:
+                raise self._failure(e, done) from None
             done += k
             self.last = res
         return res
@@ -519,8 +523,7 @@ class Simulator:
                                              self._budget, record=True)
                     out.extend(res)
             except (StepError, np.linalg.LinAlgError) as e:
-                reason = e.reason if isinstance(e, StepError) else _linalg_reason(e)
-                err = StepError(f"step at t = {self.state.t:.6g} s failed: {reason}", steps_done=len(out))
+                err = self._failure(e, len(out))
                 err.results = out
                 raise err from None
             self.last = out[-1]
@@ -549,8 +552,7 @@ class Simulator:
                     steps = min((n - rows) * every - phase, RECORD_ROWS * every)
                     self.state, part, k = run(self.state, self.commands, self.dt, steps, every, phase, self._budget)
             except (StepError, np.linalg.LinAlgError) as e:
-                reason = e.reason if isinstance(e, StepError) else _linalg_reason(e)
-                err = StepError(f"step at t = {self.state.t:.6g} s failed: {reason}", steps_done=done)
+                err = self._failure(e, done)
                 err.rollout = Rollout.concatenate(parts) if parts else None
                 raise err from None
             done += k
