@@ -168,7 +168,8 @@ PARAMETERS = {
     "max_steps_per_request": (1_000_000, _d("Largest step count accepted by step_simulation / simulate_steps.",
                                             1, 1_000_000_000, integer=True)),
     "step_budget_ms": (50.0, _d("Work one step may do: CPU milliseconds of its iterative solvers (joint-limit QP, "
-                                "friction iterations, PCG; JIT compilation excluded) with ProxSuite iteration caps. "
+                                "friction iterations, PCG; JIT compilation and garbage collection excluded) "
+                                "with ProxSuite iteration caps. "
                                 "Past it the step fails with 'step budget exceeded', the state stays as it was "
                                 "(free-run pauses). 0 = unlimited.", 0.0, 60000.0)),
     "request_queue_depth": (1000, _d("Requests each service (and the simulate_steps action) queues while it "

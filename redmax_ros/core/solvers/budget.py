@@ -18,7 +18,10 @@ backstop for what gets past those tests.
 
 The clock: the CPU time of the stepping thread (time.thread_time) from the start of the step's first
 iterative solver, minus the time numba spends meanwhile in its compiler lock (compiling or loading cached
-kernels: 0.1-2 s in the first step of a process or of a new code path, which is not the step's work).
+kernels: 0.1-2 s in the first step of a process or of a new code path, which is not the step's work) and
+minus the time the thread spends in Python's cyclic garbage collector (a full collection traverses every
+object of the process, whoever made them: up to 264 ms measured in a pytest process of test/core, 4446
+collections; the walker's first step under CI failed its 50 ms budget "after 1 iterations / 238.5 ms").
 CPU time, not wall time, so that a loaded machine does not fail normal steps (measured here, load average
 10 on 2 cores: a 5-10 ms umbrella PCG step took 10-120 ms of wall time, and a first step 3.7 s of wall time
 for 0.3 s of CPU); the non-iterative stages before the first solver (kinematics, assembly, factorisations)
@@ -36,6 +39,7 @@ means unlimited: ProxSuite's own caps and no clock.
 """
 from __future__ import annotations
 
+import gc
 import math
 import numbers
 import threading
@@ -95,13 +99,44 @@ def jit_seconds() -> float:
     return _JIT.total.get(threading.get_ident(), 0.0)
 
 
+class _GcClock:
+    """CPU time [s] each thread has spent in Python's cyclic garbage collector (a ``gc.callbacks`` entry).
+    Collections run while the thread holds numba's compiler lock are left out: that time is already in
+    jit_seconds."""
+
+    def __init__(self):
+        self.total = {}  # thread id -> s
+        self._start = {}  # thread id -> thread_time at the collection's start
+
+    def __call__(self, phase, info):
+        tid = threading.get_ident()
+        if phase == "start":
+            if tid not in _JIT._open:
+                self._start[tid] = time.thread_time()
+        else:
+            t0 = self._start.pop(tid, None)
+            if t0 is not None:
+                self.total[tid] = self.total.get(tid, 0.0) + time.thread_time() - t0
+
+
+_GC = _GcClock()
+gc.callbacks.append(_GC)
+
+
+def pause_seconds() -> float:
+    """CPU time [s] this thread has spent so far on work that is not any step's: numba's compiler lock
+    (jit_seconds) and the garbage collector."""
+    tid = threading.get_ident()
+    return _JIT.total.get(tid, 0.0) + _GC.total.get(tid, 0.0)
+
+
 @dataclass(frozen=True)
 class StepBudget:
     """The work one step may do; past it the step fails with StepError("step budget exceeded: ...").
 
     ``cpu_time`` [s]: CPU time of the step's iterative solvers (from the first one's start, JIT compilation
-    excluded), checked between their iterations (QP slices, staggered iterations with ProxSuite inner
-    solves, PCG iterations, active-set and QP fixed-point iterations). ``qp_max_iter``: ProxSuite outer
+    and garbage collection excluded), checked between their iterations (QP slices, staggered iterations
+    with ProxSuite inner solves, PCG iterations, active-set and QP fixed-point iterations). ``qp_max_iter``: ProxSuite outer
     iterations of one QP (run in slices of QP_SLICE); ``qp_max_iter_in``: ProxSuite inner iterations per
     outer one. None or 0 switches a limit off (ProxSuite's own caps: 10000 and 1500)."""
 
@@ -153,13 +188,14 @@ class Deadline:
         """Start the clock (once per step: later calls do nothing); called by every iterative solver."""
         if self.c0 is None:
             self.c0 = time.thread_time()
-            self.j0 = jit_seconds()
+            self.j0 = pause_seconds()
             if self.budget.cpu_time:
                 self.limit = time.perf_counter() + self.budget.cpu_time
 
     def used(self) -> float:
-        """CPU time [s] of the step's iterative solvers so far, JIT compilation excluded (0 before they start)."""
-        return 0.0 if self.c0 is None else time.thread_time() - self.c0 - (jit_seconds() - self.j0)
+        """CPU time [s] of the step's iterative solvers so far, JIT compilation and garbage collection
+        excluded (0 before they start)."""
+        return 0.0 if self.c0 is None else time.thread_time() - self.c0 - (pause_seconds() - self.j0)
 
     def remaining(self) -> float:
         """Seconds left of the time budget (inf without one)."""
