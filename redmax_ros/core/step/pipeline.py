@@ -69,8 +69,9 @@ def step(mech, ws, state: State, cmd, h: float, velocity, budget=None) -> tuple:
     """Advance one step of Eq. (2) with the backend's ``velocity`` stages. Returns (State, StepResult);
     raises StepError on failure (the input state is never modified). ``budget``: a StepBudget (CPU time of
     the step's iterative solvers, QP iteration caps) or None (unlimited). With integrator.scheme bdf2 the
-    step is the linearly implicit BDF2 of step/scheme.py (BDF1 when the state has no history for h, or when
-    the order control of step/scheme.accepts rejects the BDF2 step: then it is redone as BDF1)."""
+    step is the linearly implicit BDF2 of step/scheme.py (its start-up BDF1 step, about the explicit Euler
+    predictor, when the state has no history for h; Eq. 2 itself when the order control of step/scheme.accepts
+    rejects the BDF2 step: then it is redone as that)."""
     t0 = time.perf_counter()
     ws.deadline = None if budget is None else budget.start()
     try:
@@ -78,7 +79,7 @@ def step(mech, ws, state: State, cmd, h: float, velocity, budget=None) -> tuple:
             ws.bdf2 = bdf2_point(mech.model, ws.to_reduced, state.q, state.v, state.history, h)
         warm = ws.cache.get(_ACTIVE_KEY)
         new, res = _step(mech, ws, state, cmd, h, velocity, t0)
-        if ws.bdf2 is not None and not accepts(mech.model, state.q, ws.bdf2.q_lin, new.q):
+        if ws.bdf2 is not None and ws.bdf2.order == 2 and not accepts(mech.model, state.q, ws.bdf2.q_lin, new.q):
             ws.bdf2 = None  # order control (step/scheme.py): the step again, as BDF1 (Eq. 2), from the same warm start
             if warm is not None:
                 ws.cache[_ACTIVE_KEY] = warm

@@ -29,10 +29,18 @@ So a BDF2 step is the step of Eq. (2) with
     * q+ = q^ (+) hat h qdot+, joint limits lower <= q^ + hat h qdot+ <= upper, trajectories aiming from q^;
     * required torques -*G^T lam / hat h (the constraint force at t_k+1 of the discrete equation above).
 
-The start-up step (no history: after load, reset or set_state, or when the step size changed) is the BDF1
-step of Eq. (2); one first-order step contributes O(h^2) to the global error, so the order stays 2 (observed
-on the four-bar and the slider-crank: 2.13, 2.08; the notes start with SDIRK2, Eq. 3.66-3.75, which measured
-the same here, at two solves and without an exact replay of the required torques of its first step). A
+The start-up step (no history: after load, reset or set_state, or when the step size changed) is a BDF1
+step (:func:`startup_point`): Eq. (2) linearised, like the BDF2 step, about a predicted point, here the
+explicit Euler predictor q* = q_k (+) h qdot_k (v* = v^ = qdot_k, q^ = q_k, step size h). For every term but
+the maximal springs that is Eq. (2) with its kinematics, M, bias forces and rows at q* instead of q_k (the
+same to O(h)); the springs are linearised about q*, f(q+) ~ f(q*) + K' (q* (-) q_k) - K h qdot+, as in the
+BDF2 step, which leaves out 1/2 f'' (h (qdot+ - qdot_k))^2 instead of Eq. (2)'s 1/2 f'' (h qdot+)^2. On the
+kicked stiff springs of docs/bdf2.md (k = 1e6, 0.5 m/s) at h = 2e-2, Eq. (2)'s start-up put 0.055 J into the
+springs (the chord stretch), which the extrapolating BDF2 steps carried on ringing, with steps rejected by the
+order control and a run error of 2.7e-2; from this start-up, 7.9e-5 J and 4.5e-4. One first-order step
+contributes O(h^2) to the global error, so the order stays 2 (observed on the four-bar and the slider-crank;
+the notes start with SDIRK2, Eq. 3.66-3.75, which measured the same here, at two solves and without an exact
+replay of the required torques of its first step). A
 velocity that violates the bilateral rows (a loop's v0 given on one joint only) is projected by the first
 step in any scheme with an O(h) error (the rows at the step's point, not at t_0): from such a state the
 global error is O(h); start from a consistent velocity for second order. The history (q_k-1, qdot_k-1, h)
@@ -50,8 +58,8 @@ Campbell & Petzold's DASSL) is small against the step's own motion,
 
     max_i |(q+ (-) q*)_i| <= ORDER_RATIO max_i |(q+ (-) q_k)_i| + ORDER_FLOOR        (radians and metres),
 
-else the step is redone from the same state as the BDF1 step of Eq. (2) (the history is kept: the next step
-tries BDF2 again). For smooth motion the left side is O(h^3) and the right O(h), so in the asymptotic range
+else the step is redone from the same state as the BDF1 step of Eq. (2) itself, linearised at q_k (the history
+is kept: the next step tries BDF2 again): the fallback is the paper's step, stable wherever it is. For smooth motion the left side is O(h^3) and the right O(h), so in the asymptotic range
 no step falls back and the order stays 2 (measured ratio maxima: chain-5 0.12 at h = 1e-2, 0.0012 at 1e-3;
 pendulum 0.006; four-bar and hand only on their first BDF2 step, 0.56 and 0.51). It falls back on violent
 transients: 4-11 of 500-1000 steps on mass_springs with corner springs (k = 1e4, 1e6 at h = 1e-2, 5e-3),
@@ -79,13 +87,16 @@ class History:
 
 @dataclass(frozen=True)
 class Bdf2Point:
-    """Where a BDF2 step is linearised and from where it advances (module docstring)."""
+    """Where a step of the bdf2 scheme is linearised and from where it advances (module docstring): a BDF2 step
+    (``order`` 2) or its start-up BDF1 step (``order`` 1, :func:`startup_point`: q^ = q_k, v* = v^ = qdot_k,
+    hat h = h)."""
     q_lin: np.ndarray  # (nq,) q* = q^ (+) hat h v*: kinematics, M, nle, Jacobians, rows
     v_lin: np.ndarray  # (ndof,) v* = 2 qdot_k - qdot_k-1, hyper-reduced
     q_base: np.ndarray  # (nq,) q^ = q_k (+) (q_k (-) q_k-1) / 3: q+ = q^ (+) hat h qdot+
     v_mom: np.ndarray  # (nv,) v^ = 4/3 qdot_k - 1/3 qdot_k-1, reduced: RHS M v^
     back: np.ndarray  # (nv,) q* (-) q^ = hat h v*, reduced tangent [rad, m]
     h: float  # s, hat h = 2 h / 3
+    order: int = 2  # 2: BDF2, checked by the order control; 1: the start-up step
 
 
 def continues(history: History | None, h: float) -> bool:
@@ -99,12 +110,20 @@ def next_history(scheme: str, q, v, h: float) -> History | None:
     return History(q, v, h) if scheme == "bdf2" else None
 
 
-def bdf2_point(model, to_reduced, q, v, history: History | None, h: float) -> Bdf2Point | None:
-    """The Bdf2Point of the step of h from (q, v) with ``history``; None when the step must start up (no
-    history, or it was made with another step size: the BDF1 step of Eq. 2). ``model``: the pin.Model of the configuration space;
-    ``to_reduced``: hyper-reduced -> reduced velocities (T = J_rR)."""
+def startup_point(model, to_reduced, q, v, h: float) -> Bdf2Point:
+    """The point of the start-up BDF1 step of h from (q, v) (module docstring): q* = q (+) h T v, v* = v, q^ = q,
+    v^ = T v, hat h = h; ``order`` 1."""
+    v_r = to_reduced(v)
+    back = h * v_r
+    return Bdf2Point(pin.integrate(model, q, back), v, q, v_r, back, h, order=1)
+
+
+def bdf2_point(model, to_reduced, q, v, history: History | None, h: float) -> Bdf2Point:
+    """The Bdf2Point of the step of h from (q, v) with ``history``: BDF2's, or when the step must start up (no
+    history, or it was made with another step size) :func:`startup_point`'s. ``model``: the pin.Model of the
+    configuration space; ``to_reduced``: hyper-reduced -> reduced velocities (T = J_rR)."""
     if not continues(history, h):
-        return None
+        return startup_point(model, to_reduced, q, v, h)
     hh = 2.0 * h / 3.0
     d = pin.difference(model, history.q, q)  # q_k (-) q_k-1, tangent [rad, m]
     q_base = pin.integrate(model, q, d / 3.0)

@@ -147,13 +147,14 @@ class CompiledBackend:
         return self.bdf2 and continues(state.history, h)
 
     def _history_args(self, state, h):
-        """(q_k-1, qdot_k-1, valid) for the kernel: copies of the history, or placeholders and 0 (under BDF1
-        the kernel never touches them: the backend's own; a BDF2 start-up writes the new history into them)."""
+        """(q_k-1, qdot_k-1, hist) for the kernel: copies of the history and 1 (a BDF2 step), or under BDF1
+        placeholders and 0 (the kernel never touches them: the backend's own), or for the bdf2 scheme's start-up
+        step copies of the state and 2 (the kernel writes the new history into them)."""
         if self._history(state, h):
             return state.history.q.copy(), state.history.v.copy(), 1
         if not self.bdf2:
             return self._no_q, self._no_v, 0
-        return state.q.copy(), state.v.copy(), 0
+        return state.q.copy(), state.v.copy(), 2
 
     def _advanced(self, state, h, q, v, qp, vp, steps=1):
         """The State after the kernel's steps, with BDF2's history (q_k-1, qdot_k-1, h) when the scheme keeps one."""
@@ -175,7 +176,7 @@ class CompiledBackend:
         if not step_n_kernel(*self.model.args, *d.args, q, v, tau, float(h), gj, sv, 1, qp, vp, hist, hist, _NO_REC, 1, 0):
             self._handed_back(d)
             return self.reference_step(state, cmd, h, budget)
-        if hist and cmd.joint_trajectories and d["out"][OUT_ORDER] == 1.0:
+        if hist == 1 and cmd.joint_trajectories and d["out"][OUT_ORDER] == 1.0:
             # the order control redid the step as BDF1, whose trajectories aim from q_k, not q^ (resolved above)
             self.handoffs["BDF2 step redone as BDF1 with trajectories"] += 1
             return self.reference_step(state, cmd, h, budget)

@@ -13,7 +13,8 @@ preallocated workspace):
     required_forces(m, d, tau, hh)         # 6  Eq. 7 torques and site forces (update.py)
     energies(m, d, q+, qdot_r+, placed)    #    diagnostics (energy.py): BDF1 steps, and BDF2 steps a run returns
 
-with hh = h for BDF1 (q^ = q* = q_k, v^ = v* = qdot_k: the paper's step) and hh = 2h/3 for BDF2. A BDF2 step
+with hh = h for BDF1 (q^ = q* = q_k, v^ = v* = qdot_k: the paper's step), hh = 2h/3 for BDF2 (history 1) and hh
+= h for the bdf2 scheme's start-up (history 2: q* = q_k (+) h qdot_k, step/scheme.startup_point). A BDF2 step
 that the order control rejects (scheme.accepted, step/scheme.accepts) is taken again from the same state as
 BDF1; d.out[OUT_ORDER] says which order the step has.
 
@@ -85,12 +86,12 @@ def one_step(m, d, q, vR, tau, h, gj, sv, qp, vp, hist, warm, report):
     order = hist
     while True:  # one call site: the stages are inlined once (a plain call copies the namedtuples)
         status = stages(m, d, q, vR, tau, h, gj, sv, qp, vp, order, warm, report)
-        if order and status == OK and not accepted(m, d, q):
+        if order == 1 and status == OK and not accepted(m, d, q):
             order = 0
             warm = False  # the BDF2 attempt moved the placements to its q*
             continue
         break
-    d.out[OUT_ORDER] = 2.0 if order else 1.0
+    d.out[OUT_ORDER] = 2.0 if order == 1 else 1.0
     return status
 
 
@@ -135,10 +136,11 @@ def rigid_stages(m, d, q, vR, tau, h, gj, sv, qp, vp, hist, warm):
     vv = vR @ vR
     if not (_finite_sum(q) and vv - vv == 0.0 and _finite_sum(tau)) or vv > MAX_SPEED * MAX_SPEED:
         return _handoff(d.out, STAGE_INPUT), h  # step/state.applied_torques names it
-    hh = 2.0 * h / 3.0 if hist else h
+    hh = 2.0 * h / 3.0 if hist == 1 else h
     point(m, d, q, vR, qp, vp, hist, hh)  # 0
     kinematics(m, d, d.q_lin, d.v_r, warm and not hist)  # 1
-    if hist:  # 2, BDF2: the momentum of v^, maximal springs linearised about q* (springs.spring_shift)
+    if hist == 1:  # 2, BDF2: the momentum of v^; with the start-up (hist 2) too, the maximal springs linearised
+        # about q* (springs.spring_shift)
         jv_kernel(m.parents, m.idx_v, m.nv_j, d.St, d.v_mom, d.ovm)
         vm, ovm = d.v_mom, d.ovm
     else:

@@ -5,7 +5,8 @@ pin.difference by manifold.py, bit for bit):
     BDF2 (a history (q_k-1, qdot_k-1) of the same step size):
         d = q_k (-) q_k-1,  q^ = q_k (+) d / 3,  v* = 2 qdot_k - qdot_k-1,  v^ = (4 qdot_k - qdot_k-1) / 3,
         q* = q^ (+) hat h v*  (hat h = 2h/3)
-    BDF1 (Eq. 2): q^ = q* = q_k, v* = v^ = qdot_k.
+    start-up BDF1 (step/scheme.startup_point): q^ = q_k, v* = v^ = qdot_k, q* = q_k (+) h qdot_k
+    BDF1 (Eq. 2; the order control's fallback and the euler scheme): q^ = q* = q_k, v* = v^ = qdot_k.
 
 Outputs: d.q_base (q^), d.q_lin (q*), d.v_r (v*, reduced), d.v_mom (v^, reduced), d.back (q* (-) q^, reduced).
 
@@ -21,12 +22,18 @@ from redmax_ros.core.step.scheme import ORDER_FLOOR, ORDER_RATIO
 
 @njit_inline
 def point(m, d, q, vR, qp, vp, hist, hh):
-    """Fill the step's points (module docstring); ``hist`` nonzero: BDF2 from the history (qp, vp), else BDF1."""
-    if not hist:
+    """Fill the step's points (module docstring); ``hist`` 1: BDF2 from the history (qp, vp), 2: the start-up BDF1
+    step about the explicit Euler predictor (``hh`` = h), 0: BDF1 at q_k."""
+    if hist != 1:
         d.q_base[:] = q
-        d.q_lin[:] = q
         to_reduced(m.T_col, m.T_ratio, vR, d.v_r)
         d.v_mom[:] = d.v_r
+        if hist == 0:
+            d.q_lin[:] = q
+            return
+        for i in range(d.back.shape[0]):
+            d.back[i] = hh * d.v_r[i]
+        integrate(m.kind, m.idx_q, m.idx_v, q, d.back, d.q_lin)
         return
     difference(m.kind, m.idx_q, m.idx_v, qp, q, d.bdf_d)
     for i in range(d.bdf_d.shape[0]):
