@@ -125,6 +125,7 @@ def assemble(mech, ws, kin: Kinematics, q, v_r, tau, h, site_forces=None) -> Lin
             spring_shift_kernel(kin.X, rows[:, 0].copy(), rows[:, 1].copy(), mech.spring_k, mech.spring_rest, ex,
                                 kin.J @ pt.back, ws.tree.spring_ja, ws.tree.spring_jb, ws.tree.topo.mass, h * h, corr)
             f += Jf.T @ corr.reshape(3 * P)
+            ws.spring_ends = (kin.X[rows[:, 0]], kin.X[rows[:, 1]])  # for the order control (pipeline.spring_miss)
             # ... and the turn of the lever arms, B (q* (-) q^) with the unclamped lever blocks B at q*
             B = np.zeros_like(A)
             add_geometric_stiffness(ws, B, ws.tree.spring_ja, kin.X[rows[:, 0]], ws.tree.spring_jb,

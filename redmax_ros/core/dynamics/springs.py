@@ -166,6 +166,36 @@ def spring_shift_kernel(X, a, b, k, L0, explicit, dX, ja, jb, mass, hh, out):
 
 
 @njit
+def linearisation_miss(pa, pb, X, a, b, k, explicit, ja, jb, mass, hh):
+    """BDF2's order control for stiff maximal springs (step/scheme.accepts): how far the step's linearisation of
+    the springs about the predicted q* misses at the result q+, as a displacement [m]: the largest over implicit
+    springs s of hh k_s |l+ - l* - u* . (dx_a - dx_b)| / min(m_a, m_b). l*, u* the spring's length and direction
+    at q* (its ends ``pa``, ``pb`` (P,3)), l+ its length at q+ (the sites ``X`` at q+, rows a[s], b[s]), dx the
+    ends' displacements from q* to q+: the spring force the linear step left out, k times the length's error
+    beyond first order (~ k |dx_perp|^2 / 2l for a miss dx_perp across the spring), turned into the displacement
+    it causes in a step of hat h = sqrt(hh) on the lighter end's body (``mass`` per joint; the world, joint 0,
+    is infinitely heavy). A miss of a few millimetres across a 1e6 N/m spring is a force error of tens of
+    newtons, which the predictor's own miss in joint coordinates does not show (docs/bdf2.md)."""
+    worst = 0.0
+    for s in range(a.shape[0]):
+        if explicit[s]:
+            continue
+        d0, d1, d2 = pa[s, 0] - pb[s, 0], pa[s, 1] - pb[s, 1], pa[s, 2] - pb[s, 2]
+        ls = np.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
+        if ls <= 1e-12:
+            continue
+        n0, n1, n2 = X[a[s], 0] - X[b[s], 0], X[a[s], 1] - X[b[s], 1], X[a[s], 2] - X[b[s], 2]
+        ln = np.sqrt(n0 * n0 + n1 * n1 + n2 * n2)
+        err = abs(ln - ls - ((n0 - d0) * d0 + (n1 - d1) * d1 + (n2 - d2) * d2) / ls)
+        ma = np.inf if ja[s] == 0 else mass[ja[s]]
+        mb = np.inf if jb[s] == 0 else mass[jb[s]]
+        m = min(ma, mb)
+        if m > 0.0 and m < np.inf:
+            worst = max(worst, hh * k[s] * err / m)
+    return worst
+
+
+@njit
 def geometric_blocks_kernel(ja, pa, jb, pb, f, explicit, scale, I, blocks):
     """The lever-arm (geometric) part of the full maximal spring stiffness K_m, added as per-body 6x6 blocks:
     blocks[j] += scale * B_j for each end of each implicit spring (end a: force f[s] at pa[s] on joint ja[s];

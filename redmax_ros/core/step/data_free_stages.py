@@ -259,6 +259,7 @@ def data_free_velocity(mech, ws, state, cmd, tau, h, solver="pcg", rtol=DEFAULT_
                                 rc.site_jv(ctx.topo, rws, ctx.jac_jid, X, pt.back), ctx.spring_ja, ctx.spring_jb,
                                 ctx.topo.mass, h * h, corr)
             rhs_springs = (fs + corr, X)
+            ws.spring_ends = ends  # (pa, pb) at q*, for the order control (pipeline.spring_miss)
     sf = {mech.site_index[n]: f for n, f in cmd.site_forces.items()} if cmd.site_forces else None
     b = tf.rhs(ctx, q_base, v_r, tau, h, sf, rhs_springs)
     if pt is not None:  # RHS M v^ + hat h f: the momentum of v^ instead of v*

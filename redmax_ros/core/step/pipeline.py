@@ -39,6 +39,7 @@ import pinocchio as pin
 
 from redmax_ros.core.dynamics import constraints, forces, kinematics, self_collision, stabilization
 from redmax_ros.core.dynamics.energy import energies
+from redmax_ros.core.dynamics.springs import linearisation_miss
 from redmax_ros.core.errors import StepError
 from redmax_ros.core.friction import staggered
 from redmax_ros.core.solvers.direct import solve_direct
@@ -78,8 +79,10 @@ def step(mech, ws, state: State, cmd, h: float, velocity, budget=None) -> tuple:
         if mech.scheme == "bdf2":
             ws.bdf2 = bdf2_point(mech.model, ws.to_reduced, state.q, state.v, state.history, h)
         warm = ws.cache.get(_ACTIVE_KEY)
+        ws.spring_ends = None
         new, res = _step(mech, ws, state, cmd, h, velocity, t0)
-        if ws.bdf2 is not None and ws.bdf2.order == 2 and not accepts(mech.model, state.q, ws.bdf2.q_lin, new.q):
+        if ws.bdf2 is not None and ws.bdf2.order == 2 and not accepts(mech.model, state.q, ws.bdf2.q_lin, new.q,
+                                                                      spring_miss(mech, ws, ws.bdf2.h)):
             ws.bdf2 = None  # order control (step/scheme.py): the step again, as BDF1 (Eq. 2), from the same warm start
             if warm is not None:
                 ws.cache[_ACTIVE_KEY] = warm
@@ -88,6 +91,22 @@ def step(mech, ws, state: State, cmd, h: float, velocity, budget=None) -> tuple:
     finally:
         ws.deadline = None
         ws.bdf2 = None
+
+
+def spring_miss(mech, ws, hh: float) -> float:
+    """What a BDF2 step's linearisation of its implicit maximal springs about q* missed at q+ [m]
+    (springs.linearisation_miss): the ends at q* that the velocity stages kept in ws.spring_ends, the sites at q+
+    from the forward kinematics that energies() left in the workspace (pin.Data or the recursive Context); 0
+    without springs."""
+    if ws.spring_ends is None:
+        return 0.0
+    pa, pb = ws.spring_ends
+    X = kinematics.site_positions(mech, ws.data, mech.jac_sites) if ws.data is not None else ws.tree.jac_positions()
+    rows, ctx = mech.spring_rows, ws.tree
+    ex = np.zeros(len(rows), np.int64) if mech.spring_explicit is None else mech.spring_explicit.astype(np.int64)
+    return linearisation_miss(np.ascontiguousarray(pa), np.ascontiguousarray(pb), np.ascontiguousarray(X),
+                              rows[:, 0].copy(), rows[:, 1].copy(), mech.spring_k, ex, ctx.spring_ja, ctx.spring_jb,
+                              ctx.topo.mass, hh * hh)
 
 
 def _step(mech, ws, state: State, cmd, h: float, velocity, t0) -> tuple:

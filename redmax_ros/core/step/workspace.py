@@ -38,6 +38,7 @@ class Workspace:
         self.friction = None if mech.friction is None else make_work(mech, mech.friction, self.T)
         self.deadline = None
         self.bdf2 = None
+        self.spring_ends = None  # BDF2: the maximal springs' ends (pa, pb) at q*, for pipeline.spring_miss
         # the QP of Eq. (5) with self-collision rows: "active-set" (solvers/active_set.py, ProxSuite when it does
         # not settle) or "proxsuite" (always; the comparison of redmax_bench hagfish)
         self.contact_qp = "active-set"
