@@ -102,11 +102,10 @@ def spring_miss(mech, ws, hh: float) -> float:
         return 0.0
     pa, pb = ws.spring_ends
     X = kinematics.site_positions(mech, ws.data, mech.jac_sites) if ws.data is not None else ws.tree.jac_positions()
-    rows, ctx = mech.spring_rows, ws.tree
-    ex = np.zeros(len(rows), np.int64) if mech.spring_explicit is None else mech.spring_explicit.astype(np.int64)
+    ctx = ws.tree
+    sa = ctx.spring_arrays  # the springs' rows, stiffness and explicit flags (springs.spring_arrays)
     return linearisation_miss(np.ascontiguousarray(pa), np.ascontiguousarray(pb), np.ascontiguousarray(X),
-                              rows[:, 0].copy(), rows[:, 1].copy(), mech.spring_k, ex, ctx.spring_ja, ctx.spring_jb,
-                              ctx.topo.mass, hh * hh)
+                              sa.a, sa.b, sa.k, sa.explicit, ctx.spring_ja, ctx.spring_jb, ctx.topo.mass, hh * hh)
 
 
 def _step(mech, ws, state: State, cmd, h: float, velocity, t0) -> tuple:
