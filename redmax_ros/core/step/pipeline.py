@@ -127,7 +127,7 @@ def _step(mech, ws, state: State, cmd, h: float, velocity, t0) -> tuple:
     if not math.isfinite(ek + ep + es):
         raise StepError("non-finite energy after the step")
     diag = Diagnostics(ek, ep, es, ek + ep + es, viol_pos, vs.violation_vel, vs.iterations, vs.solver,
-                       time.perf_counter() - t0, vs.sol, vs.friction)
+                       time.perf_counter() - t0, vs.sol, vs.friction, order=1 if pt is None else pt.order)
     new = state.advanced(h, q_new, v_hyper, vs.friction_cache, history=next_history(mech.scheme, state.q, state.v, h))
     return new, StepResult(new.t, q_new, v_new, effort, site_forces, diag, wrenches)
 

@@ -87,6 +87,8 @@ class Diagnostics:
     wall_time: float  # s
     solution: object = field(default=None, repr=False)
     friction: object = None  # staggered.FrictionReport when the scene has contact or joint friction
+    order: int = 1  # the step taken: 2 a BDF2 step, 1 Eq. (2) (integrator.scheme euler, BDF2's start-up, or a
+    # BDF2 step the order control redid as Eq. (2), step/scheme.accepts)
 
     @property
     def residual(self) -> float:
@@ -132,6 +134,7 @@ class Rollout:
     solver: list  # (k,) the solver label of each row's step
     last: StepResult | None = None  # the last row's full StepResult (multipliers, friction report)
     body_wrenches: dict = field(default_factory=dict)  # prescribed body -> (k, 6) required wrench [N m; N], its frame
+    order: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))  # (k,) Diagnostics.order
 
     def __len__(self) -> int:
         return len(self.t)
@@ -154,7 +157,8 @@ class Rollout:
                    np.array([x.iterations for x in d], dtype=np.int64), [x.solver for x in d],
                    results[-1] if results else None,
                    {n: np.array([r.body_wrenches[n] for r in results], dtype=float)
-                    for n in (results[0].body_wrenches if results else {})})
+                    for n in (results[0].body_wrenches if results else {})},
+                   np.array([x.order for x in d], dtype=np.int64))
 
     @classmethod
     def concatenate(cls, parts: list) -> "Rollout":
@@ -167,7 +171,8 @@ class Rollout:
                    cat([p.E_kin for p in parts]), cat([p.E_pot for p in parts]), cat([p.E_spring for p in parts]),
                    cat([p.violation_pos for p in parts]), cat([p.violation_vel for p in parts]),
                    cat([p.iterations for p in parts]), [s for p in parts for s in p.solver], parts[-1].last,
-                   {n: cat([p.body_wrenches[n] for p in parts]) for n in parts[0].body_wrenches})
+                   {n: cat([p.body_wrenches[n] for p in parts]) for n in parts[0].body_wrenches},
+                   cat([p.order for p in parts]))
 
 
 def step_each(step, states, cmd, h, n, budget=None) -> BatchResult:

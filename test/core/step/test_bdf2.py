@@ -241,6 +241,37 @@ def test_order_control_keeps_smooth_runs_bdf2_and_redoes_poor_predictions_as_bdf
     assert rejected >= 1
 
 
+
+@pytest.mark.parametrize("solver", ["reference", "compiled", "pcg"])
+def test_diagnostics_order_names_the_steps_redone_as_eq2(solver):
+    """Diagnostics.order (and Rollout.order) says which steps were BDF2: on mass_springs with corner springs at
+    h = 1e-2 (k = 1e6), where the order control redoes some steps, a step reports order 1 exactly when it is
+    the step of Eq. (2) (integrator.scheme euler) from the same state, to round-off, and order 2 when it is
+    not (> 1e-9 apart); the start-up step reports 1, and the euler scheme 1 throughout. A rollout of the same
+    run reports the same orders."""
+    sets = ["dt=1e-2", "params.k=1e6", "params.attach=corners"]
+    sim = Simulator.load("mass_springs", [BDF2, *sets], solver=solver)
+    bdf1 = Simulator.load("mass_springs", sets, solver=solver)
+    start = sim.state
+    orders = []
+    for i in range(25):
+        st = sim.state
+        r = sim.step()
+        bdf1.set_state(State(st.t, st.q.copy(), st.v.copy(), k=st.k))
+        r1 = bdf1.step()
+        assert r1.diagnostics.order == 1
+        gap = float(np.abs(pin.difference(sim.mech.model, r.q, r1.q)).max())
+        orders.append(r.diagnostics.order)
+        if r.diagnostics.order == 1:
+            assert gap <= 1e-12, (i, gap)
+        else:
+            assert r.diagnostics.order == 2 and gap > 1e-9, (i, gap)
+    assert orders[0] == 1 and orders.count(2) >= 10 and orders[1:].count(1) >= 1, orders
+    sim.set_state(start)
+    ro = sim.rollout(25)
+    assert ro.order.tolist() == orders
+    assert Simulator.load("mass_springs", sets, solver=solver).rollout(5).order.tolist() == [1] * 5
+
 def test_pendulum_energy_error_is_second_order():
     """Conservative pendulum over 2 s: max |E - E0| is second order in h (measured orders 2.11, 2.06, 2.03;
     Euler 1.01, 1.00, 1.00)."""

@@ -55,6 +55,12 @@ def record_layout(d, friction_joints=None) -> dict:
     return out
 
 
+def _order(out_order: float) -> int:
+    """Diagnostics.order from the kernel's d.out[OUT_ORDER]: 2.0 a BDF2 step, else 1 (Eq. 2; the frictional
+    kernel, BDF1 only, leaves the entry unset)."""
+    return 2 if out_order == 2.0 else 1
+
+
 @dataclass
 class CompiledSolution:
     """The Solution interface (solvers/direct.py) of a compiled step: hyper-reduced qdot+, multipliers."""
@@ -298,7 +304,8 @@ class CompiledBackend:
                        col(rec[:, lay["effort"]]),
                        {name: col(F[:, 3 * j:3 * j + 3]) for j, name in enumerate(rcmd.site_velocities)},
                        col(O[:, OUT_E_KIN]), col(O[:, OUT_E_POT]), col(O[:, OUT_E_SPRING]), col(O[:, OUT_VIOL_POS]),
-                       col(O[:, OUT_VIOL_VEL]), O[:, OUT_ITERS].astype(np.int64), ["compiled"] * len(rec), last)
+                       col(O[:, OUT_VIOL_VEL]), O[:, OUT_ITERS].astype(np.int64), ["compiled"] * len(rec), last,
+                       order=np.where(O[:, OUT_ORDER] == 2.0, 2, 1).astype(np.int64))
 
     def _recorded(self, state, h, d, rec, k, rcmd, wall, first=1) -> list:
         """The StepResults of the first k rows of a run's record ``rec`` from ``state`` (the numbers _result
@@ -318,7 +325,8 @@ class CompiledBackend:
             sol = CompiledSolution(H[i], L[i], M[i], o[OUT_RESIDUAL])
             diag = Diagnostics(ek, ep, es, ek + ep + es, o[OUT_VIOL_POS], o[OUT_VIOL_VEL], int(o[OUT_ITERS]),
                                "compiled", each, sol,
-                               self._friction_report(rec[i, lay["rep"]], rec[i, lay["jn"]]) if friction else None)
+                               self._friction_report(rec[i, lay["rep"]], rec[i, lay["jn"]]) if friction else None,
+                               order=_order(o[OUT_ORDER]))
             site_forces = {name: F[i, 3 * j:3 * j + 3] for j, name in enumerate(names)} if names else {}
             out.append(StepResult(t0 + (state.k + i + first) * h, Q[i], V[i], E[i], site_forces, diag, {}))
         return out
@@ -394,5 +402,5 @@ class CompiledBackend:
         sol = CompiledSolution(new.v, views["lam"].copy(), views["mu"].copy(), o[OUT_RESIDUAL])
         diag = Diagnostics(ek, ep, es, ek + ep + es, o[OUT_VIOL_POS], o[OUT_VIOL_VEL], int(o[OUT_ITERS]),
                            "compiled", time.perf_counter() - t0, sol,
-                           None if self.friction is None else self.friction_report())
+                           None if self.friction is None else self.friction_report(), order=_order(o[OUT_ORDER]))
         return StepResult(new.t, q_new, views["v_new"].copy(), views["effort"].copy(), site_forces, diag, {})
