@@ -63,6 +63,9 @@ class _W:
         self.align(4)
         self.b += struct.pack("<i", v)
 
+    def u8(self, v):
+        self.b += struct.pack("<B", v)
+
     def u64(self, v):
         self.align(8)
         self.b += struct.pack("<Q", v)
@@ -248,10 +251,11 @@ class SolverStatsEncoder:
                 w.f64(0.0)
             w.u32(0)  # contact_rows
             w.u32(0)  # contacts_active
+            w.u8(0)  # integration_order
             b = bytes(w.b)
             # encapsulation, sec, nanosec, [frame_id + padding], step, [solver + padding], iterations,
-            # [padding], 8 doubles, 2 uint32
-            fmt = f"<4siI{off_step - 12}sQ{off_it - off_step - 8}sI{off_d - off_it - 4}s8dII"
+            # [padding], 8 doubles, 2 uint32, 1 uint8
+            fmt = f"<4siI{off_step - 12}sQ{off_it - off_step - 8}sI{off_d - off_it - 4}s8dIIB"
             tpl = (b, off_step, off_it, off_d, struct.Struct(fmt),
                    (b[12:off_step], b[off_step + 8:off_it], b[off_it + 4:off_d]))
             assert tpl[4].size == len(b)
@@ -263,7 +267,7 @@ class SolverStatsEncoder:
         """(Struct, (frame_id piece, solver piece, padding piece)) of the message for ``solver``:
         ``Struct.pack(ENCAPSULATION, sec, nanosec, piece0, step, piece1, iterations, piece2, residual,
         violation_pos, violation_vel, E_kin, E_pot, E_spring, E_total, wall_time, contact_rows,
-        contacts_active)``."""
+        contacts_active, integration_order)``."""
         tpl = self._template(solver)
         return tpl[4], tpl[5]
 
@@ -277,7 +281,12 @@ class SolverStatsEncoder:
         return st.pack(ENCAPSULATION, ns // 1_000_000_000, ns % 1_000_000_000, p0, int(step), p1,
                        int(diag.iterations), p2, float(diag.residual), float(diag.violation_pos),
                        float(diag.violation_vel), float(diag.E_kin), float(diag.E_pot), float(diag.E_spring),
-                       float(diag.E_total), float(diag.wall_time), rows, active)
+                       float(diag.E_total), float(diag.wall_time), rows, active, integration_order(diag))
+
+
+def integration_order(diag) -> int:
+    """SolverStats.integration_order of a step's Diagnostics: its ``order`` (2 a BDF2 step, 1 a step of Eq. 2)."""
+    return int(diag.order)
 
 
 def contact_counts(diag) -> tuple:
@@ -340,7 +349,7 @@ class StepRecords:
                        op, 22 + n, hs.index + 1, ss, log_ns, log_ns, ENCAPSULATION, sec, nsec, p0, int(step), p1,
                        int(diag.iterations), p2, diag.residual, diag.violation_pos,  # 'd' packs any float-like
                        diag.violation_vel, diag.E_kin, diag.E_pot, diag.E_spring, diag.E_total, diag.wall_time,
-                       rows, active)
+                       rows, active, integration_order(diag))
         return b"".join((self._head.pack(op, 22 + len(js), hj.index + 1, sj, log_ns, log_ns), js, rest))
 
 

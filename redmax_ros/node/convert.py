@@ -20,7 +20,7 @@ from visualization_msgs.msg import Marker, MarkerArray
 
 from redmax_msgs.msg import Coupling as CouplingMsg
 from redmax_msgs.msg import (BodyTwistCommand, BodyTwists, BodyWrenches, PointForces, PointVelocityCommand,
-                             SceneDescription, SolverStats)
+                             SceneDescription)
 
 from redmax_ros.core import DofPositions
 
@@ -362,7 +362,6 @@ class StateMessages:
         self.bw = BodyWrenches(check_fields=False)
         self.bw.header.frame_id = frame_id
         self.clock = Clock(check_fields=False)
-        self.stats = SolverStats(check_fields=False)
 
     def joint_state(self, t, q, v, effort) -> JointState:
         m = self.js
@@ -393,23 +392,6 @@ class StateMessages:
     def clock_msg(self, t) -> Clock:
         self.clock.clock = time_msg(t)
         return self.clock
-
-    def solver_stats(self, t, step_index, diag) -> SolverStats:
-        m = self.stats
-        m.header.stamp = time_msg(t)
-        m.header.frame_id = self.frame_id
-        m.step = int(step_index)
-        m.solver = str(diag.solver)
-        m.iterations = int(diag.iterations)
-        m.residual = float(diag.residual)
-        m.violation_pos = float(diag.violation_pos)
-        m.violation_vel = float(diag.violation_vel)
-        m.energy_kinetic = float(diag.E_kin)
-        m.energy_potential = float(diag.E_pot)
-        m.energy_spring = float(diag.E_spring)
-        m.energy_total = float(diag.E_total)
-        m.step_wall_time = float(diag.wall_time)
-        return m
 
 
 def prescriptions_msg(t, joints: dict, frame_id="world") -> JointState:

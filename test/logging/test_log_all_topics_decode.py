@@ -513,10 +513,10 @@ def test_fast_encoders_equal_serialize_message():
     empty.header.stamp = time_msg(0.5)
     assert JointStateEncoder([]).encode(0.5, [], [], []) == ours_of(empty)  # lists: the buffer path
     d = SimpleNamespace(E_kin=1.5, E_pot=-2.25, E_spring=0.125, E_total=-0.625, violation_pos=1e-12,
-                        violation_vel=3e-15, residual=2e-16, iterations=7, solver="pcg", wall_time=2.5e-4)
+                        violation_vel=3e-15, residual=2e-16, iterations=7, solver="pcg", wall_time=2.5e-4, order=2)
     st = SolverStats(step=42, solver="pcg", iterations=7, residual=2e-16, violation_pos=1e-12, violation_vel=3e-15,
                      energy_kinetic=1.5, energy_potential=-2.25, energy_spring=0.125, energy_total=-0.625,
-                     step_wall_time=2.5e-4)
+                     step_wall_time=2.5e-4, integration_order=2)
     st.header.stamp, st.header.frame_id = time_msg(0.042), "world"
     assert SolverStatsEncoder("world").encode(0.042, 42, d) == ours_of(st)
     assert encode_clock(3.5) == ours_of(Clock(clock=time_msg(3.5)))

@@ -92,13 +92,16 @@ def test_clock_bytes(store):
 @pytest.mark.parametrize("solver", ["direct", "pcg", "", "a-much-longer-solver-name"])
 def test_solver_stats_bytes(solver, store):
     rows, active = (17, 3) if solver == "direct" else (0, 0)  # a step with self-collision rows (docs/collisions.md)
+    order = 2 if solver == "pcg" else 1  # a BDF2 step (Diagnostics.order)
     d = SimpleNamespace(E_kin=1.5, E_pot=-2.25, E_spring=0.125, E_total=-0.625, violation_pos=1e-12,
                         violation_vel=3e-15, residual=2e-16, iterations=7, solver=solver, wall_time=2.5e-4,
-                        solution=SimpleNamespace(contacts=SimpleNamespace(rows=rows, active=active) if rows else None))
+                        solution=SimpleNamespace(contacts=SimpleNamespace(rows=rows, active=active) if rows else None),
+                        order=order)
     enc = SolverStatsEncoder("world")
     ref = SolverStats(step=123456789012, solver=solver, iterations=7, residual=2e-16, violation_pos=1e-12,
                       violation_vel=3e-15, energy_kinetic=1.5, energy_potential=-2.25, energy_spring=0.125,
-                      energy_total=-0.625, step_wall_time=2.5e-4, contact_rows=rows, contacts_active=active)
+                      energy_total=-0.625, step_wall_time=2.5e-4, contact_rows=rows, contacts_active=active,
+                      integration_order=order)
     ref.header.stamp = time_msg(0.042)
     ref.header.frame_id = "world"
     got = enc.encode(0.042, 123456789012, d)
@@ -152,7 +155,7 @@ def test_step_records_equal_write_many(tmp_path):
         solver = "direct" if k < 30 else "pcg"  # a solver change mid-run: another layout
         d = SimpleNamespace(E_kin=rng.normal(), E_pot=rng.normal(), E_spring=rng.normal(), E_total=rng.normal(),
                             violation_pos=rng.random(), violation_vel=rng.random(), residual=rng.random(),
-                            iterations=int(k % 5), solver=solver, wall_time=rng.random())
+                            iterations=int(k % 5), solver=solver, wall_time=rng.random(), order=1 + k % 2)
         steps.append((1000 + k, 0.001 * k, js_enc.encode(0.001 * k, *rng.normal(size=(3, 3))), k, d))
 
     def expected(ns, t, js, k, d):

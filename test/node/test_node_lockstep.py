@@ -427,5 +427,16 @@ def test_solver_stats_while_subscribed(client, fresh):
         c.wait_for(lambda: len(got) >= 5, what="5 solver_stats")
         assert [m.step for m in got[-5:]] == [4, 5, 6, 7, 8]
         assert all(m.solver and m.iterations >= 1 and math.isfinite(m.residual) for m in got[-5:])
+        assert [m.integration_order for m in got[-5:]] == [1] * 5  # the hand steps Eq. (2) (scheme euler)
+        # integrator.scheme bdf2: the order of each step, as the core reports it (Diagnostics.order): the start-up
+        # step 1, then BDF2 steps the order control keeps (a smooth pendulum keeps them all)
+        r = c.load("pendulum", ["integrator.scheme=bdf2"])
+        assert r.result.result == Result.OK, r.result.error_message
+        n0 = len(got)
+        assert c.step(5).result.result == Result.OK
+        c.wait_for(lambda: len(got) >= n0 + 5, what="5 solver_stats under BDF2")
+        ref = Simulator.load("pendulum", ["integrator.scheme=bdf2", f"dt={H}"]).rollout(5).order.tolist()
+        assert [m.integration_order for m in got[n0:n0 + 5]] == ref == [1, 2, 2, 2, 2]
     finally:
         c.node.destroy_subscription(sub)
+        assert c.load("hand").result.result == Result.OK  # the module's scene again
