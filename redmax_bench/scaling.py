@@ -7,8 +7,9 @@ like the paper's Table 2 and Fig. 4 (Wang et al. 2019, §6).
                          [--no-chart] [--name NAME] [--out DIR]
 
 For every scene and size the same scene time is simulated from the initial state with each solver,
-PCG ``--repeats`` times (default 3, the fastest run counted), and the stepping time is measured
-(scene loading and numba JIT compilation excluded; the kernels are compiled by a warm-up run first).
+PCG in ``--repeats`` sweeps over the sizes (default 3, the fastest run of each size counted), and the
+stepping time is measured (scene loading and numba JIT compilation excluded; the kernels are compiled by
+a warm-up run first).
 Times are process CPU time by default (``--wall`` for wall time): on a shared machine other jobs inflate
 wall time, not CPU time, and all solvers run single-threaded (OPENBLAS_NUM_THREADS=1, set by the package):
 
@@ -145,26 +146,34 @@ def warm_up():
 
 def measure(key, levels, fraction, rtol, no_direct_above, verbose=True, steps=None, direct_steps=None, repeats=1):
     label, scene, ov, T, _ = SCENES[key]
-    rows = []
+    sizes = []  # (level, simulator, PCG backend, steps, load time) of every size, loaded first
     for k in levels:
         t_load = time.perf_counter()
         sim = Simulator.load(scene, ov(k), solver="pcg")
         t_load = time.perf_counter() - t_load
-        nv = sim.mech.nv
         n_steps = max(1, int(round(T * fraction / sim.dt))) if steps is None else int(steps)
+        sizes.append((sim, DataFreeBackend(sim.mech, "pcg", rtol=rtol), n_steps, t_load))
+    # PCG: ``repeats`` sweeps over the sizes, each size run from its initial state in every sweep (the same steps
+    # and iterations each time: the differences are the machine's), the fastest run of each size counted, as
+    # redmax_bench step takes the best of its repeats; sweeping keeps a size's runs seconds apart, so that one
+    # slow spell of a shared machine does not cover them all
+    runs = [[] for _ in sizes]
+    for _ in range(max(1, int(repeats))):
+        for i, (sim, pcg, n_steps, _) in enumerate(sizes):
+            runs[i].append(run_solver(sim, pcg, n_steps))
+    rows = []
+    for (sim, pcg, n_steps, t_load), pruns in zip(sizes, runs):
+        nv = sim.mech.nv
         row = {"dof": nv, "steps": n_steps, "scene_time": n_steps * sim.dt, "loop_rows": int(sum(
             len(a) for a in sim.mech.loop_axes)), "springs": len(sim.mech.spring_names)}
-        pcg = DataFreeBackend(sim.mech, "pcg", rtol=rtol)
-        # the fastest of ``repeats`` identical runs from the initial state (the same steps and iterations each time:
-        # the differences are the machine's), as redmax_bench step takes the best of its repeats
-        runs = [run_solver(sim, pcg, n_steps) for _ in range(max(1, int(repeats)))]
-        t, wall, its, labels, s_pcg = min(runs, key=lambda r: r[0])
+        t, wall, its, labels, s_pcg = min(pruns, key=lambda r: r[0])
+        sim.state = s_pcg
         solves = pcg.workspace.tree.last_stats.get("solves", [])  # the last step's solves (Eq. 4)
         ns_joint, ns_dof = preconditioner_ns(pcg.workspace.tree)
         row.update(pcg=t, pcg_wall=wall, pcg_per_step_us=t / n_steps * 1e6, iters=float(np.mean(its)),
                    iters_max=int(np.max(its)), iters_first_step=int(its[0]), solves_per_step=len(solves),
                    pcg_labels=labels, pinv_ns_per_joint=ns_joint, pinv_ns_per_dof=ns_dof, load_s=t_load,
-                   pcg_runs=[r[0] for r in runs])
+                   pcg_runs=[r[0] for r in pruns])
         if no_direct_above is None or nv <= no_direct_above:
             nd = n_steps if direct_steps is None else min(n_steps, int(direct_steps))
             td, wall_d, _, labels_d, s_dir = run_solver(sim, DataFreeBackend(sim.mech, "direct"), nd)
@@ -228,7 +237,8 @@ def main(argv=None) -> int:
                     help="steps per size instead of the scene time (the fits use time per step)")
     ap.add_argument("--rtol", type=float, default=1e-6, help="PCG relative residual (default 1e-6, as the paper)")
     ap.add_argument("--repeats", type=int, default=3,
-                    help="PCG runs per size, the fastest counted (default 3; each from the initial state)")
+                    help="PCG sweeps over the sizes, the fastest run of each size counted (default 3; each run "
+                         "from the initial state)")
     ap.add_argument("--no-direct-above", type=int, default=None, metavar="DOF",
                     help="skip the direct solver above this many DOF (it is O(n^3))")
     ap.add_argument("--direct-steps", type=int, default=None, metavar="N",
