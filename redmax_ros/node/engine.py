@@ -513,7 +513,7 @@ class Engine:
             vals.update({"solver": d.solver, "solver_iterations": d.iterations, "residual": d.residual,
                          "violation_pos": d.violation_pos, "violation_vel": d.violation_vel,
                          "energy_total": d.E_total, "energy_kinetic": d.E_kin,
-                         "energy_potential": d.E_pot, "energy_spring": d.E_spring})
+                         "energy_potential": d.E_pot, "energy_spring": d.E_spring, "integration_order": d.order})
             contacts = getattr(d.solution, "contacts", None)
             if contacts is not None:  # self-collision (docs/collisions.md): the last step's pairs and rows
                 vals.update({"contact_candidates": contacts.candidates, "contact_rows": contacts.rows,

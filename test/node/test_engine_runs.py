@@ -170,3 +170,28 @@ def test_run_cap_grows_for_cheap_steps_and_halves_for_slow_ones():
     assert eng._next_cap(cap, 10, 1e-5) == cap  # a run cut short (a publish point) says nothing
     assert eng._next_cap(64, 64, 3 * eng.RUN_WALL) == 32
     assert eng._next_cap(1, 1, 1.0) == 1
+
+
+def test_diagnostics_report_the_last_steps_integration_order():
+    """/diagnostics carries the last step's Diagnostics.order: 1 under the euler scheme; under bdf2, 1 after the
+    start-up step and 2 after a BDF2 step (a smooth pendulum keeps them)."""
+    class Diag(NullSink):
+        def __init__(self):
+            self.values = []
+
+        def diagnostics(self, values, ok, message):
+            self.values.append(values)
+
+    for overrides, n, want in (((), 3, 1), (("integrator.scheme=bdf2",), 1, 1), (("integrator.scheme=bdf2",), 3, 2)):
+        sink = Diag()
+        e = Engine(sink, "pendulum", list(overrides), initial_state=PAUSED, diagnostics_period=0.02)
+        e.start()
+        try:
+            assert e.step(n, None).steps == n
+            end = time.monotonic() + 10.0  # the engine's thread reports every diagnostics_period, paused too
+            while not any(v.get("steps") == n for v in list(sink.values)) and time.monotonic() < end:
+                time.sleep(0.01)
+        finally:
+            e.stop()
+        last = [v for v in sink.values if v.get("steps") == n][-1]
+        assert last["integration_order"] == want, (overrides, n, last)
