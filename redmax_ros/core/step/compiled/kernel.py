@@ -86,7 +86,8 @@ def one_step(m, d, q, vR, tau, h, gj, sv, qp, vp, hist, warm, report):
     order = hist
     while True:  # one call site: the stages are inlined once (a plain call copies the namedtuples)
         status = stages(m, d, q, vR, tau, h, gj, sv, qp, vp, order, warm, report)
-        if order == 1 and status == OK and not accepted(m, d, q, 2.0 * h / 3.0):
+        # a reported BDF2 step's energies (tail_stages) left the placements at q+, which the springs' check reads
+        if order == 1 and status == OK and not accepted(m, d, q, 2.0 * h / 3.0, report):
             order = 0
             warm = False  # the BDF2 attempt moved the placements to its q*
             continue

@@ -10,7 +10,7 @@ pin.difference by manifold.py, bit for bit):
 
 Outputs: d.q_base (q^), d.q_lin (q*), d.v_r (v*, reduced), d.v_mom (v^, reduced), d.back (q* (-) q^, reduced).
 
-``accepted(m, d, q, hh)``: the order control of step/scheme.accepts on the step's result d.q_new (the same
+``accepted(m, d, q, hh, placed)``: the order control of step/scheme.accepts on the step's result d.q_new (the same
 differences and maxima, and the maximal springs' linearisation miss by the same kernel)."""
 from __future__ import annotations
 
@@ -52,11 +52,12 @@ def point(m, d, q, vR, qp, vp, hist, hh):
 
 
 @njit_inline
-def accepted(m, d, q, hh):
+def accepted(m, d, q, hh, placed):
     """Whether the BDF2 step from q = q_k that predicted d.q_lin and reached d.q_new is kept (step/scheme.accepts:
     max |q+ (-) q*| <= ORDER_RATIO max |q+ (-) q_k| + ORDER_FLOOR, and the same bound on the maximal springs'
     linearisation miss, springs.linearisation_miss, from their ends at q* (d.pa, d.pb) and the sites at q+,
-    placed into d.X); scratch d.bdf_d, d.step_v. ``hh``: hat h [s]."""
+    placed into d.X); scratch d.bdf_d, d.step_v. ``hh``: hat h [s]. ``placed``: d holds the placements at q+
+    already (the step's energies left them, energy.energies), so the sites are not placed again."""
     difference(m.kind, m.idx_q, m.idx_v, d.q_lin, d.q_new, d.bdf_d)
     difference(m.kind, m.idx_q, m.idx_v, q, d.q_new, d.step_v)
     miss = 0.0
@@ -69,6 +70,7 @@ def accepted(m, d, q, hh):
         return False
     if m.spring_a.shape[0] == 0:
         return True
-    placements(m, d, d.q_new, False, d.v_new)  # the sites at q+ (the next step computes its own kinematics)
+    if not placed:
+        placements(m, d, d.q_new, False, d.v_new)  # the sites at q+ (the next step computes its own kinematics)
     return linearisation_miss(d.pa, d.pb, d.X, m.spring_a, m.spring_b, m.spring_k, m.spring_explicit, m.spring_ja,
                               m.spring_jb, m.mass, hh * hh) <= bound
