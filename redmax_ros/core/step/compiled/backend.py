@@ -179,7 +179,8 @@ class CompiledBackend:
             return self._friction_step(state, cmd, h, budget, inp, t0)
         qp, vp, hist = self._history_args(state, h)
         q, v = state.q.copy(), state.v.copy()  # a run of one step: the kernel advances them in place
-        if not step_n_kernel(*self.model.args, *d.args, q, v, tau, float(h), gj, sv, 1, qp, vp, hist, hist, _NO_REC, 1, 0):
+        if not step_n_kernel(*self.model.args, *d.args, q, v, tau, float(h), gj, sv, 1, qp, vp, hist, hist, _NO_REC, 1, 0,
+                             1):
             self._handed_back(d)
             return self.reference_step(state, cmd, h, budget)
         if hist == 1 and cmd.joint_trajectories and d["out"][OUT_ORDER] == 1.0:
@@ -232,7 +233,7 @@ class CompiledBackend:
         (State, the k steps' StepResults, k): the kernel records each step's outputs (kernel.record_step) and
         they are the results single steps give (diagnostics.wall_time: the run's wall time / k). A StepError
         comes only from a single step (the state before it is the input's)."""
-        r = self._run(state, cmd, h, n, budget, n if record else 0, 1, 0)
+        r = self._run(state, cmd, h, n, budget, n if record else 0, 1, 0, 1)
         if r[0] is None:  # one step by ``step``
             _, new, res = r
             return new, [res] if record else res, 1
@@ -245,8 +246,9 @@ class CompiledBackend:
         """step_run recording only every ``every``-th step, counted from ``phase`` (< every) steps taken before
         this run: (State, a Rollout of the recorded steps or None, k). The kernel records those steps' outputs
         (and computes BDF2's energies for those steps only, kernel.tail_stages); their numbers are the ones
-        step_results gives."""
-        r = self._run(state, cmd, h, n, budget, (n + phase) // every, every, phase)
+        step_results gives; the KKT residual, which a Rollout's rows do not carry, only for the run's last step
+        (its ``last``)."""
+        r = self._run(state, cmd, h, n, budget, (n + phase) // every, every, phase, 0)
         if r[0] is None:
             _, new, res = r
             return new, (Rollout.from_results([res]) if phase + 1 == every else None), 1
@@ -256,10 +258,11 @@ class CompiledBackend:
             return new, None, k
         return new, self._rollout(state, h, d, rec[:rows], every, phase, rcmd, time.perf_counter() - t0, k), k
 
-    def _run(self, state, cmd, h, n, budget, rows, every, phase):
+    def _run(self, state, cmd, h, n, budget, rows, every, phase, residuals):
         """One kernel call of up to n steps recording ``rows`` rows (kernel.record_row: every ``every``-th step
-        from ``phase``): (State, Data, record, k, resolved commands, start time), or (None, State, StepResult)
-        when ``step`` took one step instead."""
+        from ``phase``; with ``residuals`` each with its KKT residual, else only the run's last step has it):
+        (State, Data, record, k, resolved commands, start time), or (None, State, StepResult) when ``step`` took
+        one step instead."""
         inp = None if cmd.joint_trajectories else self._inputs(state, cmd, h)
         if inp is None:
             return (None, *self.step(state, cmd, h, budget))
@@ -275,7 +278,7 @@ class CompiledBackend:
         else:
             qp, vp, hist = self._history_args(state, h)
             k = step_n_kernel(*self.model.args, *d.args, q, v, tau, float(h), gj, sv, n, qp, vp, hist, int(self.bdf2),
-                              rec, every, phase)
+                              rec, every, phase, residuals)
             new = self._advanced(state, h, q, v, qp, vp, steps=k) if k else None
         if k == 0:
             self._handed_back(d)
@@ -363,7 +366,7 @@ class CompiledBackend:
 
         def run(b):
             return step_n_kernel(*self.model.args, DF[b], DI[b], d.tab, Q[b], V[b], tau, float(h), gj, sv, int(todo[b]),
-                                 QP[b], VP[b], int(HIST[b]), bdf2, _NO_REC, 1, 0)
+                                 QP[b], VP[b], int(HIST[b]), bdf2, _NO_REC, 1, 0, 1)
 
         while todo.any():
             live = [int(b) for b in np.flatnonzero(todo)]

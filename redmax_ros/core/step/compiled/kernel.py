@@ -77,15 +77,16 @@ def _handoff(out, stage):
 
 
 @njit_inline
-def one_step(m, d, q, vR, tau, h, gj, sv, qp, vp, hist, warm, report):
+def one_step(m, d, q, vR, tau, h, gj, sv, qp, vp, hist, warm, report, residual):
     """One step on the Model and Data namedtuples: BDF2 (``hist``) kept if the order control accepts it, else
     BDF1 from the same state; returns OK or REFERENCE. ``warm``: d holds the placements and twists at (q, vR),
     left by the previous step of the run (its energies); a BDF1 step uses them (kinematics.kinematics).
-    ``report``: the step's outputs are returned (the last step of a run, or a recorded one), so its KKT residual
-    (a diagnostic only) is computed, and under BDF2 its energies (tail_stages); else those outputs are NaN."""
+    ``report``: the step's outputs are returned (the last step of a run, or a recorded one), so under BDF2 its
+    energies are computed (tail_stages); ``residual``: its KKT residual too (a diagnostic only: the StepResults of
+    single steps and step_results carry it, a Rollout's rows do not); else those outputs are NaN."""
     order = hist
     while True:  # one call site: the stages are inlined once (a plain call copies the namedtuples)
-        status = stages(m, d, q, vR, tau, h, gj, sv, qp, vp, order, warm, report)
+        status = stages(m, d, q, vR, tau, h, gj, sv, qp, vp, order, warm, report, residual)
         # a reported BDF2 step's energies (tail_stages) left the placements at q+, which the springs' check reads
         if order == 1 and status == OK and not accepted(m, d, q, 2.0 * h / 3.0, report):
             order = 0
@@ -97,9 +98,9 @@ def one_step(m, d, q, vR, tau, h, gj, sv, qp, vp, hist, warm, report):
 
 
 @njit_inline
-def stages(m, d, q, vR, tau, h, gj, sv, qp, vp, hist, warm, report):
+def stages(m, d, q, vR, tau, h, gj, sv, qp, vp, hist, warm, report, residual):
     """The stages of one step (BDF2 with ``hist``, else BDF1) on the Model and Data namedtuples; returns OK or
-    REFERENCE. ``report``: see one_step."""
+    REFERENCE. ``report``, ``residual``: see one_step."""
     status, hh = rigid_stages(m, d, q, vR, tau, h, gj, sv, qp, vp, hist, warm)  # 0-3
     if status != OK:
         return status
@@ -122,7 +123,7 @@ def stages(m, d, q, vR, tau, h, gj, sv, qp, vp, hist, warm, report):
     if not (d.v_hyper @ d.v_hyper <= MAX_SPEED * MAX_SPEED):
         return _handoff(d.out, STAGE_SPEED)
     d.out[OUT_VIOL_VEL] = viol
-    if report:
+    if residual:
         d.out[OUT_RESIDUAL] = kkt_residual_into(d.AR, d.bR, d.v_hyper, d.G, d.lam, m.limit_rows, d.mu, d.kkt_r)
     else:
         d.out[OUT_RESIDUAL] = np.nan
@@ -265,18 +266,22 @@ def friction_step_n_kernel(mf, mi, mt, df, di, dt, ff, fi, ft, q, vR, tau, h, gj
 
 
 @njit
-def step_n_kernel(mf, mi, mt, df, di, dt, q, vR, tau, h, gj, sv, n, qp, vp, hist, bdf2, rec, every, phase):
+def step_n_kernel(mf, mi, mt, df, di, dt, q, vR, tau, h, gj, sv, n, qp, vp, hist, bdf2, rec, every, phase, residuals):
     """Up to n steps with the same commands, (q, vR) advanced in place; returns the number of steps taken
     (< n: the next step was handed back, d.out[OUT_STAGE] says why). The Data holds the last step's outputs.
     ``bdf2`` nonzero: integrator.scheme bdf2, the history (qp, vp) kept in place (the state before the last
     step taken; ``hist`` whether the input's history is valid for h), else every step is BDF1. ``rec``
     (rows, width): the outputs of every ``every``-th step (record_row, counted from ``phase`` steps before the
-    run) go to its rows (record_step); (0, 0) records nothing."""
+    run) go to its rows (record_step); (0, 0) records nothing. ``residuals`` nonzero: every recorded step
+    computes its KKT residual (StepResults), else only the run's last step (a Rollout's rows have none, its
+    ``last`` has)."""
     m = model_views(mf, mi, mt)
     d = data_views(df, di, dt)
     for k in range(n):  # after the first step, d holds the placements and twists at (q, vR) (one_step)
         i = record_row(k, every, phase, rec.shape[0])
-        if one_step(m, d, q, vR, tau, h, gj, sv, qp, vp, hist, k > 0, k == n - 1 or i >= 0) != OK:
+        last = k == n - 1
+        if one_step(m, d, q, vR, tau, h, gj, sv, qp, vp, hist, k > 0, last or i >= 0,
+                    last or (residuals != 0 and i >= 0)) != OK:
             return k
         if i >= 0:
             record_step(rec[i], d)
