@@ -119,21 +119,22 @@ def assemble(mech, ws, kin: Kinematics, q, v_r, tau, h, site_forces=None) -> Lin
         A = Jf.T @ W.reshape(3 * P, nv)
         f += Jf.T @ fs.reshape(3 * P)
         rows = mech.spring_rows
+        pa, pb = kin.X[rows[:, 0]], kin.X[rows[:, 1]]  # the springs' ends
         if pt is not None:  # BDF2: f(q+) ~ f(q*) + K' (q* (-) q^) - K hat h qdot+ (springs.spring_shift)
             corr = np.empty((P, 3))
             ex = np.zeros(P, np.int64) if mech.spring_explicit is None else mech.spring_explicit.astype(np.int64)
             spring_shift_kernel(kin.X, rows[:, 0].copy(), rows[:, 1].copy(), mech.spring_k, mech.spring_rest, ex,
                                 kin.J @ pt.back, ws.tree.spring_ja, ws.tree.spring_jb, ws.tree.topo.mass, h * h, corr)
             f += Jf.T @ corr.reshape(3 * P)
-            ws.spring_ends = (kin.X[rows[:, 0]], kin.X[rows[:, 1]])  # for the order control (pipeline.spring_miss)
+            ws.spring_ends = (pa, pb)  # at q*, for the order control (pipeline.spring_miss)
             # ... and the turn of the lever arms, B (q* (-) q^) with the unclamped lever blocks B at q*
             B = np.zeros_like(A)
-            add_geometric_stiffness(ws, B, ws.tree.spring_ja, kin.X[rows[:, 0]], ws.tree.spring_jb,
-                                    kin.X[rows[:, 1]], fs, mech.spring_explicit, 1.0, clamp=False)
+            add_geometric_stiffness(ws, B, ws.tree.spring_ja, pa, ws.tree.spring_jb, pb, fs, mech.spring_explicit, 1.0,
+                                    clamp=False)
             f += B @ pt.back
         if mech.spring_geometric:
-            add_geometric_stiffness(ws, A, ws.tree.spring_ja, kin.X[rows[:, 0]], ws.tree.spring_jb,
-                                    kin.X[rows[:, 1]], fs, mech.spring_explicit, h * h)
+            add_geometric_stiffness(ws, A, ws.tree.spring_ja, pa, ws.tree.spring_jb, pb, fs, mech.spring_explicit,
+                                    h * h)
     if len(mech.damped_bodies) or mech.extras is not None:
         A = np.zeros_like(M) if A is None else A
     for bi in mech.damped_bodies:  # body damping D_m = c diag(m_d I3, I_d) at the COM, implicit
