@@ -145,8 +145,9 @@ def warm_up():
 
 
 def measure(key, levels, fraction, rtol, no_direct_above, verbose=True, steps=None, direct_steps=None, repeats=1):
+    """The rows of scene ``key`` at ``levels``; ``repeats`` (>= 1): PCG sweeps over the sizes (main)."""
     label, scene, ov, T, _ = SCENES[key]
-    sizes = []  # (level, simulator, PCG backend, steps, load time) of every size, loaded first
+    sizes = []  # (simulator, PCG backend, steps, load time) of every size, loaded first
     for k in levels:
         t_load = time.perf_counter()
         sim = Simulator.load(scene, ov(k), solver="pcg")
@@ -158,7 +159,7 @@ def measure(key, levels, fraction, rtol, no_direct_above, verbose=True, steps=No
     # redmax_bench step takes the best of its repeats; sweeping keeps a size's runs seconds apart, so that one
     # slow spell of a shared machine does not cover them all
     runs = [[] for _ in sizes]
-    for _ in range(max(1, int(repeats))):
+    for _ in range(repeats):
         for i, (sim, pcg, n_steps, _) in enumerate(sizes):
             runs[i].append(run_solver(sim, pcg, n_steps))
     rows = []
@@ -250,6 +251,8 @@ def main(argv=None) -> int:
     a = ap.parse_args(argv)
     if not 0 < a.fraction <= 10:
         ap.error("--fraction must be in (0, 10]")
+    if a.repeats < 1:
+        ap.error(f"--repeats must be at least 1 (PCG sweeps over the sizes), got {a.repeats}")
     global TIMER
     TIMER = "wall" if a.wall else "cpu"
     t0 = time.perf_counter()
